@@ -1,0 +1,290 @@
+"""The configuration schema of the appliance (one YAML file; see ``config/appliance.yaml``).
+
+Every model rejects unknown keys; every number has bounds and its unit in its name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from appliance.config.backends import CameraConfig, ProjectorConfig, SimCameraConfig, SimProjectorConfig, SimTriggerConfig, TriggerConfig
+
+Vec3 = tuple[float, float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --- the pattern sequence -----------------------------------------------------------------------------
+
+
+class SequenceConfig(_Strict):
+    """Which patterns a scan projects."""
+
+    kind: Literal["gray_phase", "gray"] = Field(
+        "gray_phase", description="Gray + phase shift (sub-pixel) or Gray code only (stripe centres)."
+    )
+    axes: Literal["x", "y", "xy"] = Field("x", description="Coded projector axes; 'xy' allows ray-ray triangulation.")
+    periods_px: tuple[int, ...] = Field(
+        (16,),
+        min_length=1,
+        max_length=4,
+        description="Fringe periods (projector px), coarsest first; Gray stripe = half the coarsest.",
+    )
+    steps: int = Field(4, ge=3, le=16, description="Phase steps per period.")
+    stripe_px: int = Field(1, ge=1, le=256, description="Gray stripe width for kind 'gray' (projector px).")
+    inverses: bool = Field(True, description="Project the inverse of every Gray bit.")
+
+    @model_validator(mode="after")
+    def _periods_even(self) -> SequenceConfig:
+        for p in self.periods_px:
+            if p < 4 or p % 2:
+                raise ValueError(f"periods_px: {p} must be an even number >= 4")
+        if list(self.periods_px) != sorted(self.periods_px, reverse=True):
+            raise ValueError(f"periods_px: {list(self.periods_px)} must be listed coarsest first")
+        return self
+
+
+# --- reconstruction -----------------------------------------------------------------------------------
+
+
+class ReconstructionConfig(_Strict):
+    """Decoding thresholds, triangulation and filters."""
+
+    mode: Literal["projector", "stereo"] = Field(
+        "projector", description="Camera-projector per camera, or camera-camera (needs two cameras)."
+    )
+    min_contrast_dn: float = Field(
+        6.0, ge=0, le=65535, description="Floor of the white-black contrast for a lit pixel (DN, 8-bit scale)."
+    )
+    relative_contrast: float = Field(
+        0.15,
+        ge=0,
+        le=1,
+        description="A Gray pair must differ by this share of the pixel's white-black range.",
+    )
+    min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
+    max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
+    min_neighbours: int = Field(
+        3, ge=0, le=8, description="Drop points with fewer valid 8-neighbours (isolated points)."
+    )
+    max_neighbour_jump_mm: float = Field(
+        2.0, gt=0, description="A neighbour counts only when its depth differs by less than this (mm)."
+    )
+    stereo_max_epipolar_px: float = Field(
+        1.5, gt=0, description="Stereo: reject matches this far from the epipolar line (px)."
+    )
+    normals: bool = Field(False, description="Estimate normals from the organised cloud.")
+
+    @model_validator(mode="after")
+    def _range(self) -> ReconstructionConfig:
+        if self.max_depth_mm <= self.min_depth_mm:
+            raise ValueError(f"max_depth_mm {self.max_depth_mm} must be > min_depth_mm {self.min_depth_mm}")
+        return self
+
+
+# --- the virtual rig ----------------------------------------------------------------------------------
+
+
+class DeviceOptics(_Strict):
+    """Intrinsics and pose of a virtual camera or projector (ground truth of the virtual rig)."""
+
+    width: int = Field(ge=16, le=10000, description="Image width (px).")
+    height: int = Field(ge=16, le=10000, description="Image height (px).")
+    focal_px: float = Field(gt=0, description="Focal length (px).")
+    principal_px: tuple[float, float] | None = Field(None, description="Principal point (px); centre when unset.")
+    dist: tuple[float, ...] = Field((), max_length=8, description="Distortion k1 k2 p1 p2 k3 (OpenCV order).")
+    position_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Optical centre in the world frame (mm).")
+    look_at_mm: Vec3 = Field((0.0, 0.0, 600.0), description="A point on the optical axis (mm).")
+
+
+class PlaneObject(_Strict):
+    type: Literal["plane"] = "plane"
+    point_mm: Vec3 = Field(description="A point on the plane (mm).")
+    normal: Vec3 = Field((0.0, 0.0, -1.0), description="Plane normal (any length).")
+    albedo: float = Field(0.8, ge=0, le=1, description="Reflectance 0..1.")
+    texture: float = Field(0.0, ge=0, le=1, description="Albedo texture amplitude (share of albedo).")
+
+
+class SphereObject(_Strict):
+    type: Literal["sphere"] = "sphere"
+    center_mm: Vec3
+    radius_mm: float = Field(gt=0)
+    albedo: float = Field(0.8, ge=0, le=1)
+    texture: float = Field(0.0, ge=0, le=1)
+
+
+class BoxObject(_Strict):
+    type: Literal["box"] = "box"
+    center_mm: Vec3
+    size_mm: Vec3
+    rotation_deg: Vec3 = Field((0.0, 0.0, 0.0), description="Rotation about x, y, z (degrees, applied x then y then z).")
+    albedo: float = Field(0.8, ge=0, le=1)
+    texture: float = Field(0.0, ge=0, le=1)
+
+
+class CylinderObject(_Strict):
+    type: Literal["cylinder"] = "cylinder"
+    center_mm: Vec3 = Field(description="Centre of the axis segment (mm).")
+    axis: Vec3 = Field((0.0, 1.0, 0.0), description="Axis direction.")
+    radius_mm: float = Field(gt=0)
+    height_mm: float = Field(gt=0)
+    albedo: float = Field(0.8, ge=0, le=1)
+    texture: float = Field(0.0, ge=0, le=1)
+
+
+class MeshObject(_Strict):
+    type: Literal["mesh"] = "mesh"
+    path: Path | None = Field(None, description="PLY/OBJ/STL triangle mesh (mm), relative to the config file.")
+    vertices_mm: tuple[Vec3, ...] = Field((), description="Inline vertices (mm) when no path is given.")
+    triangles: tuple[tuple[int, int, int], ...] = Field((), description="Inline triangles (vertex indices).")
+    position_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Translation applied to the mesh (mm).")
+    rotation_deg: Vec3 = Field((0.0, 0.0, 0.0))
+    scale: float = Field(1.0, gt=0)
+    albedo: float = Field(0.8, ge=0, le=1)
+    texture: float = Field(0.0, ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _source(self) -> MeshObject:
+        if self.path is None and not (self.vertices_mm and self.triangles):
+            raise ValueError("a mesh needs 'path' or both 'vertices_mm' and 'triangles'")
+        return self
+
+
+SceneObject = Annotated[
+    PlaneObject | SphereObject | BoxObject | CylinderObject | MeshObject, Field(discriminator="type")
+]
+
+
+class ImagingConfig(_Strict):
+    """Photometry of the virtual rig."""
+
+    projector_gamma: float = Field(2.2, gt=0.1, le=5, description="Projector intensity = value^gamma.")
+    gamma_corrected: bool = Field(True, description="Patterns are pre-corrected for the projector gamma.")
+    projector_gain_dn: float = Field(180.0, ge=0, description="Camera DN for a white projector on albedo 1.")
+    ambient_dn: float = Field(10.0, ge=0, description="Ambient light (DN at albedo 1).")
+    read_noise_dn: float = Field(2.0, ge=0, description="Read noise sigma (DN).")
+    shot_noise: bool = Field(True, description="Poisson shot noise.")
+    electrons_per_dn: float = Field(4.0, gt=0, description="Conversion gain for shot noise (e-/DN).")
+    projector_blur_px: float = Field(0.6, ge=0, description="Projector defocus (Gaussian sigma, projector px).")
+    camera_blur_px: float = Field(0.5, ge=0, description="Camera defocus (Gaussian sigma, camera px).")
+    bit_depth: Literal[8, 12, 16] = Field(8, description="Camera bit depth; saturates at full scale.")
+    seed: int | None = Field(1, description="Noise seed (None: different noise each scan).")
+
+
+def _default_cameras() -> dict[str, DeviceOptics]:
+    return {
+        "cam0": DeviceOptics(width=1280, height=1024, focal_px=1800.0, dist=(-0.08, 0.12, 0.0005, -0.0003, 0.0),
+                             position_mm=(0.0, 0.0, 0.0), look_at_mm=(0.0, 0.0, 580.0)),
+    }
+
+
+def _default_projector() -> DeviceOptics:
+    return DeviceOptics(width=1280, height=800, focal_px=1600.0, principal_px=(640.0, 760.0),
+                        dist=(0.02, -0.01, 0.0, 0.0, 0.0), position_mm=(175.0, 0.0, 0.0),
+                        look_at_mm=(0.0, 40.0, 580.0))
+
+
+def _default_scene() -> tuple[SceneObject, ...]:
+    return (
+        PlaneObject(point_mm=(0.0, 0.0, 650.0), normal=(0.0, 0.1, -1.0), texture=0.3),
+        SphereObject(center_mm=(-20.0, 10.0, 560.0), radius_mm=40.0, texture=0.2),
+        BoxObject(center_mm=(70.0, -40.0, 600.0), size_mm=(60.0, 50.0, 40.0), rotation_deg=(10.0, 25.0, 5.0)),
+    )
+
+
+class VirtualRigConfig(_Strict):
+    """The simulated rig: ground-truth optics, the scene and the photometry."""
+
+    projector: DeviceOptics = Field(default_factory=_default_projector)
+    cameras: dict[str, DeviceOptics] = Field(default_factory=_default_cameras)
+    scene: tuple[SceneObject, ...] = Field(default_factory=_default_scene)
+    imaging: ImagingConfig = Field(default_factory=ImagingConfig)
+
+
+# --- output and service -------------------------------------------------------------------------------
+
+
+class OutputConfig(_Strict):
+    """Where clouds go."""
+
+    directory: Path = Field(Path("out/scans"), description="Share or local folder; files go under YYYY-MM-DD/.")
+    spool_directory: Path = Field(Path("out/spool"), description="Local spool while the share is away.")
+    spool_max_mb: float = Field(2048.0, gt=0, description="Spool size limit (MB); oldest dropped beyond it.")
+    spool_max_age_days: float = Field(14.0, gt=0, description="Spooled scans older than this are dropped (days).")
+    min_free_mb: float = Field(200.0, ge=0, description="Refuse a scan when less than this is free (MB).")
+    preview: bool = Field(True, description="Write a preview PNG beside each cloud.")
+    normals: bool = Field(False, description="Write normals into the PLY.")
+
+
+class MdnsConfig(_Strict):
+    enabled: bool = Field(True, description="Announce the appliance with mDNS.")
+    interfaces: tuple[str, ...] = Field(("127.0.0.1",), description="Addresses to announce on (loopback by default).")
+    instance_name: str | None = Field(None, description="Service instance name; hostname when unset.")
+    announce_smb_share: str | None = Field(None, description="Also announce this SMB share name (_smb._tcp).")
+
+
+class ServiceConfig(_Strict):
+    control_socket: Path = Field(Path("out/control.sock"), description="Unix socket for scan3d status/trigger.")
+    state_directory: Path = Field(Path("out/state"), description="State files (last scans, counters).")
+    numba_cache_dir: Path | None = Field(None, description="numba kernel cache; NUMBA_CACHE_DIR when unset.")
+    busy_policy: Literal["refuse", "queue"] = Field("refuse", description="A trigger while busy is refused or queued.")
+    queue_max: int = Field(1, ge=1, le=16, description="Queued triggers kept when busy_policy is 'queue'.")
+    scan_timeout_s: float = Field(30.0, gt=0, le=600, description="Fail a scan that takes longer (s).")
+    watchdog: bool = Field(True, description="Send WATCHDOG=1 to systemd when WatchdogSec is set.")
+    mdns: MdnsConfig = Field(default_factory=MdnsConfig)
+
+
+# --- the whole file -----------------------------------------------------------------------------------
+
+
+def _default_camera_backends() -> dict[str, CameraConfig]:
+    return {"cam0": SimCameraConfig()}
+
+
+class AppConfig(_Strict):
+    """The whole configuration file."""
+
+    serial: str = Field("SIM-0001", description="Appliance serial number (in mDNS and sidecars).")
+    cameras: dict[str, CameraConfig] = Field(
+        default_factory=_default_camera_backends,
+        min_length=1,
+        max_length=4,
+        description="Cameras by name; the first is the reference (world) camera.",
+    )
+    projector: ProjectorConfig = Field(default_factory=SimProjectorConfig)
+    trigger: TriggerConfig = Field(default_factory=SimTriggerConfig)
+    calibration_file: Path | None = Field(
+        None, description="Calibration (OpenCV YAML); unset on the virtual rig = its exact calibration."
+    )
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+    reconstruction: ReconstructionConfig = Field(default_factory=ReconstructionConfig)
+    virtual_rig: VirtualRigConfig = Field(default_factory=VirtualRigConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> AppConfig:
+        names = list(self.cameras)
+        for name, cam in self.cameras.items():
+            if cam.type == "sim" and name not in self.virtual_rig.cameras:
+                raise ValueError(
+                    f"camera {name!r} is type sim but virtual_rig.cameras has no {name!r} "
+                    f"(it has {sorted(self.virtual_rig.cameras)}); add its optics there"
+                )
+        if self.reconstruction.mode == "stereo" and len(names) < 2:
+            raise ValueError("reconstruction.mode 'stereo' needs two cameras; add one or use mode 'projector'")
+        if self.calibration_file is None and (
+            self.projector.type != "sim" or any(c.type != "sim" for c in self.cameras.values())
+        ):
+            raise ValueError("calibration_file must be set when any device is real hardware")
+        return self
+
+    @property
+    def is_virtual(self) -> bool:
+        """True when every device is simulated."""
+        return self.projector.type == "sim" and all(c.type == "sim" for c in self.cameras.values())

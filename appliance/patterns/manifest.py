@@ -1,0 +1,292 @@
+"""Reading and writing scan manifests (``SEQUENCE-MANIFEST.md``).
+
+A manifest is YAML: the projector size, the camera names and, in capture order, each frame's pattern
+with either one image per camera (``images``) or, for the whole manifest, one ``.npy`` stack per camera
+(``stacks``). Paths are relative to the manifest's folder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import yaml
+
+from appliance.errors import ManifestError, PatternError
+from appliance.patterns.sequence import (
+    BlackFrame,
+    Frame,
+    GrayFrame,
+    OtherFrame,
+    PhaseFrame,
+    Sequence,
+    WhiteFrame,
+)
+
+FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A captured sequence: the frames' patterns and where each camera's images are.
+
+    Attributes
+    ----------
+    path : Path
+        The manifest file; relative image paths are resolved against its folder.
+    sequence : Sequence
+        The frames, in capture order.
+    cameras : tuple of str
+        Camera names, as in the calibration file.
+    images : dict or None
+        ``images[camera][i]``: the image of frame ``i`` (absolute path).
+    stacks : dict or None
+        ``stacks[camera]``: a ``.npy`` array (frames, height, width) (absolute path).
+    """
+
+    path: Path
+    sequence: Sequence
+    cameras: tuple[str, ...]
+    images: dict[str, tuple[Path, ...]] | None = None
+    stacks: dict[str, Path] | None = None
+
+    def load_stack(self, camera: str) -> FrameStack:
+        """Load every frame of ``camera`` as one array.
+
+        Returns
+        -------
+        ndarray, shape (frames, height, width), uint8 or uint16
+        """
+        if camera not in self.cameras:
+            raise ManifestError(
+                f"{self.path}: camera {camera!r} is not in this manifest (it has {list(self.cameras)})"
+            )
+        if self.stacks is not None:
+            return _load_npy(self.stacks[camera], len(self.sequence), self.path)
+        assert self.images is not None
+        return load_images(self.images[camera], self.path)
+
+
+def _load_npy(path: Path, n_frames: int, manifest: Path) -> FrameStack:
+    try:
+        arr = np.load(path, mmap_mode="r")
+    except (OSError, ValueError) as exc:
+        raise ManifestError(f"{manifest}: stack {path}: cannot be read ({exc}); check the file") from exc
+    if arr.ndim != 3 or arr.shape[0] != n_frames:
+        raise ManifestError(
+            f"{manifest}: stack {path}: shape {arr.shape}: must be ({n_frames}, height, width), "
+            "one image per frame in the manifest"
+        )
+    if arr.dtype not in (np.uint8, np.uint16):
+        raise ManifestError(f"{manifest}: stack {path}: dtype {arr.dtype}: must be uint8 or uint16")
+    return np.ascontiguousarray(arr)  # type: ignore[no-any-return]
+
+
+def load_images(paths: tuple[Path, ...] | list[Path], manifest: Path | str = "manifest") -> FrameStack:
+    """Read grayscale images (PNG, JPEG, TIFF, 8 or 16 bit) into one (frames, height, width) stack."""
+    import cv2
+
+    first: npt.NDArray[Any] | None = None
+    out: npt.NDArray[Any] | None = None
+    for i, p in enumerate(paths):
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ManifestError(f"{manifest}: frame {i}: image {p} is missing or unreadable; check the path")
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        if img.dtype not in (np.uint8, np.uint16):
+            raise ManifestError(f"{manifest}: frame {i}: image {p} has dtype {img.dtype}: must be 8 or 16 bit")
+        if first is None:
+            first = img
+            out = np.empty((len(paths), *img.shape), dtype=img.dtype)
+        elif img.shape != first.shape or img.dtype != first.dtype:
+            raise ManifestError(
+                f"{manifest}: frame {i}: image {p} is {img.shape[1]}x{img.shape[0]} {img.dtype}, but frame 0 "
+                f"is {first.shape[1]}x{first.shape[0]} {first.dtype}: all frames of a camera must match"
+            )
+        assert out is not None
+        out[i] = img
+    if out is None:
+        raise ManifestError(f"{manifest}: no frames")
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# YAML <-> frames
+# --------------------------------------------------------------------------------------------------
+
+
+def frame_to_dict(frame: Frame) -> dict[str, Any]:
+    """The manifest mapping of one frame (without ``images``)."""
+    if isinstance(frame, GrayFrame):
+        d: dict[str, Any] = {"pattern": "gray", "axis": frame.axis, "bit": frame.bit, "inverted": frame.inverted}
+        if frame.stripe != 1:
+            d["stripe"] = frame.stripe
+        return d
+    if isinstance(frame, PhaseFrame):
+        d = {
+            "pattern": "phase",
+            "axis": frame.axis,
+            "period": frame.period,
+            "step": frame.step,
+            "steps": frame.steps,
+        }
+        if frame.offset != 0.0:
+            d["offset"] = frame.offset
+        return d
+    if isinstance(frame, WhiteFrame):
+        return {"pattern": "white"}
+    if isinstance(frame, BlackFrame):
+        return {"pattern": "black"}
+    return {"pattern": frame.pattern, **dict(frame.params)}
+
+
+_GRAY_KEYS = {"pattern", "axis", "bit", "inverted", "stripe", "images"}
+_PHASE_KEYS = {"pattern", "axis", "period", "step", "steps", "offset", "images"}
+
+
+def frame_from_dict(d: Mapping[str, Any], where: str) -> Frame:
+    """Parse one manifest frame mapping; ``where`` names it in error messages."""
+    if not isinstance(d, Mapping) or "pattern" not in d:
+        raise ManifestError(f"{where}: a frame must be a mapping with a 'pattern' key, got {d!r}")
+    kind = d["pattern"]
+    try:
+        if kind == "gray":
+            _check_keys(d, _GRAY_KEYS, where)
+            return GrayFrame(
+                axis=_axis(d, where),
+                bit=int(_need(d, "bit", where)),
+                inverted=bool(d.get("inverted", False)),
+                stripe=int(d.get("stripe", 1)),
+            )
+        if kind == "phase":
+            _check_keys(d, _PHASE_KEYS, where)
+            return PhaseFrame(
+                axis=_axis(d, where),
+                period=float(_need(d, "period", where)),
+                step=int(_need(d, "step", where)),
+                steps=int(_need(d, "steps", where)),
+                offset=float(d.get("offset", 0.0)),
+            )
+    except PatternError as exc:
+        raise ManifestError(f"{where}: {exc}") from exc
+    except (TypeError, ValueError) as exc:
+        raise ManifestError(f"{where}: {exc}; check the frame's keys") from exc
+    if kind == "white":
+        _check_keys(d, {"pattern", "images"}, where)
+        return WhiteFrame()
+    if kind == "black":
+        _check_keys(d, {"pattern", "images"}, where)
+        return BlackFrame()
+    params = tuple((str(k), str(v)) for k, v in d.items() if k not in ("pattern", "images"))
+    return OtherFrame(str(kind), params)
+
+
+def _need(d: Mapping[str, Any], key: str, where: str) -> Any:
+    if key not in d:
+        raise ManifestError(f"{where}: pattern {d['pattern']!r} needs the key {key!r}")
+    return d[key]
+
+
+def _axis(d: Mapping[str, Any], where: str) -> Any:
+    axis = _need(d, "axis", where)
+    if axis not in ("x", "y"):
+        raise ManifestError(f"{where}: axis = {axis!r}: must be 'x' or 'y'")
+    return axis
+
+
+def _check_keys(d: Mapping[str, Any], allowed: set[str], where: str) -> None:
+    extra = set(d) - allowed
+    if extra:
+        raise ManifestError(
+            f"{where}: unknown key(s) {sorted(extra)} for pattern {d['pattern']!r}; allowed: {sorted(allowed)}"
+        )
+
+
+def read_manifest(path: str | Path) -> Manifest:
+    """Read a manifest file.
+
+    Raises
+    ------
+    ManifestError
+        When the file is missing, not YAML, or inconsistent (names the key and the fix).
+    """
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ManifestError(f"{path}: cannot be read ({exc.strerror}); check the path") from exc
+    except yaml.YAMLError as exc:
+        raise ManifestError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(doc, dict):
+        raise ManifestError(f"{path}: must be a YAML mapping with projector, cameras and frames")
+    unknown = set(doc) - {"projector", "cameras", "frames", "stacks"}
+    if unknown:
+        raise ManifestError(f"{path}: unknown top-level key(s) {sorted(unknown)}")
+    root = path.parent
+    proj = doc.get("projector")
+    if not isinstance(proj, dict) or "width" not in proj or "height" not in proj:
+        raise ManifestError(f"{path}: projector: must be {{width: W, height: H}} in projector pixels")
+    cameras = doc.get("cameras")
+    if not isinstance(cameras, list) or not cameras or not all(isinstance(c, str) for c in cameras):
+        raise ManifestError(f"{path}: cameras: must be a non-empty list of camera names")
+    frames_doc = doc.get("frames")
+    if not isinstance(frames_doc, list) or not frames_doc:
+        raise ManifestError(f"{path}: frames: must be a non-empty list")
+    stacks_doc = doc.get("stacks")
+    frames: list[Frame] = []
+    images: dict[str, list[Path]] = {c: [] for c in cameras}
+    for i, fd in enumerate(frames_doc):
+        where = f"{path}: frames[{i}]"
+        frames.append(frame_from_dict(fd, where))
+        if stacks_doc is None:
+            imgs = fd.get("images")
+            if not isinstance(imgs, dict):
+                raise ManifestError(f"{where}: needs images: {{camera: path}} (or a top-level 'stacks')")
+            for c in cameras:
+                if c not in imgs:
+                    raise ManifestError(f"{where}: images: no image for camera {c!r}")
+                images[c].append(root / str(imgs[c]))
+    try:
+        seq = Sequence(int(proj["width"]), int(proj["height"]), tuple(frames))
+    except PatternError as exc:
+        raise ManifestError(f"{path}: {exc}") from exc
+    if stacks_doc is not None:
+        if not isinstance(stacks_doc, dict) or set(stacks_doc) != set(cameras):
+            raise ManifestError(f"{path}: stacks: must map every camera {cameras} to a .npy file")
+        return Manifest(path, seq, tuple(cameras), stacks={c: root / str(stacks_doc[c]) for c in cameras})
+    return Manifest(path, seq, tuple(cameras), images={c: tuple(v) for c, v in images.items()})
+
+
+def write_manifest(
+    path: str | Path,
+    sequence: Sequence,
+    cameras: list[str] | tuple[str, ...],
+    *,
+    images: Mapping[str, list[str] | tuple[str, ...]] | None = None,
+    stacks: Mapping[str, str] | None = None,
+) -> Path:
+    """Write a manifest; ``images``/``stacks`` hold paths relative to the manifest's folder."""
+    path = Path(path)
+    if (images is None) == (stacks is None):
+        raise ManifestError(f"{path}: give exactly one of images= or stacks=")
+    frames: list[dict[str, Any]] = []
+    for i, f in enumerate(sequence.frames):
+        d = frame_to_dict(f)
+        if images is not None:
+            d["images"] = {c: str(images[c][i]) for c in cameras}
+        frames.append(d)
+    doc: dict[str, Any] = {
+        "projector": {"width": sequence.width, "height": sequence.height},
+        "cameras": list(cameras),
+    }
+    if stacks is not None:
+        doc["stacks"] = {c: str(stacks[c]) for c in cameras}
+    doc["frames"] = frames
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
+    return path

@@ -1,0 +1,108 @@
+"""Data types passed between decoding, triangulation and output."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+
+@dataclass
+class DecodedMaps:
+    """Projector coordinates decoded for every pixel of one camera.
+
+    Attributes
+    ----------
+    u, v : ndarray, shape (H, W), float32
+        Projector column / row (projector pixels, centres at integers); NaN where not decoded or not coded.
+    mask : ndarray, shape (H, W), bool
+        True where every coded axis decoded.
+    quality : ndarray, shape (H, W), float32
+        Decoding confidence: the weakest signal contrast of the pixel (digital numbers, DN); 0 where masked.
+    ignored : list of str
+        Human descriptions of frames the decoder did not use.
+    """
+
+    u: npt.NDArray[np.float32]
+    v: npt.NDArray[np.float32]
+    mask: npt.NDArray[np.bool_]
+    quality: npt.NDArray[np.float32]
+    ignored: list[str] = field(default_factory=list)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of the camera image."""
+        return (int(self.mask.shape[0]), int(self.mask.shape[1]))
+
+
+@dataclass
+class PointCloud:
+    """A point cloud as a struct of arrays.
+
+    Attributes
+    ----------
+    xyz : ndarray, shape (N, 3), float32
+        Points in the world frame (the reference camera's frame), millimetres.
+    row, col : ndarray, shape (N,), int32
+        The camera pixel each point came from.
+    camera : ndarray, shape (N,), uint8
+        Index of the camera each point came from (order of the configuration).
+    intensity : ndarray, shape (N,), uint8
+        Grey value of the pixel under white light (0..255).
+    quality : ndarray, shape (N,), float32
+        Decoding quality of the point (see :class:`DecodedMaps`).
+    normal : ndarray, shape (N, 3), float32, optional
+        Unit surface normals pointing towards the camera.
+    """
+
+    xyz: npt.NDArray[np.float32]
+    row: npt.NDArray[np.int32]
+    col: npt.NDArray[np.int32]
+    camera: npt.NDArray[np.uint8]
+    intensity: npt.NDArray[np.uint8]
+    quality: npt.NDArray[np.float32]
+    normal: npt.NDArray[np.float32] | None = None
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    @staticmethod
+    def empty() -> PointCloud:
+        """A cloud with no points."""
+        return PointCloud(
+            np.zeros((0, 3), np.float32),
+            np.zeros(0, np.int32),
+            np.zeros(0, np.int32),
+            np.zeros(0, np.uint8),
+            np.zeros(0, np.uint8),
+            np.zeros(0, np.float32),
+        )
+
+    def select(self, keep: npt.NDArray[np.bool_]) -> PointCloud:
+        """The points where ``keep`` (shape (N,)) is True."""
+        return PointCloud(
+            self.xyz[keep],
+            self.row[keep],
+            self.col[keep],
+            self.camera[keep],
+            self.intensity[keep],
+            self.quality[keep],
+            None if self.normal is None else self.normal[keep],
+        )
+
+    @staticmethod
+    def concatenate(clouds: list[PointCloud]) -> PointCloud:
+        """Join clouds (normals kept only when every cloud has them)."""
+        if not clouds:
+            return PointCloud.empty()
+        normals = [c.normal for c in clouds]
+        return PointCloud(
+            np.concatenate([c.xyz for c in clouds]),
+            np.concatenate([c.row for c in clouds]),
+            np.concatenate([c.col for c in clouds]),
+            np.concatenate([c.camera for c in clouds]),
+            np.concatenate([c.intensity for c in clouds]),
+            np.concatenate([c.quality for c in clouds]),
+            None if any(n is None for n in normals) else np.concatenate(normals),  # type: ignore[arg-type]
+        )
