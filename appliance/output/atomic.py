@@ -1,0 +1,67 @@
+"""Atomic file writing: temporary name in the target folder, fsync, rename, fsync the folder.
+
+A watcher of the target folder never sees a partial file: it sees nothing, then the whole file.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+from appliance.errors import OutputError
+
+TMP_PREFIX = ".tmp-"
+
+
+def write_atomic(path: Path, writer: Callable[[BinaryIO], None]) -> Path:
+    """Write ``path`` atomically with ``writer(file)``.
+
+    Parameters
+    ----------
+    path : Path
+        Final file path; its folder must exist.
+    writer : callable
+        Writes the content into the open binary file it is given.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    OutputError
+        When the folder is missing, read-only or full (nothing is left behind).
+    """
+    tmp = path.with_name(f"{TMP_PREFIX}{path.name}.{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            writer(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        fsync_dir(path.parent)
+    except OSError as exc:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise OutputError(f"{path}: cannot be written ({exc.strerror or exc}); check the folder exists, "
+                          "is writable and has free space") from exc
+    return path
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (see :func:`write_atomic`)."""
+    return write_atomic(path, lambda f: f.write(data) and None)
+
+
+def fsync_dir(folder: Path) -> None:
+    """fsync a directory so a rename in it is durable."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -1,0 +1,55 @@
+"""The JSON metadata written beside each cloud."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from appliance import __version__
+from appliance.output.atomic import write_bytes_atomic
+
+
+@dataclass
+class ScanMetadata:
+    """What a downstream machine needs to know about a cloud.
+
+    Attributes
+    ----------
+    scan_id : str
+        Unique id, also the file stem (``YYYYmmdd-HHMMSS-<serial>-<n>``).
+    time_utc : str
+        ISO 8601 start time of the scan (UTC).
+    sequence : dict
+        ``describe`` text, frame count and projector size.
+    calibration_hash : str
+        Short hash of the calibration content used.
+    counts : dict
+        ``points``, per-camera ``decoded_pixels`` and ``points``.
+    timings_ms : dict
+        Per-stage wall times (ms).
+    """
+
+    scan_id: str
+    time_utc: str
+    sequence: dict[str, Any]
+    calibration_hash: str
+    counts: dict[str, Any]
+    timings_ms: dict[str, float]
+    appliance_serial: str = ""
+    software_version: str = __version__
+    cameras: list[str] = field(default_factory=list)
+    files: dict[str, str] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        """Pretty JSON text."""
+        d = {k: v for k, v in self.__dict__.items()}
+        d["timings_ms"] = {k: round(float(v), 3) for k, v in self.timings_ms.items()}
+        return json.dumps(d, indent=2, sort_keys=False) + "\n"
+
+
+def write_sidecar(path: str | Path, meta: ScanMetadata) -> Path:
+    """Write ``meta`` as JSON to ``path`` atomically."""
+    return write_bytes_atomic(Path(path), meta.to_json().encode())

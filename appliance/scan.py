@@ -1,0 +1,249 @@
+"""One scan: sequence -> hardware -> frames -> streaming decode -> triangulation -> cloud.
+
+:class:`Scanner` owns everything that lives across scans (frame buffers, streaming decoders, ray tables),
+so a scan allocates nothing per frame. It drives devices only through the hardware protocols.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.config.schema import AppConfig, SequenceConfig
+from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
+from appliance.geometry.calibration_file import Calibration
+from appliance.hardware.base import FrameArray
+from appliance.hardware.registry import Rig
+from appliance.patterns.sequence import Sequence, WhiteFrame, gray_code_sequence, gray_phase_sequence
+from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
+from appliance.reconstruct.pipeline import Reconstructor
+from appliance.reconstruct.types import DecodedMaps, PointCloud
+
+# Module-level so tests can shorten it: extra time allowed per frame on top of the projector timing.
+FRAME_TIMEOUT_S = 2.0
+
+
+def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
+    """The configured pattern sequence for a ``width`` x ``height`` projector."""
+    if cfg.kind == "gray":
+        return gray_code_sequence(width, height, cfg.axes, stripe=cfg.stripe_px, inverses=cfg.inverses)
+    if len(cfg.periods_px) == 1:
+        return gray_phase_sequence(width, height, cfg.axes, period=cfg.periods_px[0], steps=cfg.steps,
+                                   inverses=cfg.inverses)
+    return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,  # type: ignore[call-arg]
+                               inverses=cfg.inverses)
+
+
+def virtual_calibration(virtual: Any) -> Calibration:
+    """The exact calibration of a virtual rig (its ground-truth camera and projector models)."""
+    devices = dict(virtual.cameras)
+    devices["projector"] = virtual.projector
+    return Calibration(devices)
+
+
+@dataclass
+class ScanResult:
+    """The outcome of one scan."""
+
+    cloud: PointCloud
+    maps: dict[str, DecodedMaps]
+    white: dict[str, npt.NDArray[np.uint8]]
+    timings_ms: dict[str, float]
+    shapes: dict[str, tuple[int, int]]
+    frames: dict[str, FrameArray] = field(default_factory=dict)
+
+
+class Scanner:
+    """Runs scans on one rig with one calibration and one configuration.
+
+    Parameters
+    ----------
+    cfg : AppConfig
+        The configuration.
+    rig : Rig
+        The devices (see :func:`appliance.hardware.registry.build_rig`).
+    calibration : Calibration
+        Camera(s) and projector models; camera names must match ``cfg.cameras``.
+    """
+
+    def __init__(self, cfg: AppConfig, rig: Rig, calibration: Calibration) -> None:
+        self.cfg = cfg
+        self.rig = rig
+        self.calibration = calibration
+        proj = calibration.projector
+        if proj is None:
+            raise ScanError("calibration has no 'projector' entry; calibrate the projector (scan3d calibrate)")
+        missing = [n for n in cfg.cameras if n not in calibration.devices]
+        if missing:
+            raise ScanError(
+                f"calibration has no entry for camera(s) {missing} (it has {list(calibration.devices)}); "
+                "calibrate them or rename the cameras in the configuration"
+            )
+        self.sequence = build_sequence(cfg.sequence, proj.width, proj.height)
+        rc = cfg.reconstruction
+        self.params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast)
+        self.reconstructor = Reconstructor(calibration, cfg.sequence.axes, rc)
+        self._white_index = next(
+            (i for i, f in enumerate(self.sequence.frames) if isinstance(f, WhiteFrame)), None
+        )
+        self._buffers: dict[str, FrameArray] = {}
+        self._decoders: dict[str, StreamingDecoder] = {}
+        self._executors: dict[str, ThreadPoolExecutor] = {}
+        self._opened = False
+        self.scans_done = 0
+
+    async def open(self) -> None:
+        """Open every device, allocate the buffers and load the sequence into the projector."""
+        n = len(self.sequence)
+        for name, cam in self.rig.cameras.items():
+            info = await cam.open()
+            shape = (info.height, info.width)
+            model = self.calibration.devices[name]
+            if (model.width, model.height) != (info.width, info.height):
+                raise HardwareError(
+                    f"camera {name!r}: delivers {info.width}x{info.height} but is calibrated at "
+                    f"{model.width}x{model.height}; set the camera's resolution or recalibrate"
+                )
+            dtype = np.uint8 if info.pixel_format == "Mono8" else np.uint16
+            if name not in self._buffers or self._buffers[name].shape != (n, *shape):
+                self._buffers[name] = np.zeros((n, *shape), dtype)
+                self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, self.params)
+                self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
+        await self.rig.projector.open()
+        await self.rig.projector.load(self.sequence)
+        self._opened = True
+
+    async def scan(self) -> ScanResult:
+        """Run one scan and reconstruct it.
+
+        Raises
+        ------
+        ScanError
+            When a device fails or a frame is missing; the scanner stays usable for the next scan.
+        """
+        if not self._opened:
+            await self.open()
+        loop = asyncio.get_running_loop()
+        n = len(self.sequence)
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        pushes: list[asyncio.Future[None]] = []
+
+        def on_frame_factory(name: str) -> Any:
+            dec, ex = self._decoders[name], self._executors[name]
+
+            def on_frame(index: int, frame: FrameArray) -> None:  # camera thread
+                fut: Future[None] = ex.submit(dec.push, index, frame)
+                loop.call_soon_threadsafe(pushes.append, asyncio.wrap_future(fut, loop=loop))
+
+            return on_frame
+
+        for dec in self._decoders.values():
+            dec.reset()
+        try:
+            for name, cam in self.rig.cameras.items():
+                await cam.arm(n, self._buffers[name], on_frame_factory(name))
+            await self.rig.projector.start()
+            timeout = FRAME_TIMEOUT_S + n * 0.25
+            results = await asyncio.gather(
+                *(cam.wait_frames(timeout) for cam in self.rig.cameras.values()), return_exceptions=True
+            )
+            errors = [r for r in results if isinstance(r, BaseException)]
+            if errors:
+                raise errors[0]
+            await asyncio.sleep(0)  # let the last call_soon_threadsafe callbacks run
+            await asyncio.gather(*pushes)
+        except (CameraError, HardwareError) as exc:
+            await self._abort()
+            raise ScanError(f"scan failed: {exc}") from exc
+        except ApplianceError:
+            await self._abort()
+            raise
+        timings["capture_ms"] = (time.perf_counter() - t0) * 1e3
+        t1 = time.perf_counter()
+        finished = await asyncio.gather(
+            *(loop.run_in_executor(self._executors[name], dec.finish) for name, dec in self._decoders.items())
+        )
+        maps = dict(zip(self._decoders, finished, strict=True))
+        timings["decode_finish_ms"] = (time.perf_counter() - t1) * 1e3
+        white = {name: self._white_u8(buf) for name, buf in self._buffers.items()}
+        t2 = time.perf_counter()
+        cloud, rtimes = await loop.run_in_executor(None, self.reconstructor.run, maps, white)
+        timings.update(rtimes)
+        timings["reconstruct_ms"] = (time.perf_counter() - t2) * 1e3
+        timings["scan_ms"] = (time.perf_counter() - t0) * 1e3
+        self.scans_done += 1
+        shapes = {name: (int(b.shape[1]), int(b.shape[2])) for name, b in self._buffers.items()}
+        return ScanResult(cloud, maps, white, timings, shapes, dict(self._buffers))
+
+    def _white_u8(self, buf: FrameArray) -> npt.NDArray[np.uint8]:
+        if self._white_index is None:
+            return np.zeros(buf.shape[1:], np.uint8)
+        w = buf[self._white_index]
+        if w.dtype == np.uint8:
+            return w  # type: ignore[return-value]
+        return (w >> 8).astype(np.uint8)  # type: ignore[no-any-return]
+
+    async def _abort(self) -> None:
+        try:
+            await self.rig.projector.stop()
+        except ApplianceError:
+            pass
+
+    async def close(self) -> None:
+        """Stop the projector, close every device and the decode threads."""
+        for cam in self.rig.cameras.values():
+            await cam.close()
+        await self.rig.projector.stop()
+        await self.rig.projector.close()
+        for ex in self._executors.values():
+            ex.shutdown(wait=True)
+        self._executors.clear()
+        self._opened = False
+
+
+def load_calibration_for(cfg: AppConfig, rig: Rig) -> Calibration:
+    """The configured calibration file, or the virtual rig's exact calibration when none is set."""
+    from appliance.geometry.calibration_file import read_calibration
+
+    if cfg.calibration_file is not None:
+        return read_calibration(cfg.calibration_file)
+    if rig.virtual is None:
+        raise ScanError("no calibration_file configured and no virtual rig; set calibration_file")
+    return virtual_calibration(rig.virtual)
+
+
+def scan_metadata(
+    scan_id: str, started_utc: str, cfg: AppConfig, scanner: Scanner, result: ScanResult
+) -> Any:
+    """The sidecar content of one scan."""
+    from appliance.output.sidecar import ScanMetadata
+
+    names = list(cfg.cameras)
+    per_cam = {
+        name: {
+            "decoded_pixels": int(result.maps[name].mask.sum()),
+            "points": int(np.sum(result.cloud.camera == i)),
+        }
+        for i, name in enumerate(names)
+    }
+    return ScanMetadata(
+        scan_id=scan_id,
+        time_utc=started_utc,
+        sequence={
+            "description": scanner.sequence.describe(),
+            "frames": len(scanner.sequence),
+            "projector": [scanner.sequence.width, scanner.sequence.height],
+        },
+        calibration_hash=scanner.calibration.hash(),
+        counts={"points": len(result.cloud), "cameras": per_cam},
+        timings_ms=dict(result.timings_ms),
+        appliance_serial=cfg.serial,
+        cameras=names,
+    )

@@ -1,0 +1,460 @@
+"""numba kernels of the virtual rig: ray casting against the scene and the per-frame photometry.
+
+Private module: the public wrappers in ``scene.py`` and ``render.py`` check dtypes and shapes.
+
+Scene packing
+-------------
+Analytic primitives are rows of ``prims`` (float64, (P, 16)) with a type code in ``prim_type``:
+
+- ``PLANE``: point (0:3), unit normal (3:6)
+- ``SPHERE``: centre (0:3), radius (3)
+- ``BOX``: centre (0:3), half sizes (3:6), rotation local -> world row-major (6:15)
+- ``CYLINDER``: centre (0:3), unit axis (3:6), radius (6), half height (7)
+
+Triangles of all meshes are ``tri`` (float64, (M, 9): v0 v1 v2), ordered by a bounding volume hierarchy
+(``bvh_min``/``bvh_max`` (B, 3), ``bvh_left``/``bvh_right`` children, ``bvh_start``/``bvh_count`` leaf
+triangle ranges; ``bvh_count == 0`` for inner nodes). An empty hierarchy has no nodes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+PLANE = 0
+SPHERE = 1
+BOX = 2
+CYLINDER = 3
+
+_INF = np.inf
+_SQRT1_2 = 0.7071067811865476
+
+
+# --- analytic primitives ---------------------------------------------------------------------------------
+
+
+@njit(nogil=True, cache=True)
+def _hit_plane(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+               t_min: float, nrm: np.ndarray) -> float:
+    den = p[3] * dx + p[4] * dy + p[5] * dz
+    if den == 0.0:
+        return _INF
+    t = (p[3] * (p[0] - ox) + p[4] * (p[1] - oy) + p[5] * (p[2] - oz)) / den
+    if t <= t_min:
+        return _INF
+    nrm[0] = p[3]
+    nrm[1] = p[4]
+    nrm[2] = p[5]
+    return t
+
+
+@njit(nogil=True, cache=True)
+def _hit_sphere(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+                t_min: float, nrm: np.ndarray) -> float:
+    cx = ox - p[0]
+    cy = oy - p[1]
+    cz = oz - p[2]
+    r = p[3]
+    b = cx * dx + cy * dy + cz * dz
+    dd = dx * dx + dy * dy + dz * dz
+    # distance of the centre from the ray's line, computed stably (no b*b - c cancellation)
+    qx = cx - b / dd * dx
+    qy = cy - b / dd * dy
+    qz = cz - b / dd * dz
+    h = r * r - (qx * qx + qy * qy + qz * qz)
+    if h < 0.0:
+        return _INF
+    s = math.sqrt(h * dd)
+    # roots of dd t^2 + 2 b t + c = 0, the near one through the stable quadratic formula
+    c = cx * cx + cy * cy + cz * cz - r * r
+    q = -(b + s) if b >= 0.0 else -(b - s)
+    if q == 0.0:
+        return _INF
+    t0 = q / dd
+    t1 = c / q
+    if t0 > t1:
+        t0, t1 = t1, t0
+    t = t0 if t0 > t_min else t1
+    if t <= t_min:
+        return _INF
+    nrm[0] = (cx + t * dx) / r
+    nrm[1] = (cy + t * dy) / r
+    nrm[2] = (cz + t * dz) / r
+    return t
+
+
+@njit(nogil=True, cache=True)
+def _hit_box(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+             t_min: float, nrm: np.ndarray) -> float:
+    # ray in the box frame: x_local = R^T (x - c), R stored row-major in p[6:15]
+    rx = ox - p[0]
+    ry = oy - p[1]
+    rz = oz - p[2]
+    lo = (p[6] * rx + p[9] * ry + p[12] * rz, p[7] * rx + p[10] * ry + p[13] * rz,
+          p[8] * rx + p[11] * ry + p[14] * rz)
+    ld = (p[6] * dx + p[9] * dy + p[12] * dz, p[7] * dx + p[10] * dy + p[13] * dz,
+          p[8] * dx + p[11] * dy + p[14] * dz)
+    t_near = -_INF
+    t_far = _INF
+    ax_near = -1
+    ax_far = -1
+    for k in range(3):
+        h = p[3 + k]
+        if ld[k] == 0.0:
+            if lo[k] < -h or lo[k] > h:
+                return _INF
+            continue
+        ta = (-h - lo[k]) / ld[k]
+        tb = (h - lo[k]) / ld[k]
+        if ta > tb:
+            ta, tb = tb, ta
+        if ta > t_near:
+            t_near = ta
+            ax_near = k
+        if tb < t_far:
+            t_far = tb
+            ax_far = k
+    if t_near > t_far:
+        return _INF
+    if t_near > t_min:
+        t = t_near
+        ax = ax_near
+    elif t_far > t_min:
+        t = t_far
+        ax = ax_far
+    else:
+        return _INF
+    if ax < 0:
+        return _INF
+    sgn = 1.0 if lo[ax] + t * ld[ax] > 0.0 else -1.0
+    nrm[0] = sgn * p[6 + 3 * 0 + ax]
+    nrm[1] = sgn * p[6 + 3 * 1 + ax]
+    nrm[2] = sgn * p[6 + 3 * 2 + ax]
+    return t
+
+
+@njit(nogil=True, cache=True)
+def _hit_cylinder(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+                  t_min: float, nrm: np.ndarray) -> float:
+    ax = p[3]
+    ay = p[4]
+    az = p[5]
+    r = p[6]
+    hh = p[7]
+    cx = ox - p[0]
+    cy = oy - p[1]
+    cz = oz - p[2]
+    oa = cx * ax + cy * ay + cz * az
+    da = dx * ax + dy * ay + dz * az
+    # components perpendicular to the axis
+    px = cx - oa * ax
+    py = cy - oa * ay
+    pz = cz - oa * az
+    qx = dx - da * ax
+    qy = dy - da * ay
+    qz = dz - da * az
+    best = _INF
+    kind = 0
+    a = qx * qx + qy * qy + qz * qz
+    if a > 0.0:
+        b = px * qx + py * qy + pz * qz
+        c = px * px + py * py + pz * pz - r * r
+        disc = b * b - a * c
+        if disc >= 0.0:
+            s = math.sqrt(disc)
+            q = -(b + s) if b >= 0.0 else -(b - s)
+            if q != 0.0:
+                for t in (q / a, c / q):
+                    if t_min < t < best and abs(oa + t * da) <= hh:
+                        best = t
+                        kind = 1
+    if da != 0.0:
+        for side in (-1.0, 1.0):
+            t = (side * hh - oa) / da
+            if t_min < t < best:
+                ex = px + t * qx
+                ey = py + t * qy
+                ez = pz + t * qz
+                if ex * ex + ey * ey + ez * ez <= r * r:
+                    best = t
+                    kind = 2 if side > 0 else 3
+    if kind == 1:
+        nx = px + best * qx
+        ny = py + best * qy
+        nz = pz + best * qz
+        inv = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz)
+        nrm[0] = nx * inv
+        nrm[1] = ny * inv
+        nrm[2] = nz * inv
+    elif kind == 2:
+        nrm[0] = ax
+        nrm[1] = ay
+        nrm[2] = az
+    elif kind == 3:
+        nrm[0] = -ax
+        nrm[1] = -ay
+        nrm[2] = -az
+    return best
+
+
+@njit(nogil=True, cache=True)
+def _hit_prim(kind: int, p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+              t_min: float, nrm: np.ndarray) -> float:
+    if kind == PLANE:
+        return _hit_plane(p, ox, oy, oz, dx, dy, dz, t_min, nrm)
+    if kind == SPHERE:
+        return _hit_sphere(p, ox, oy, oz, dx, dy, dz, t_min, nrm)
+    if kind == BOX:
+        return _hit_box(p, ox, oy, oz, dx, dy, dz, t_min, nrm)
+    if kind == CYLINDER:
+        return _hit_cylinder(p, ox, oy, oz, dx, dy, dz, t_min, nrm)
+    return _INF
+
+
+# --- triangles (Möller–Trumbore) and the hierarchy -------------------------------------------------------
+
+
+@njit(nogil=True, cache=True)
+def _hit_triangle(v: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+                  t_min: float) -> float:
+    e1x = v[3] - v[0]
+    e1y = v[4] - v[1]
+    e1z = v[5] - v[2]
+    e2x = v[6] - v[0]
+    e2y = v[7] - v[1]
+    e2z = v[8] - v[2]
+    px = dy * e2z - dz * e2y
+    py = dz * e2x - dx * e2z
+    pz = dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return _INF
+    inv = 1.0 / det
+    sx = ox - v[0]
+    sy = oy - v[1]
+    sz = oz - v[2]
+    u = (sx * px + sy * py + sz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return _INF
+    qx = sy * e1z - sz * e1y
+    qy = sz * e1x - sx * e1z
+    qz = sx * e1y - sy * e1x
+    w = (dx * qx + dy * qy + dz * qz) * inv
+    if w < 0.0 or u + w > 1.0:
+        return _INF
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv
+    if t <= t_min:
+        return _INF
+    return t
+
+
+@njit(nogil=True, cache=True)
+def _hit_aabb(bmin: np.ndarray, bmax: np.ndarray, ox: float, oy: float, oz: float,
+              ix: float, iy: float, iz: float, t_min: float, t_max: float) -> bool:
+    t0 = (bmin[0] - ox) * ix
+    t1 = (bmax[0] - ox) * ix
+    lo = min(t0, t1)
+    hi = max(t0, t1)
+    t0 = (bmin[1] - oy) * iy
+    t1 = (bmax[1] - oy) * iy
+    lo = max(lo, min(t0, t1))
+    hi = min(hi, max(t0, t1))
+    t0 = (bmin[2] - oz) * iz
+    t1 = (bmax[2] - oz) * iz
+    lo = max(lo, min(t0, t1))
+    hi = min(hi, max(t0, t1))
+    return hi >= max(lo, t_min) and lo <= t_max
+
+
+@njit(nogil=True, cache=True)
+def _safe_inv(d: float) -> float:
+    if d == 0.0:
+        return 1e300
+    return 1.0 / d
+
+
+@njit(nogil=True, cache=True)
+def _cast_one(ox: float, oy: float, oz: float, dx: float, dy: float, dz: float, t_min: float, t_max: float,
+              any_hit: bool, prim_type: np.ndarray, prims: np.ndarray, prim_obj: np.ndarray,
+              tri: np.ndarray, tri_obj: np.ndarray, bvh_min: np.ndarray, bvh_max: np.ndarray,
+              bvh_left: np.ndarray, bvh_right: np.ndarray, bvh_start: np.ndarray, bvh_count: np.ndarray,
+              nrm: np.ndarray, tmp: np.ndarray, stack: np.ndarray) -> tuple[float, int]:
+    best = t_max
+    obj = -1
+    for k in range(prim_type.shape[0]):
+        t = _hit_prim(prim_type[k], prims[k], ox, oy, oz, dx, dy, dz, t_min, tmp)
+        if t < best:
+            best = t
+            obj = prim_obj[k]
+            nrm[0] = tmp[0]
+            nrm[1] = tmp[1]
+            nrm[2] = tmp[2]
+            if any_hit:
+                return best, obj
+    if bvh_min.shape[0] == 0:
+        return best, obj
+    ix = _safe_inv(dx)
+    iy = _safe_inv(dy)
+    iz = _safe_inv(dz)
+    best_tri = -1
+    top = 0
+    stack[0] = 0
+    top = 1
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        if not _hit_aabb(bvh_min[node], bvh_max[node], ox, oy, oz, ix, iy, iz, t_min, best):
+            continue
+        cnt = bvh_count[node]
+        if cnt > 0:
+            s = bvh_start[node]
+            for j in range(s, s + cnt):
+                t = _hit_triangle(tri[j], ox, oy, oz, dx, dy, dz, t_min)
+                if t < best:
+                    best = t
+                    best_tri = j
+                    if any_hit:
+                        return best, tri_obj[j]
+        elif top + 2 <= stack.shape[0]:
+            stack[top] = bvh_left[node]
+            stack[top + 1] = bvh_right[node]
+            top += 2
+    if best_tri >= 0:
+        v = tri[best_tri]
+        e1x = v[3] - v[0]
+        e1y = v[4] - v[1]
+        e1z = v[5] - v[2]
+        e2x = v[6] - v[0]
+        e2y = v[7] - v[1]
+        e2z = v[8] - v[2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        inv = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz)
+        nrm[0] = nx * inv
+        nrm[1] = ny * inv
+        nrm[2] = nz * inv
+        obj = tri_obj[best_tri]
+    return best, obj
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def cast_rays(origins: np.ndarray, dirs: np.ndarray, t_min: float, t_max: np.ndarray, any_hit: bool,
+              prim_type: np.ndarray, prims: np.ndarray, prim_obj: np.ndarray, tri: np.ndarray,
+              tri_obj: np.ndarray, bvh_min: np.ndarray, bvh_max: np.ndarray, bvh_left: np.ndarray,
+              bvh_right: np.ndarray, bvh_start: np.ndarray, bvh_count: np.ndarray,
+              t_out: np.ndarray, obj_out: np.ndarray, nrm_out: np.ndarray) -> None:
+    """Nearest (or any) hit of N rays; ``origins`` (N, 3) or (1, 3), ``t_max`` (N,) or (1,)."""
+    n = dirs.shape[0]
+    shared_o = origins.shape[0] == 1
+    shared_t = t_max.shape[0] == 1
+    chunk = 4096
+    for c in prange((n + chunk - 1) // chunk):
+        nrm = np.zeros(3)
+        tmp = np.zeros(3)
+        stack = np.empty(64, dtype=np.int64)
+        for i in range(c * chunk, min(n, (c + 1) * chunk)):
+            io = 0 if shared_o else i
+            it = 0 if shared_t else i
+            t, obj = _cast_one(origins[io, 0], origins[io, 1], origins[io, 2], dirs[i, 0], dirs[i, 1],
+                               dirs[i, 2], t_min, t_max[it], any_hit, prim_type, prims, prim_obj, tri,
+                               tri_obj, bvh_min, bvh_max, bvh_left, bvh_right, bvh_start, bvh_count, nrm,
+                               tmp, stack)
+            if obj < 0:
+                t_out[i] = np.inf
+                obj_out[i] = -1
+                nrm_out[i, 0] = 0.0
+                nrm_out[i, 1] = 0.0
+                nrm_out[i, 2] = 0.0
+            else:
+                t_out[i] = t
+                obj_out[i] = obj
+                nrm_out[i, 0] = nrm[0]
+                nrm_out[i, 1] = nrm[1]
+                nrm_out[i, 2] = nrm[2]
+
+
+# --- per-frame photometry ----------------------------------------------------------------------------------
+
+
+@njit(nogil=True, cache=True)
+def _phi(x: float) -> float:
+    return 0.5 * math.erfc(-x * _SQRT1_2)
+
+
+@njit(nogil=True, cache=True)
+def gray_blurred(u: float, stripe: float, bit: int, sigma: float) -> float:
+    """Gray bit ``bit`` of ``floor((u + 0.5) / stripe)`` (pixel centres at integers) blurred by N(0, sigma)."""
+    run = stripe * (1 << bit)  # the bit flips at codes 2^bit (2m + 1): edges x_m = run (2m + 1) - 0.5
+    m0 = math.floor(((u + 0.5) / run - 1.0) * 0.5)
+    v0 = 1.0 - float(m0 & 1)
+    if sigma <= 0.0:
+        return v0
+    s0 = 1.0 - 2.0 * v0
+    period = 2.0 * run
+    x_left = run * (2.0 * m0 + 1.0) - 0.5
+    d_left = u - x_left
+    d_right = x_left + period - u
+    acc = 0.0
+    sign = 1.0
+    reach = 8.0 * sigma
+    while d_left < reach or d_right < reach:
+        acc += sign * (_phi(-d_left / sigma) + _phi(-d_right / sigma))
+        d_left += period
+        d_right += period
+        sign = -sign
+    return v0 + s0 * acc
+
+
+@njit(nogil=True, cache=True)
+def window_1d(u: float, size: int, sigma: float) -> float:
+    """Light of a projector of ``size`` pixels (edges at -0.5 and size - 0.5) blurred by N(0, sigma)."""
+    if sigma <= 0.0:
+        return 1.0 if -0.5 <= u < size - 0.5 else 0.0
+    return _phi((u + 0.5) / sigma) - _phi((u - size + 0.5) / sigma)
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def shade_frame(kind: int, coord: np.ndarray, gain: np.ndarray, ambient: np.ndarray, stripe: float, bit: int,
+                inverted: bool, freq: float, phase0: float, modulation: float, sigma: float, gamma: float,
+                out: np.ndarray) -> None:
+    """Noise-free image (DN): ``ambient + gain * light(coord) ** gamma``; kinds 0 white 1 black 2 gray 3 phase."""
+    n = out.shape[0]
+    for i in prange(n):
+        g = gain[i]
+        if g <= 0.0:
+            out[i] = ambient[i]
+            continue
+        if kind == 0:
+            light = 1.0
+        elif kind == 1:
+            light = 0.0
+        elif kind == 2:
+            light = gray_blurred(coord[i], stripe, bit, sigma)
+            if inverted:
+                light = 1.0 - light
+        else:
+            light = 0.5 * (1.0 + modulation * math.cos(freq * coord[i] + phase0))
+        if gamma != 1.0 and light > 0.0:
+            light = light**gamma
+        out[i] = ambient[i] + g * light
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def add_noise_quantise(clean: np.ndarray, normal: np.ndarray, read_var: float, shot_scale: float,
+                       scale: float, full: float, out: np.ndarray) -> None:
+    """``out = clip(rint(scale * (clean + sqrt(read_var + shot_scale * clean) * normal)), 0, full)``."""
+    n = out.shape[0]
+    for i in prange(n):
+        x = clean[i]
+        var = read_var + shot_scale * max(x, 0.0)
+        if var > 0.0:
+            x += math.sqrt(var) * normal[i]
+        y = math.floor(x * scale + 0.5)
+        if y < 0.0:
+            y = 0.0
+        elif y > full:
+            y = full
+        out[i] = y
