@@ -24,6 +24,8 @@ F64 = npt.NDArray[np.float64]
 DistortionModel = Literal["none", "k1", "k2", "k2p", "k3", "k3p", "rational"]
 """Distortion model: ``kN`` = radial k1..kN, ``p`` = tangential p1 p2, ``rational`` = k1..k6 + p1 p2."""
 DISTORTION_MODELS: tuple[str, ...] = get_args(DistortionModel)
+MODEL_ALIASES = {"standard": "k3p", "simple": "k2p"}
+"""Command-line names: ``standard`` = k1 k2 p1 p2 k3, ``simple`` = k1 k2 p1 p2."""
 
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 MIN_VIEWS_WARN = 10
@@ -45,8 +47,10 @@ def model_flags(model: str) -> tuple[int, int, tuple[str, ...]]:
     """
     import cv2
 
+    model = MODEL_ALIASES.get(model, model)
     if model not in DISTORTION_MODELS:
-        raise CalibrationError(f"distortion model {model!r}: must be one of {', '.join(DISTORTION_MODELS)}")
+        names = ", ".join([*DISTORTION_MODELS, *MODEL_ALIASES])
+        raise CalibrationError(f"distortion model {model!r}: must be one of {names}")
     if model == "rational":
         return cv2.CALIB_RATIONAL_MODEL, 8, PARAM_NAMES
     radial = 0 if model == "none" else int(model[1])

@@ -41,6 +41,15 @@ class AravisCameraConfig(_Strict):
     frame_timeout_ms: float = Field(1000.0, gt=0, le=60_000, description="Per-frame timeout after a trigger (ms).")
     packet_size: int | None = Field(None, ge=576, le=9000, description="GigE packet size (bytes); auto when unset.")
     packet_delay_ns: int = Field(0, ge=0, le=1_000_000, description="GigE inter-packet delay (ns).")
+    packet_resend: bool = Field(True, description="Ask a GigE camera to resend lost packets.")
+    software_trigger: Literal["auto", "external"] = Field(
+        "auto",
+        description="With trigger: Software, 'auto' fires each frame's trigger as soon as the previous frame "
+        "arrived; 'external' waits for the scan to call trigger() once per frame.",
+    )
+    reconnect_timeout_s: float = Field(
+        5.0, ge=0, le=600, description="How long open/arm keep retrying a lost camera, with backoff (s)."
+    )
 
 
 class UvcCameraConfig(_Strict):
@@ -52,6 +61,10 @@ class UvcCameraConfig(_Strict):
     height: int = Field(720, ge=16, le=10000, description="Requested height (px).")
     exposure: float | None = Field(None, description="V4L2 absolute exposure (device units); auto when unset.")
     settle_ms: float = Field(100.0, ge=0, le=5000, description="Wait after each pattern change (ms).")
+    flush_frames: int = Field(
+        2, ge=0, le=16, description="Stale frames dropped after the settle wait (driver queue)."
+    )
+    frame_timeout_ms: float = Field(2000.0, gt=0, le=60_000, description="Timeout of one grab (ms).")
 
 
 CameraConfig = Annotated[
@@ -80,6 +93,14 @@ class LightCrafter4500Config(_Strict):
     led_current: tuple[int, int, int] = Field((104, 135, 130), description="LED PWM red, green, blue (0-255).")
     trigger_out1_delay_steps: tuple[int, int] = Field((0, 0), description="TRIG_OUT1 rising/falling delay.")
     usb_serial: str | None = Field(None, description="Pick one of several units by USB serial number.")
+    video_frame_period_us: int = Field(
+        16667, ge=1000, le=1_000_000,
+        description="Video source: period of the HDMI input frames (µs); patterns per frame = this // period_us.",
+    )
+    flash_first_image: int = Field(
+        0, ge=0, le=255,
+        description="Flash source: flash image index holding the first packed image (see pack_video_frames).",
+    )
 
 
 class DisplayProjectorConfig(_Strict):

@@ -458,3 +458,52 @@ def add_noise_quantise(clean: np.ndarray, normal: np.ndarray, read_var: float, s
         elif y > full:
             y = full
         out[i] = y
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def projector_window(u: np.ndarray, v: np.ndarray, width: int, height: int, sigma: float,
+                     out: np.ndarray) -> None:
+    """Blurred light of the projector's image rectangle at (u, v); 0 where either is not finite."""
+    for i in prange(out.shape[0]):
+        if math.isfinite(u[i]) and math.isfinite(v[i]):
+            out[i] = window_1d(u[i], width, sigma) * window_1d(v[i], height, sigma)
+        else:
+            out[i] = 0.0
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def affine_rows(a: np.ndarray, m: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
+    """``out[i] = m @ a[i] + t`` for (N, 3) rows (no BLAS: its threads fight numba's on small machines)."""
+    for i in prange(a.shape[0]):
+        x = a[i, 0]
+        y = a[i, 1]
+        z = a[i, 2]
+        for r in range(3):
+            out[i, r] = m[r, 0] * x + m[r, 1] * y + m[r, 2] * z + t[r]
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def project_points(xyz: np.ndarray, R: np.ndarray, T: np.ndarray, K: np.ndarray, d: np.ndarray,
+                   uv: np.ndarray, z_out: np.ndarray) -> None:
+    """The formula of ``CameraModel.project`` (8 distortion coefficients ``d``); NaN behind the device."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7]
+    for i in prange(xyz.shape[0]):
+        x = xyz[i, 0]
+        y = xyz[i, 1]
+        z = xyz[i, 2]
+        px = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + T[0]
+        py = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + T[1]
+        pz = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + T[2]
+        z_out[i] = pz
+        if not pz > 0.0:
+            uv[i, 0] = np.nan
+            uv[i, 1] = np.nan
+            continue
+        xn = px / pz
+        yn = py / pz
+        r2 = xn * xn + yn * yn
+        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+        uv[i, 0] = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        uv[i, 1] = K[1, 1] * yd + K[1, 2]

@@ -225,8 +225,10 @@ class ProceduralAlbedo:
         if self.texture == 0.0:
             return np.full(p.shape[0], self.albedo)
         k = _TEX_DIRS * (2.0 * np.pi / _TEX_WAVELENGTHS_MM)[:, None]
-        s = np.sin(p @ k.T + self.phase * np.array([1.0, 1.7, 2.3])).mean(axis=1)
-        return np.clip(self.albedo * (1.0 + self.texture * s), 0.0, 1.0)  # type: ignore[no-any-return]
+        s = np.zeros(p.shape[0])
+        for j, ph in enumerate((1.0, 1.7, 2.3)):
+            s += np.sin(p[:, 0] * k[j, 0] + p[:, 1] * k[j, 1] + p[:, 2] * k[j, 2] + ph * self.phase)
+        return np.clip(self.albedo * (1.0 + self.texture * s / 3.0), 0.0, 1.0)  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True, eq=False)
@@ -260,8 +262,10 @@ class PlaneImageAlbedo:
 
     def __call__(self, points: F64) -> F64:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(self.origin_mm)
-        col = p @ np.asarray(self.x_axis) / self.mm_per_px
-        row = p @ np.asarray(self.y_axis) / self.mm_per_px
+        xa = np.asarray(self.x_axis, dtype=np.float64)
+        ya = np.asarray(self.y_axis, dtype=np.float64)
+        col = (p[:, 0] * xa[0] + p[:, 1] * xa[1] + p[:, 2] * xa[2]) / self.mm_per_px
+        row = (p[:, 0] * ya[0] + p[:, 1] * ya[1] + p[:, 2] * ya[2]) / self.mm_per_px
         img = np.asarray(self.image, dtype=np.float64)
         h, w = img.shape
         inside = (col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1)

@@ -1,0 +1,416 @@
+"""numba kernels of triangulation (private; see ``triangulate.py`` and ``stereo.py``).
+
+Distortion vectors here are always 12 long: ``k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4`` (OpenCV order, zeros
+padded). Camera tables hold normalised undistorted coordinates ``(x/z, y/z)`` in the device frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_NAN = np.float32(np.nan)
+
+
+@njit(nogil=True, cache=True, inline="always")
+def distort_jac(x, y, d):  # type: ignore[no-untyped-def]
+    """Distorted normalised coords and their 2x2 Jacobian w.r.t. (x, y)."""
+    r2 = x * x + y * y
+    num = 1.0 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
+    den = 1.0 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
+    dnum = d[0] + r2 * (2.0 * d[1] + 3.0 * r2 * d[4])
+    dden = d[5] + r2 * (2.0 * d[6] + 3.0 * r2 * d[7])
+    rad = num / den
+    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
+    xd = x * rad + 2.0 * d[2] * x * y + d[3] * (r2 + 2.0 * x * x) + r2 * (d[8] + r2 * d[9])
+    yd = y * rad + d[2] * (r2 + 2.0 * y * y) + 2.0 * d[3] * x * y + r2 * (d[10] + r2 * d[11])
+    sx = d[8] + 2.0 * r2 * d[9]
+    sy = d[10] + 2.0 * r2 * d[11]
+    j11 = rad + 2.0 * x * x * drad + 2.0 * d[2] * y + 6.0 * d[3] * x + 2.0 * x * sx
+    j12 = 2.0 * x * y * drad + 2.0 * d[2] * x + 2.0 * d[3] * y + 2.0 * y * sx
+    j21 = 2.0 * x * y * drad + 2.0 * d[2] * x + 2.0 * d[3] * y + 2.0 * x * sy
+    j22 = rad + 2.0 * y * y * drad + 6.0 * d[2] * y + 2.0 * d[3] * x + 2.0 * y * sy
+    return xd, yd, j11, j12, j21, j22
+
+
+@njit(nogil=True, cache=True)
+def code_line_table(c_grid, code_grid, kmat, d, epi, axis):  # type: ignore[no-untyped-def]
+    """Solve, for every epipolar line ``c`` and projector code, the undistorted coordinate on that line.
+
+    Axis 0 (columns): the line passes through (0, c) and the epipole; returns x where the distorted column
+    equals the code. Axis 1 (rows): through (c, 0); returns y where the distorted row equals the code.
+    """
+    nc = c_grid.shape[0]
+    nu = code_grid.shape[0]
+    out = np.full((nc, nu), np.nan, dtype=np.float32)
+    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
+    fy, cy = kmat[1, 1], kmat[1, 2]
+    for j in range(nc):
+        c = c_grid[j]
+        if axis == 0:
+            p0x, p0y = 0.0, c
+            dx, dy = epi[0] - epi[2] * p0x, epi[1] - epi[2] * p0y
+            if abs(dx) < 1e-12:
+                continue
+            dy /= dx
+            dx = 1.0
+        else:
+            p0x, p0y = c, 0.0
+            dx, dy = epi[0] - epi[2] * p0x, epi[1] - epi[2] * p0y
+            if abs(dy) < 1e-12:
+                continue
+            dx /= dy
+            dy = 1.0
+        for i in range(nu):
+            target = code_grid[i]
+            if axis == 0:
+                t = (target - cx - sk * p0y) / (fx + sk * dy)
+            else:
+                t = (target - cy) / fy
+            ok = False
+            for _ in range(30):
+                x = p0x + t * dx
+                y = p0y + t * dy
+                xd, yd, j11, j12, j21, j22 = distort_jac(x, y, d)
+                if axis == 0:
+                    g = fx * xd + sk * yd + cx - target
+                    dg = (fx * j11 + sk * j21) * dx + (fx * j12 + sk * j22) * dy
+                else:
+                    g = fy * yd + cy - target
+                    dg = fy * (j21 * dx + j22 * dy)
+                if dg == 0.0:
+                    break
+                step = g / dg
+                t -= step
+                if abs(step) < 1e-13:
+                    ok = True
+                    break
+            if ok and abs(t) < 5.0:
+                out[j, i] = t
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def epipolar_intercepts(norm, rcp, tcp, c0, inv_dc, axis, min_sin):  # type: ignore[no-untyped-def]
+    """Per camera pixel: fractional index of its epipolar line in the code-line table (NaN if ill-posed)."""
+    h, w = norm.shape[0], norm.shape[1]
+    out = np.empty((h, w), dtype=np.float32)
+    for r in prange(h):
+        for col in range(w):
+            mx = np.float64(norm[r, col, 0])
+            my = np.float64(norm[r, col, 1])
+            bx = rcp[0, 0] * mx + rcp[0, 1] * my + rcp[0, 2]
+            by = rcp[1, 0] * mx + rcp[1, 1] * my + rcp[1, 2]
+            bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+            # homogeneous epipolar line l = T x B in the projector's normalised plane
+            l1 = tcp[1] * bz - tcp[2] * by
+            l2 = tcp[2] * bx - tcp[0] * bz
+            l3 = tcp[0] * by - tcp[1] * bx
+            nrm = math.sqrt(l1 * l1 + l2 * l2)
+            if axis == 0:
+                ok = nrm > 0 and abs(l2) >= min_sin * nrm
+                c = -l3 / l2 if ok else np.nan
+            else:
+                ok = nrm > 0 and abs(l1) >= min_sin * nrm
+                c = -l3 / l1 if ok else np.nan
+            out[r, col] = (c - c0) * inv_dc
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def tri_plane(code, mask, norm, cidx, table, code0, rcp, tcp, rwc, cwc, to_world, zmin, zmax, axis, out):  # type: ignore[no-untyped-def]
+    """Ray / light-surface intersection for one coded axis, organised output (NaN where invalid)."""
+    h, w = code.shape[0], code.shape[1]
+    nc, nu = table.shape[0], table.shape[1]
+    a0 = 0 if axis == 0 else 1
+    tc = tcp[2]
+    ta = tcp[a0]
+    for r in prange(h):
+        for col in range(w):
+            cu = code[r, col]
+            ci = cidx[r, col]
+            fu = np.float64(cu) - code0
+            fc = np.float64(ci)
+            valid = mask[r, col] and fu >= 0.0 and fc >= 0.0 and fu < nu - 1 and fc < nc - 1
+            if not valid:  # also false for NaN codes / lines
+                out[r, col, 0] = _NAN
+                out[r, col, 1] = _NAN
+                out[r, col, 2] = _NAN
+                continue
+            iu = int(fu)
+            ic = int(fc)
+            tu = fu - iu
+            tcf = fc - ic
+            q00 = table[ic, iu]
+            q01 = table[ic, iu + 1]
+            q10 = table[ic + 1, iu]
+            q11 = table[ic + 1, iu + 1]
+            q0 = q00 + tu * (q01 - q00)
+            q1 = q10 + tu * (q11 - q10)
+            q = q0 + tcf * (q1 - q0)
+            mx = np.float64(norm[r, col, 0])
+            my = np.float64(norm[r, col, 1])
+            ba = rcp[a0, 0] * mx + rcp[a0, 1] * my + rcp[a0, 2]
+            bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+            den = ba - bz * q
+            z = (tc * q - ta) / den if den != 0.0 else np.nan
+            if not (z >= zmin and z <= zmax and tc + z * bz > 0.0):
+                out[r, col, 0] = _NAN
+                out[r, col, 1] = _NAN
+                out[r, col, 2] = _NAN
+                continue
+            px = z * mx
+            py = z * my
+            if to_world:
+                out[r, col, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
+                out[r, col, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
+                out[r, col, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+            else:
+                out[r, col, 0] = px
+                out[r, col, 1] = py
+                out[r, col, 2] = z
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def tri_ray(u, v, mask, norm, und, origin, kmat, d, rcp, tcp, rwc, cwc, to_world, zmin, zmax, out):  # type: ignore[no-untyped-def]
+    """Ray-ray triangulation: the point on the camera ray nearest (in projector px) to the coded ray."""
+    h, w = u.shape[0], u.shape[1]
+    hp, wp = und.shape[0], und.shape[1]
+    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
+    fy, cy = kmat[1, 1], kmat[1, 2]
+    for r in prange(h):
+        for col in range(w):
+            fu = np.float64(u[r, col]) - origin
+            fv = np.float64(v[r, col]) - origin
+            if not (mask[r, col] and fu >= 0.0 and fv >= 0.0 and fu < wp - 1 and fv < hp - 1):
+                out[r, col, 0] = _NAN
+                out[r, col, 1] = _NAN
+                out[r, col, 2] = _NAN
+                continue
+            iu = int(fu)
+            iv = int(fv)
+            tu = fu - iu
+            tv = fv - iv
+            a = und[iv, iu, 0] + tu * (und[iv, iu + 1, 0] - und[iv, iu, 0])
+            b = und[iv + 1, iu, 0] + tu * (und[iv + 1, iu + 1, 0] - und[iv + 1, iu, 0])
+            xn = np.float64(a + tv * (b - a))
+            a = und[iv, iu, 1] + tu * (und[iv, iu + 1, 1] - und[iv, iu, 1])
+            b = und[iv + 1, iu, 1] + tu * (und[iv + 1, iu + 1, 1] - und[iv + 1, iu, 1])
+            yn = np.float64(a + tv * (b - a))
+            # one Newton step on the distortion model removes the table's interpolation error
+            xd, yd, j11, j12, j21, j22 = distort_jac(xn, yn, d)
+            eu = np.float64(u[r, col]) - (fx * xd + sk * yd + cx)
+            ev = np.float64(v[r, col]) - (fy * yd + cy)
+            ex = (eu - sk * ev / fy) / fx
+            ey = ev / fy
+            det = j11 * j22 - j12 * j21
+            if det != 0.0:
+                xn += (j22 * ex - j12 * ey) / det
+                yn += (j11 * ey - j21 * ex) / det
+            mx = np.float64(norm[r, col, 0])
+            my = np.float64(norm[r, col, 1])
+            bx = rcp[0, 0] * mx + rcp[0, 1] * my + rcp[0, 2]
+            by = rcp[1, 0] * mx + rcp[1, 1] * my + rcp[1, 2]
+            bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+            a1 = fx * (bx - xn * bz)
+            b1 = fx * (xn * tcp[2] - tcp[0])
+            a2 = fy * (by - yn * bz)
+            b2 = fy * (yn * tcp[2] - tcp[1])
+            nrm = a1 * a1 + a2 * a2
+            z = (a1 * b1 + a2 * b2) / nrm if nrm > 0.0 else np.nan
+            if not (z >= zmin and z <= zmax and tcp[2] + z * bz > 0.0):
+                out[r, col, 0] = _NAN
+                out[r, col, 1] = _NAN
+                out[r, col, 2] = _NAN
+                continue
+            px = z * mx
+            py = z * my
+            if to_world:
+                out[r, col, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
+                out[r, col, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
+                out[r, col, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+            else:
+                out[r, col, 0] = px
+                out[r, col, 1] = py
+                out[r, col, 2] = z
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def project_dirs(rot, a0, b0, step, hr, wr, kmat, d):  # type: ignore[no-untyped-def]
+    """Distorted pixel of every rectified-grid direction ``rot @ (a, b, 1)`` (device frame); NaN behind."""
+    out = np.empty((hr, wr, 2), dtype=np.float32)
+    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
+    fy, cy = kmat[1, 1], kmat[1, 2]
+    for y in prange(hr):
+        b = b0 + y * step
+        for x in range(wr):
+            a = a0 + x * step
+            px = rot[0, 0] * a + rot[0, 1] * b + rot[0, 2]
+            py = rot[1, 0] * a + rot[1, 1] * b + rot[1, 2]
+            pz = rot[2, 0] * a + rot[2, 1] * b + rot[2, 2]
+            if pz <= 1e-9:
+                out[y, x, 0] = _NAN
+                out[y, x, 1] = _NAN
+                continue
+            xd, yd, _, _, _, _ = distort_jac(px / pz, py / pz, d)
+            out[y, x, 0] = fx * xd + sk * yd + cx
+            out[y, x, 1] = fy * yd + cy
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-def]
+    """Bilinear resampling of a code map; NaN unless all 4 neighbours are valid and within ``max_spread``."""
+    h, w = src.shape[0], src.shape[1]
+    hr, wr = out.shape[0], out.shape[1]
+    for y in prange(hr):
+        for x in range(wr):
+            sx = np.float64(srcmap[y, x, 0])
+            sy = np.float64(srcmap[y, x, 1])
+            val = _NAN
+            if sx >= 0.0 and sy >= 0.0 and sx < w - 1 and sy < h - 1:
+                ix = int(sx)
+                iy = int(sy)
+                if mask[iy, ix] and mask[iy, ix + 1] and mask[iy + 1, ix] and mask[iy + 1, ix + 1]:
+                    c00 = src[iy, ix]
+                    c01 = src[iy, ix + 1]
+                    c10 = src[iy + 1, ix]
+                    c11 = src[iy + 1, ix + 1]
+                    lo = min(min(c00, c01), min(c10, c11))
+                    hi = max(max(c00, c01), max(c10, c11))
+                    if hi - lo <= max_spread:  # NaN compares false: rejected
+                        tx = sx - ix
+                        ty = sy - iy
+                        a = c00 + tx * (c01 - c00)
+                        b = c10 + tx * (c11 - c10)
+                        val = a + ty * (b - a)
+            out[y, x] = val
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def crossing_table(rect, code_offset, max_step, out):  # type: ignore[no-untyped-def]
+    """Per rectified row, the sub-pixel x where the code crosses each integer (NaN none, inf ambiguous)."""
+    hr, wr = rect.shape[0], rect.shape[1]
+    nk = out.shape[1]
+    for y in prange(hr):
+        for k in range(nk):
+            out[y, k] = _NAN
+        for x in range(wr - 1):
+            ua = np.float64(rect[y, x])
+            ub = np.float64(rect[y, x + 1])
+            if not (abs(ub - ua) <= max_step) or ua == ub:
+                continue
+            lo = min(ua, ub)
+            hi = max(ua, ub)
+            k0 = math.ceil(lo)
+            k1 = math.ceil(hi)
+            for k in range(k0, k1):
+                idx = k + code_offset
+                if idx < 0 or idx >= nk:
+                    continue
+                if math.isnan(out[y, idx]):
+                    out[y, idx] = x + (k - ua) / (ub - ua)
+                else:
+                    out[y, idx] = np.inf
+    return out
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignore[no-untyped-def]
+    """Sub-pixel x on fractional row ``y + w`` where the code equals ``fu`` (NaN when not consistent)."""
+    k = math.floor(fu)
+    t = fu - k
+    idx = int(k) + code_offset
+    if idx < 0 or idx + 1 >= tab.shape[1]:
+        return np.nan
+    xa0 = np.float64(tab[y, idx])
+    xb0 = np.float64(tab[y, idx + 1])
+    xa1 = np.float64(tab[y + 1, idx])
+    xb1 = np.float64(tab[y + 1, idx + 1])
+    if not (abs(xb0 - xa0) <= max_gap and abs(xb1 - xa1) <= max_gap):  # also rejects NaN / inf
+        return np.nan
+    x0 = xa0 + t * (xb0 - xa0)
+    x1 = xa1 + t * (xb1 - xa1)
+    if not abs(x1 - x0) <= max_row_jump:
+        return np.nan
+    return x0 + w * (x1 - x0)
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def stereo_match(  # type: ignore[no-untyped-def]
+    u0, v0, mask0, rect0, cross0, cross1, v1rect, use_v, code_offset, geom, rr_t, c0, r0z, t0z,
+    proj_r, proj_t, kp, dp, use_proj, max_code_err, max_gap, max_row_jump, max_lr, max_epi, zmin, zmax, out,
+):
+    """Match every cam0 pixel along its rectified row in cam1 by code and triangulate (world frame, mm).
+
+    ``geom`` = (a0min, a1min, bmin, step, baseline_mm); ``rect0`` holds each pixel's (x, y) on the grid.
+    """
+    h, w = u0.shape[0], u0.shape[1]
+    hr = cross1.shape[0]
+    wr1 = v1rect.shape[1]
+    a0min, a1min, bmin, step, base = geom[0], geom[1], geom[2], geom[3], geom[4]
+    fx, sk, cx = kp[0, 0], kp[0, 1], kp[0, 2]
+    fy, cy = kp[1, 1], kp[1, 2]
+    for r in prange(h):
+        for col in range(w):
+            out[r, col, 0] = _NAN
+            out[r, col, 1] = _NAN
+            out[r, col, 2] = _NAN
+            fu = np.float64(u0[r, col])
+            xr0 = np.float64(rect0[r, col, 0])
+            yr = np.float64(rect0[r, col, 1])
+            if not (mask0[r, col] and fu == fu and yr >= 0.0 and yr < hr - 1):
+                continue
+            iy = int(yr)
+            wy = yr - iy
+            x1 = _cross_at(cross1, iy, wy, fu, code_offset, max_gap, max_row_jump)
+            if x1 != x1:
+                continue
+            # left-right check: the code must come back to this very pixel on cam0's own row
+            xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump)
+            if not abs(xb - xr0) <= max_lr:
+                continue
+            if use_v:
+                ix = int(x1)
+                if ix < 0 or ix + 1 >= wr1 or iy + 2 >= hr:
+                    continue
+                tx = x1 - ix
+                va = v1rect[iy, ix] + tx * (v1rect[iy, ix + 1] - v1rect[iy, ix])
+                vb = v1rect[iy + 1, ix] + tx * (v1rect[iy + 1, ix + 1] - v1rect[iy + 1, ix])
+                v1 = va + wy * (vb - va)
+                dvdy = vb - va
+                if not (abs(dvdy) > 1e-6 and abs(np.float64(v0[r, col]) - v1) <= max_epi * abs(dvdy)):
+                    continue
+            a0 = a0min + xr0 * step
+            a1 = a1min + x1 * step
+            b = bmin + yr * step
+            disp = a0 - a1
+            if not disp > 0.0:
+                continue
+            zr = base / disp
+            px = c0[0] + zr * (rr_t[0, 0] * a0 + rr_t[0, 1] * b + rr_t[0, 2])
+            py = c0[1] + zr * (rr_t[1, 0] * a0 + rr_t[1, 1] * b + rr_t[1, 2])
+            pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
+            depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
+            if not (depth >= zmin and depth <= zmax):
+                continue
+            if use_proj:
+                qx = proj_r[0, 0] * px + proj_r[0, 1] * py + proj_r[0, 2] * pz + proj_t[0]
+                qy = proj_r[1, 0] * px + proj_r[1, 1] * py + proj_r[1, 2] * pz + proj_t[1]
+                qz = proj_r[2, 0] * px + proj_r[2, 1] * py + proj_r[2, 2] * pz + proj_t[2]
+                if qz <= 0.0:
+                    continue
+                xd, yd, _, _, _, _ = distort_jac(qx / qz, qy / qz, dp)
+                if not abs(fx * xd + sk * yd + cx - fu) <= max_code_err:
+                    continue
+                if use_v and not abs(fy * yd + cy - np.float64(v0[r, col])) <= max_code_err:
+                    continue
+            out[r, col, 0] = px
+            out[r, col, 1] = py
+            out[r, col, 2] = pz
+    return out

@@ -1,0 +1,709 @@
+"""Structured-light decoding: a frame stack (or frames as they arrive) -> projector coordinates.
+
+The decoder looks every frame up by what it is (never by position): a :class:`DecodePlan` built from
+the :class:`~appliance.patterns.sequence.Sequence` says which frames code which axis, how each phase
+set is unwrapped, and which frames are not used.
+
+Per camera pixel:
+
+* **Shadow.** The contrast range ``r = white - black`` (or, without white/black frames, the largest
+  minus the smallest value over the coded frames) must reach a scene-adaptive threshold:
+  ``max(min_contrast_dn, shadow_fraction * Otsu(r))``, Otsu's split of the histogram of ``r`` over the
+  image between shadow and lit pixels.
+* **Gray code.** Each bit is ``pattern > inverse`` (or ``pattern > (white + black) / 2`` without an
+  inverse), with contrast ``|pattern - inverse|`` that must reach ``relative_contrast * r``. One weak bit
+  per axis is tolerated: a pixel on a stripe edge has exactly one ambiguous bit, and either value is a
+  neighbouring stripe (harmless for phase unwrapping with stripe <= period / 2; ± one stripe for
+  Gray-only decoding). Gray-only decoding returns stripe centres, ``(k + 0.5) * stripe - 0.5``.
+* **Phase.** ``S = Σ I_n sin θ_n``, ``C = Σ I_n cos θ_n`` with ``θ_n = offset + 2π n / N``; the wrapped
+  coordinate is ``period * atan2(-S, C) / 2π`` in ``[0, period)``; the peak-to-peak modulation
+  ``4 / N * sqrt(S² + C²)`` must reach ``relative_contrast * r``. Each set is unwrapped against a coarse
+  estimate ``c0``: ``c = c_phase + period * round((c0 - c_phase) / period)``, where ``c0`` is the Gray
+  stripe centre (coarsest set), the next coarser unwrapped set (finer sets), or the axis centre (a
+  period covering the whole axis). The finest set gives the result.
+* **Quality** is the weakest contrast the decode relied on (DN of the input data): Gray bit contrasts
+  (without the tolerated edge bit) and phase modulations; 0 where masked.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.errors import DecodeError, PatternError
+from appliance.patterns.sequence import (
+    Axis,
+    BlackFrame,
+    GrayFrame,
+    OtherFrame,
+    PhaseFrame,
+    Sequence,
+    WhiteFrame,
+    gray_bits_needed,
+)
+from appliance.reconstruct import _decode_kernels as _k
+from appliance.reconstruct.types import DecodedMaps
+
+FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+
+#: A coarser phase set unwraps a finer one only up to this period ratio (its phase error, scaled by the
+#: ratio, must stay well inside half the finer period).
+MAX_PERIOD_RATIO = 16.0
+#: Phase coefficients are quantised to this step so that sums of products are exact in float64.
+COEFFICIENT_QUANTUM = 2.0**-20
+_AXES: tuple[Axis, Axis] = ("x", "y")
+
+
+@dataclass(frozen=True)
+class DecodeParams:
+    """Thresholds of the decoder.
+
+    Attributes
+    ----------
+    min_contrast_dn : float
+        Floor of ``white - black`` for a lit pixel, in 8-bit digital numbers (scaled by
+        ``max_value / 255`` for other data).
+    relative_contrast : float
+        Every Gray contrast ``|pattern - inverse|`` and phase modulation (peak to peak) must reach this
+        fraction of the pixel's own ``white - black``.
+    shadow_fraction : float
+        The lit threshold is at least this fraction of the Otsu threshold of the image's
+        ``white - black`` histogram (adapts to ambient light and noise).
+    max_value : float or None
+        Full scale of the data (DN); None: 255 for uint8, 65535 for uint16 (give 4095 for 12-bit data).
+    """
+
+    min_contrast_dn: float = 6.0
+    relative_contrast: float = 0.15
+    shadow_fraction: float = 0.2
+    max_value: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.min_contrast_dn >= 0.0 and math.isfinite(self.min_contrast_dn)):
+            raise DecodeError(f"decode params: min_contrast_dn = {self.min_contrast_dn}: must be >= 0")
+        if not 0.0 <= self.relative_contrast < 1.0:
+            raise DecodeError(f"decode params: relative_contrast = {self.relative_contrast}: must be in [0, 1)")
+        if not 0.0 <= self.shadow_fraction <= 1.0:
+            raise DecodeError(f"decode params: shadow_fraction = {self.shadow_fraction}: must be in [0, 1]")
+        if self.max_value is not None and not self.max_value > 0:
+            raise DecodeError(f"decode params: max_value = {self.max_value}: must be > 0 DN")
+
+
+@dataclass(frozen=True)
+class GrayAxisPlan:
+    """The Gray code of one axis: ``frames[bit] = (pattern index, inverse index)``, -1 where absent."""
+
+    axis: Axis
+    stripe: int
+    bits: int
+    frames: tuple[tuple[int, int], ...]
+
+
+@dataclass(frozen=True)
+class PhaseSetPlan:
+    """One phase set: frame indices in step order and what unwraps it (``'gray'``, ``'axis'``, ``'period P'``)."""
+
+    axis: Axis
+    period: float
+    steps: int
+    offset: float
+    frames: tuple[int, ...]
+    source: str
+
+
+@dataclass(frozen=True)
+class DecodePlan:
+    """How a :class:`Sequence` is decoded (build it with :func:`plan_decode`).
+
+    Attributes
+    ----------
+    sequence : Sequence
+        The frames.
+    axes : tuple of {'x', 'y'}
+        The coded axes.
+    white, black : int
+        Frame indices of the white and black frames (-1: not used).
+    gray : tuple of GrayAxisPlan
+        One per Gray-coded axis.
+    phase : tuple of PhaseSetPlan
+        Phase sets, coarse to fine within each axis.
+    ignored : list of str
+        Frames not used, with the reason.
+    """
+
+    sequence: Sequence
+    axes: tuple[Axis, ...]
+    white: int
+    black: int
+    gray: tuple[GrayAxisPlan, ...]
+    phase: tuple[PhaseSetPlan, ...]
+    ignored: list[str] = field(default_factory=list)
+    tables: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def used(self) -> tuple[int, ...]:
+        """Indices of every frame the decoder reads, ascending."""
+        return tuple(int(i) for i in self.tables["used"])
+
+
+# --------------------------------------------------------------------------------------------------
+# Planning
+# --------------------------------------------------------------------------------------------------
+
+
+def _ranges(values: Iterable[int]) -> str:
+    vals = sorted(set(values))
+    if not vals:
+        return "none"
+    out: list[str] = []
+    start = prev = vals[0]
+    for v in [*vals[1:], None]:
+        if v is not None and v == prev + 1:
+            prev = v
+            continue
+        out.append(f"{start}" if start == prev else f"{start}-{prev}")
+        if v is not None:
+            start = prev = v
+    return ", ".join(out)
+
+
+def _describe(frame: Any) -> str:
+    if isinstance(frame, GrayFrame):
+        return f"gray {frame.axis} bit {frame.bit}{' inverted' if frame.inverted else ''}"
+    if isinstance(frame, PhaseFrame):
+        return f"phase {frame.axis} period {frame.period:g} step {frame.step}/{frame.steps}"
+    return str(frame.pattern)
+
+
+def plan_decode(sequence: Sequence) -> DecodePlan:
+    """Work out how to decode ``sequence``, or refuse it saying what is missing.
+
+    Parameters
+    ----------
+    sequence : Sequence
+        The captured frames, in any order.
+
+    Returns
+    -------
+    DecodePlan
+
+    Raises
+    ------
+    PatternError
+        When a coordinate cannot be determined: a missing Gray bit, a missing phase step, a phase set
+        with nothing to unwrap it, mixed stripes, ... (every problem is listed, separated by ``;``).
+    """
+    ignored: list[str] = []
+    problems: list[str] = []
+    whites: list[int] = []
+    blacks: list[int] = []
+    gray: dict[Axis, dict[tuple[int, bool], int]] = {"x": {}, "y": {}}
+    stripes: dict[Axis, set[int]] = {"x": set(), "y": set()}
+    phases: dict[tuple[Axis, float], dict[int, int]] = defaultdict(dict)
+    phase_kind: dict[tuple[Axis, float], set[tuple[int, float]]] = defaultdict(set)
+    seen: dict[Any, int] = {}
+
+    for i, f in enumerate(sequence.frames):
+        if isinstance(f, OtherFrame):
+            ignored.append(f"frame {i}: pattern {f.pattern!r} is not decodable; unused")
+            continue
+        key = f
+        if key in seen:
+            ignored.append(f"frame {i}: duplicate of frame {seen[key]} ({_describe(f)}); unused")
+            continue
+        seen[key] = i
+        if isinstance(f, WhiteFrame):
+            whites.append(i)
+        elif isinstance(f, BlackFrame):
+            blacks.append(i)
+        elif isinstance(f, GrayFrame):
+            gray[f.axis][(f.bit, f.inverted)] = i
+            stripes[f.axis].add(f.stripe)
+        elif isinstance(f, PhaseFrame):
+            pk = (f.axis, f.period)
+            if f.step in phases[pk]:
+                ignored.append(f"frame {i}: duplicate step of frame {phases[pk][f.step]} ({_describe(f)}); unused")
+                continue
+            phases[pk][f.step] = i
+            phase_kind[pk].add((f.steps, f.offset))
+
+    white = black = -1
+    if whites and blacks:
+        white, black = whites[0], blacks[0]
+    elif whites:
+        ignored.append(f"frame {whites[0]}: white without a black frame; unused")
+    elif blacks:
+        ignored.append(f"frame {blacks[0]}: black without a white frame; unused")
+    has_wb = white >= 0
+
+    gray_plans: dict[Axis, GrayAxisPlan] = {}
+    for axis in _AXES:
+        if not gray[axis]:
+            continue
+        if len(stripes[axis]) > 1:
+            problems.append(
+                f"gray code axis {axis}: frames use stripes {sorted(stripes[axis])} px; "
+                "use one Gray code (one stripe) per axis"
+            )
+            continue
+        stripe = next(iter(stripes[axis]))
+        present = {b for b, _ in gray[axis]}
+        needed = max(gray_bits_needed(sequence.axis_size(axis), stripe), max(present) + 1)
+        missing = [b for b in range(needed) if b not in present]
+        if missing:
+            what = f"bit {missing[0]} is" if len(missing) == 1 else f"bits {_ranges(missing)} are"
+            problems.append(
+                f"gray code axis {axis}: {what} missing (bits present: {_ranges(present)}; "
+                f"{needed} bits code {sequence.axis_size(axis)} px in stripes of {stripe} px); "
+                "add the missing frames or fix the manifest"
+            )
+            continue
+        frames_of_bit: list[tuple[int, int]] = []
+        for b in range(needed):
+            pos = gray[axis].get((b, False), -1)
+            neg = gray[axis].get((b, True), -1)
+            if (pos < 0 or neg < 0) and not has_wb:
+                problems.append(
+                    f"gray code axis {axis}: bit {b} has no inverse frame and the sequence has no white and "
+                    "black frames to threshold it against; add inverses or white and black frames"
+                )
+            frames_of_bit.append((pos, neg))
+        gray_plans[axis] = GrayAxisPlan(axis, stripe, needed, tuple(frames_of_bit))
+
+    phase_plans: list[PhaseSetPlan] = []
+    for axis in _AXES:
+        keys = sorted((k for k in phases if k[0] == axis), key=lambda k: -k[1])
+        size = sequence.axis_size(axis)
+        previous: float | None = None
+        for pk in keys:
+            period = pk[1]
+            name = f"phase {axis} period {period:g}"
+            kinds = phase_kind[pk]
+            if len(kinds) > 1:
+                problems.append(f"{name}: frames disagree on steps/offset {sorted(kinds)}; use one set per period")
+                continue
+            steps, offset = next(iter(kinds))
+            missing = [s for s in range(steps) if s not in phases[pk]]
+            if missing:
+                problems.append(
+                    f"{name}: step(s) {_ranges(missing)} of {steps} missing (steps present: "
+                    f"{_ranges(phases[pk])}); add the frames or fix the manifest"
+                )
+                continue
+            g = gray_plans.get(axis)
+            source: str | None = None
+            why = ""
+            if previous is not None and previous / period <= MAX_PERIOD_RATIO:
+                source = f"period {previous:g}"
+            elif g is not None and g.stripe <= period:
+                source = "gray"
+            elif previous is None and period >= size:
+                source = "axis"
+            elif previous is not None:
+                why = (
+                    f"the next coarser period {previous:g} is {previous / period:.3g} times longer "
+                    f"(at most {MAX_PERIOD_RATIO:g})"
+                    + (f" and the Gray stripe {g.stripe} px is wider than the period" if g else "")
+                    + "; add an intermediate period or a Gray code with stripe <= the period"
+                )
+            elif g is not None:
+                why = (
+                    f"the Gray code stripe ({g.stripe} px) is wider than the period; use a stripe of the "
+                    "period or half of it, or add a coarser period"
+                )
+            elif gray[axis] or stripes[axis]:
+                why = f"the Gray code of axis {axis} is unusable (see above)"
+            else:
+                why = (
+                    f"axis {axis} has no Gray code and no coarser phase period; add a Gray code with stripe "
+                    f"{int(period)} or {int(period) // 2} px, or a period >= {size} px"
+                )
+            if source is None:
+                problems.append(f"{name}: cannot be unwrapped: {why}")
+                continue
+            frames_idx = tuple(phases[pk][s] for s in range(steps))
+            phase_plans.append(PhaseSetPlan(axis, period, steps, offset, frames_idx, source))
+            previous = period
+
+    if problems:
+        raise PatternError("; ".join(problems))
+    axes = tuple(a for a in _AXES if a in gray_plans or any(p.axis == a for p in phase_plans))
+    if not axes:
+        raise PatternError(
+            f"sequence ({sequence.describe()}): no Gray code or phase frames: nothing to decode"
+        )
+    plan = DecodePlan(
+        sequence, axes, white, black, tuple(gray_plans.values()), tuple(phase_plans), ignored
+    )
+    plan.tables.update(_tables(plan))
+    return plan
+
+
+def _tables(plan: DecodePlan) -> dict[str, Any]:
+    seq = plan.sequence
+    gray_rows: list[tuple[int, int, int, int]] = []
+    axis_tab = np.zeros((2, 6), np.int64)
+    for a, axis in enumerate(_AXES):
+        axis_tab[a, 5] = seq.axis_size(axis)
+        axis_tab[a, 2] = 1
+        axis_tab[a, 3] = 1
+        axis_tab[a, 0] = int(axis in plan.axes)
+    for g in plan.gray:
+        a = _AXES.index(g.axis)
+        axis_tab[a, 1:5] = (1, g.stripe, -(-seq.axis_size(g.axis) // g.stripe), int(g.bits >= 2))
+        gray_rows.extend((a, b, pos, neg) for b, (pos, neg) in enumerate(g.frames))
+    ph_tab = np.zeros((len(plan.phase), 4), np.int64)
+    ph_idx: list[int] = []
+    ph_sin: list[float] = []
+    ph_cos: list[float] = []
+    for s, p in enumerate(plan.phase):
+        src = 1 if p.source.startswith("period") else (-1 if p.source == "gray" else -2)
+        ph_tab[s] = (_AXES.index(p.axis), p.steps, src, len(ph_idx))
+        for n, idx in enumerate(p.frames):
+            theta = p.offset + 2.0 * math.pi * n / p.steps
+            ph_idx.append(idx)
+            ph_sin.append(round(math.sin(theta) / COEFFICIENT_QUANTUM) * COEFFICIENT_QUANTUM)
+            ph_cos.append(round(math.cos(theta) / COEFFICIENT_QUANTUM) * COEFFICIENT_QUANTUM)
+    used = sorted({i for row in gray_rows for i in row[2:] if i >= 0} | set(ph_idx))
+    return {
+        "wb": np.array([plan.white, plan.black], np.int64),
+        "gray_tab": np.array(gray_rows, np.int64).reshape(-1, 4),
+        "axis_tab": axis_tab,
+        "ph_tab": ph_tab,
+        "ph_period": np.array([p.period for p in plan.phase], np.float64),
+        "ph_idx": np.array(ph_idx, np.int64),
+        "ph_sin": np.array(ph_sin, np.float64),
+        "ph_cos": np.array(ph_cos, np.float64),
+        "used": np.array(used, np.int64),
+    }
+
+
+# --------------------------------------------------------------------------------------------------
+# Thresholds
+# --------------------------------------------------------------------------------------------------
+
+
+def _max_value(dtype: np.dtype[Any], params: DecodeParams) -> float:
+    if params.max_value is not None:
+        return float(params.max_value)
+    return 255.0 if dtype == np.uint8 else 65535.0
+
+
+def _hist_layout(dtype: np.dtype[Any]) -> tuple[int, int]:
+    """(shift, bins) of the contrast-range histogram."""
+    return (0, 256) if dtype == np.uint8 else (4, 4096)
+
+
+def otsu_threshold(hist: npt.NDArray[np.int64]) -> int:
+    """Otsu's threshold of a histogram: the first bin of the upper class (0 when degenerate)."""
+    h = hist.astype(np.float64)
+    total = h.sum()
+    if total <= 0:
+        return 0
+    bins = np.arange(h.size, dtype=np.float64)
+    w0 = np.cumsum(h)
+    m0 = np.cumsum(h * bins)
+    w1 = total - w0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        between = w0 * w1 * (m0 / w0 - (m0[-1] - m0) / w1) ** 2
+    between[~np.isfinite(between)] = -1.0
+    best = int(np.argmax(between))
+    return best + 1 if between[best] > 0 else 0
+
+
+def lit_threshold(hist: npt.NDArray[np.int64], dtype: np.dtype[Any], params: DecodeParams) -> float:
+    """Scene-adaptive lit threshold on ``white - black`` (DN) from its histogram."""
+    shift, _ = _hist_layout(dtype)
+    floor = params.min_contrast_dn * _max_value(dtype, params) / 255.0
+    return max(floor, params.shadow_fraction * float(otsu_threshold(hist) << shift))
+
+
+# --------------------------------------------------------------------------------------------------
+# Batch
+# --------------------------------------------------------------------------------------------------
+
+
+def _as_plan(sequence: Sequence | DecodePlan) -> DecodePlan:
+    return sequence if isinstance(sequence, DecodePlan) else plan_decode(sequence)
+
+
+def _check_out(out: DecodedMaps, shape: tuple[int, int]) -> None:
+    for name, dtype in (("u", np.float32), ("v", np.float32), ("mask", np.bool_), ("quality", np.float32)):
+        arr = getattr(out, name)
+        if arr.shape != shape or arr.dtype != dtype or not arr.flags.c_contiguous:
+            raise DecodeError(
+                f"decode: out.{name} is {arr.shape} {arr.dtype}: must be a C-contiguous {shape} "
+                f"{np.dtype(dtype).name} array"
+            )
+
+
+def empty_maps(shape: tuple[int, int]) -> DecodedMaps:
+    """Uninitialised output maps of ``shape`` (H, W), for ``decode(..., out=)``."""
+    return DecodedMaps(
+        np.empty(shape, np.float32),
+        np.empty(shape, np.float32),
+        np.empty(shape, np.bool_),
+        np.empty(shape, np.float32),
+    )
+
+
+def decode(
+    frames: FrameStack,
+    sequence: Sequence | DecodePlan,
+    params: DecodeParams = DecodeParams(),  # noqa: B008 (frozen, immutable)
+    *,
+    out: DecodedMaps | None = None,
+) -> DecodedMaps:
+    """Decode a captured frame stack into projector coordinates.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (F, H, W), uint8 or uint16
+        One camera's frames in the order of ``sequence``.
+    sequence : Sequence or DecodePlan
+        What each frame shows (a plan from :func:`plan_decode` skips re-planning).
+    params : DecodeParams
+        Thresholds.
+    out : DecodedMaps, optional
+        Preallocated C-contiguous (H, W) outputs (see :func:`empty_maps`); filled and returned.
+
+    Returns
+    -------
+    DecodedMaps
+        ``u``, ``v`` (projector px, float32, NaN where undecoded or not coded), ``mask``, ``quality`` (DN).
+
+    Raises
+    ------
+    PatternError
+        The sequence cannot be decoded (see :func:`plan_decode`).
+    DecodeError
+        ``frames`` has the wrong shape or dtype.
+    """
+    plan = _as_plan(sequence)
+    frames_arr = np.asarray(frames)
+    n = len(plan.sequence)
+    if frames_arr.ndim != 3 or frames_arr.shape[0] != n:
+        raise DecodeError(
+            f"decode: frames have shape {frames_arr.shape}: must be ({n}, height, width), one image per frame "
+            "of the sequence"
+        )
+    if frames_arr.dtype not in (np.uint8, np.uint16):
+        raise DecodeError(f"decode: frames have dtype {frames_arr.dtype}: must be uint8 or uint16")
+    stack = np.ascontiguousarray(frames_arr)
+    shape = (int(stack.shape[1]), int(stack.shape[2]))
+    if out is None:
+        out = empty_maps(shape)
+    else:
+        _check_out(out, shape)
+    t = plan.tables
+    shift, nbins = _hist_layout(stack.dtype)
+    maxval = 255 if stack.dtype == np.uint8 else 65535
+    if plan.white >= 0:
+        hist = _k.range_hist(stack[plan.white], stack[plan.black], shift, nbins)
+    else:
+        hist = _k.range_hist_stack(stack, t["wb"], t["used"], maxval, shift, nbins)
+    thr = lit_threshold(hist, stack.dtype, params)
+    _k.decode_stack(
+        stack, t["wb"], t["used"], maxval, t["gray_tab"], t["axis_tab"], t["ph_tab"], t["ph_period"],
+        t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
+        out.u, out.v, out.mask, out.quality,
+    )  # fmt: skip
+    out.ignored = list(plan.ignored)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Streaming
+# --------------------------------------------------------------------------------------------------
+
+
+class StreamingDecoder:
+    """Decode frames one at a time, as they arrive; :meth:`finish` equals :func:`decode` bit for bit.
+
+    Every frame does its share of the work in :meth:`push` (a Gray pair when both frames are in, a
+    Gray frame without inverse once white and black are in, a phase step at once). All state is
+    allocated here and reused after :meth:`reset`.
+
+    Parameters
+    ----------
+    sequence : Sequence or DecodePlan
+        What each frame shows.
+    shape : tuple of int
+        (H, W) of the camera images.
+    dtype : numpy dtype
+        ``np.uint8`` or ``np.uint16``.
+    params : DecodeParams
+        Thresholds.
+    """
+
+    def __init__(
+        self,
+        sequence: Sequence | DecodePlan,
+        shape: tuple[int, int],
+        dtype: Any = np.uint8,
+        params: DecodeParams = DecodeParams(),  # noqa: B008 (frozen, immutable)
+    ) -> None:
+        self.plan = _as_plan(sequence)
+        self.params = params
+        self.dtype = np.dtype(dtype)
+        if self.dtype not in (np.uint8, np.uint16):
+            raise DecodeError(f"streaming decoder: dtype {self.dtype}: must be uint8 or uint16")
+        if len(shape) != 2 or min(shape) < 1:
+            raise DecodeError(f"streaming decoder: shape {shape}: must be (height, width) >= 1")
+        self.shape = (int(shape[0]), int(shape[1]))
+        h, w = self.shape
+        t = self.plan.tables
+        self._maxval = 255 if self.dtype == np.uint8 else 65535
+        # hi/lo: white/black, or running max/min when the sequence has no white/black
+        self._hi = np.empty((h, w), self.dtype)
+        self._lo = np.empty((h, w), self.dtype)
+        self._code = np.empty((2, h, w), np.int32)
+        self._m1 = np.empty((2, h, w), np.int32)
+        self._m2 = np.empty((2, h, w), np.int32)
+        nset = len(self.plan.phase)
+        self._ssum = np.empty((max(nset, 1), h, w), np.float64)
+        self._csum = np.empty((max(nset, 1), h, w), np.float64)
+        # role of each frame: ("white"|"black"|"pos"|"neg"|"single"|"phase", row in its table)
+        self._role: dict[int, tuple[str, int]] = {}
+        if self.plan.white >= 0:
+            self._role[self.plan.white] = ("white", 0)
+            self._role[self.plan.black] = ("black", 0)
+        self._pending: dict[int, npt.NDArray[Any]] = {}
+        for g, (a, bit, pos, neg) in enumerate(t["gray_tab"].tolist()):
+            del a, bit
+            if pos >= 0 and neg >= 0:
+                self._role[pos] = ("pos", g)
+                self._role[neg] = ("neg", g)
+                self._pending[g] = np.empty((h, w), self.dtype)  # first-arrived frame of the pair
+            else:
+                self._role[pos if pos >= 0 else neg] = ("single", g)
+                self._pending[g] = np.empty((h, w), self.dtype)  # waits for white and black
+        for k, idx in enumerate(t["ph_idx"].tolist()):
+            self._role[idx] = ("phase", k)
+        self._ph_set = np.repeat(np.arange(nset), [p.steps for p in self.plan.phase]).astype(np.int64)
+        self._pushed: set[int] = set()
+        self._waiting: set[int] = set()  # gray rows with one frame stored in _pending
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the frames pushed so far; buffers are kept for the next scan."""
+        self._code.fill(0)
+        self._m1.fill(_k.BIG)
+        self._m2.fill(_k.BIG)
+        self._ssum.fill(0.0)
+        self._csum.fill(0.0)
+        if self.plan.white < 0:
+            self._hi.fill(0)
+            self._lo.fill(self._maxval)
+        self._pushed.clear()
+        self._waiting.clear()
+
+    def push(self, index: int, frame: npt.NDArray[Any]) -> None:
+        """Add frame ``index`` of the sequence (any order).
+
+        Parameters
+        ----------
+        index : int
+            Position of the frame in the sequence.
+        frame : ndarray, shape (H, W), the decoder's dtype
+            The camera image.
+
+        Raises
+        ------
+        DecodeError
+            Bad index, shape or dtype, or a frame pushed twice (call :meth:`reset` between scans).
+        """
+        n = len(self.plan.sequence)
+        if not 0 <= index < n:
+            raise DecodeError(f"streaming decoder: frame index {index}: must be in 0..{n - 1}")
+        img = np.asarray(frame)
+        if img.shape != self.shape or img.dtype != self.dtype:
+            raise DecodeError(
+                f"streaming decoder: frame {index} is {img.shape} {img.dtype}: must be {self.shape} {self.dtype}"
+            )
+        if index in self._pushed:
+            raise DecodeError(f"streaming decoder: frame {index} pushed twice; call reset() between scans")
+        self._pushed.add(index)
+        role = self._role.get(index)
+        if role is None:
+            return
+        img = np.ascontiguousarray(img)
+        kind, row = role
+        t = self.plan.tables
+        if kind in ("white", "black"):
+            np.copyto(self._hi if kind == "white" else self._lo, img)
+            if self.plan.white in self._pushed and self.plan.black in self._pushed:
+                for g in sorted(self._waiting):
+                    if min(int(t["gray_tab"][g, 2]), int(t["gray_tab"][g, 3])) < 0:  # a single, not a pair
+                        self._single(g, self._pending[g])
+                        self._waiting.discard(g)
+            return
+        if self.plan.white < 0:
+            _k.stream_minmax(img, self._hi, self._lo)
+        if kind == "phase":
+            s = int(self._ph_set[row])
+            _k.stream_phase(img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s])
+        elif kind == "single":
+            if self.plan.white in self._pushed and self.plan.black in self._pushed:
+                self._single(row, img)
+            else:
+                np.copyto(self._pending[row], img)
+                self._waiting.add(row)
+        elif row in self._waiting:
+            a, bit, _, _ = (int(x) for x in t["gray_tab"][row])
+            other = self._pending[row]
+            pos, neg = (img, other) if kind == "pos" else (other, img)
+            _k.stream_pair(pos, neg, bit, self._code[a], self._m1[a], self._m2[a])
+            self._waiting.discard(row)
+        else:
+            np.copyto(self._pending[row], img)
+            self._waiting.add(row)
+
+    def _single(self, g: int, img: npt.NDArray[Any]) -> None:
+        a, bit, pos, _ = (int(x) for x in self.plan.tables["gray_tab"][g])
+        sign = 1 if pos >= 0 else -1
+        _k.stream_single(img, sign, self._hi, self._lo, bit, self._code[a], self._m1[a], self._m2[a])
+
+    @property
+    def missing(self) -> list[int]:
+        """Indices of the frames the decoder still needs."""
+        need = self.plan.used + ((self.plan.white, self.plan.black) if self.plan.white >= 0 else ())
+        return sorted(i for i in set(need) if i not in self._pushed)
+
+    def finish(self, *, out: DecodedMaps | None = None) -> DecodedMaps:
+        """Final per-pixel step; identical to :func:`decode` on the same frames.
+
+        Raises
+        ------
+        DecodeError
+            When frames the decoder needs were not pushed (names their indices).
+        """
+        missing = self.missing
+        if missing:
+            desc = ", ".join(f"{i} ({_describe(self.plan.sequence.frames[i])})" for i in missing[:12])
+            more = f" and {len(missing) - 12} more" if len(missing) > 12 else ""
+            raise DecodeError(
+                f"streaming decoder: {len(missing)} frame(s) not pushed: {desc}{more}; push every frame "
+                "of the sequence before finish()"
+            )
+        if out is None:
+            out = empty_maps(self.shape)
+        else:
+            _check_out(out, self.shape)
+        t = self.plan.tables
+        shift, nbins = _hist_layout(self.dtype)
+        hist = _k.range_hist(self._hi, self._lo, shift, nbins)
+        thr = lit_threshold(hist, self.dtype, self.params)
+        _k.stream_finish(
+            self._hi, self._lo, self._code, self._m1, self._m2, self._ssum, self._csum, t["axis_tab"],
+            t["ph_tab"], t["ph_period"], float(self.params.relative_contrast), float(thr),
+            out.u, out.v, out.mask, out.quality,
+        )  # fmt: skip
+        out.ignored = list(self.plan.ignored)
+        return out

@@ -1,0 +1,310 @@
+"""The virtual rig: ground-truth cameras and projector, a scene, and images of any pattern sequence.
+
+For each camera the geometry is computed once: the (distorted) pixel rays are cast into the scene, the
+nearest hit ``X`` is projected into the projector with its distortion (exact projector coordinates),
+a shadow ray from ``X`` to the projector's centre finds projector shadows and self-occlusion, and the
+albedo and incidence give each pixel's gain. A frame then only evaluates the pattern at the projector
+coordinates, blurs, adds noise and quantises (:mod:`appliance.sim.render`).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.config.schema import DeviceOptics, VirtualRigConfig
+from appliance.errors import ConfigError, PatternError
+from appliance.geometry.camera import CameraModel, look_at
+from appliance.patterns.sequence import Frame, Sequence
+from appliance.sim import _sim_kernels as _k
+from appliance.sim.render import FrameRenderer, ImageArray
+from appliance.sim.scene import Scene
+
+F64 = npt.NDArray[np.float64]
+I32 = npt.NDArray[np.int32]
+BoolArray = npt.NDArray[np.bool_]
+
+SHADOW_OFFSET_MM = 1e-4
+"""Shadow rays start this far off the surface (along its normal) so they do not hit it again (mm)."""
+
+PROJECTOR_NAME = "projector"
+
+
+def device_model(name: str, optics: DeviceOptics) -> CameraModel:
+    """The ground-truth :class:`CameraModel` of a virtual camera or projector.
+
+    Parameters
+    ----------
+    name : str
+        Device name.
+    optics : DeviceOptics
+        Size, focal length (px), principal point (centre when unset), distortion and pose
+        (``position_mm`` looking at ``look_at_mm``, image rows pointing to world +y as far as possible).
+    """
+    cx, cy = optics.principal_px or ((optics.width - 1) / 2.0, (optics.height - 1) / 2.0)
+    K = np.array([[optics.focal_px, 0.0, cx], [0.0, optics.focal_px, cy], [0.0, 0.0, 1.0]])
+    dist = np.asarray(optics.dist, dtype=np.float64)
+    if dist.size not in (0, 4, 5, 8):
+        dist = np.concatenate([dist, np.zeros(5 - dist.size)]) if dist.size < 5 else np.concatenate(
+            [dist, np.zeros(8 - dist.size)])
+    try:
+        R, T = look_at(np.asarray(optics.position_mm), np.asarray(optics.look_at_mm))
+    except Exception as exc:  # a degenerate pose
+        raise ConfigError(f"virtual_rig {name}: position_mm {optics.position_mm} / look_at_mm "
+                          f"{optics.look_at_mm}: {exc}") from exc
+    return CameraModel(name, K, dist, optics.width, optics.height, R, T, rms=0.0)
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Exact geometry seen by one camera of the virtual rig (per camera pixel).
+
+    Attributes
+    ----------
+    xyz : ndarray, shape (H, W, 3), float64
+        Surface point seen by the pixel centre (mm, world frame); NaN where the ray hits nothing.
+    depth : ndarray, shape (H, W), float64
+        z of that point in the camera frame (mm); NaN where no hit.
+    hit : ndarray, shape (H, W), bool
+        The pixel's ray hits an object.
+    lit : ndarray, shape (H, W), bool
+        Hit, facing the projector, not in a projector shadow, inside the projector image.
+    proj_uv : ndarray, shape (H, W, 2), float64
+        Exact projector coordinates (u = column, v = row, px) of the point; NaN where no hit or behind
+        the projector.
+    normal : ndarray, shape (H, W, 3), float64
+        Unit surface normal facing the camera (world); NaN where no hit.
+    object_id : ndarray, shape (H, W), int32
+        Index of the hit object in ``virtual_rig.scene``; -1 where no hit.
+    """
+
+    xyz: F64
+    depth: F64
+    hit: BoolArray
+    lit: BoolArray
+    proj_uv: F64
+    normal: F64
+    object_id: I32
+
+
+_CONFIG_SEED: Literal["config"] = "config"
+
+
+def _dot(a: F64, b: F64) -> F64:
+    """Row-wise dot products of (N, 3) arrays."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]  # type: ignore[no-any-return]
+
+
+class VirtualRig:
+    """Simulated cameras and projector looking at a known scene.
+
+    Parameters
+    ----------
+    cfg : VirtualRigConfig
+        Optics (ground truth), scene and photometry.
+    base_dir : Path, optional
+        Folder that relative mesh paths resolve against (the configuration file's folder).
+    scene : Scene, optional
+        A prebuilt scene (e.g. with a swapped albedo) instead of ``cfg.scene``.
+
+    Attributes
+    ----------
+    cameras : dict of str to CameraModel
+        Ground-truth camera models, in configuration order (the first is the reference camera).
+    projector : CameraModel
+        Ground-truth projector model.
+    scene : Scene
+        The scene.
+
+    Notes
+    -----
+    Per-camera geometry is computed on first use of a camera (or by :meth:`prepare`), about a second
+    for 1280 x 1024. Rendering different cameras from different threads is safe.
+    """
+
+    def __init__(self, cfg: VirtualRigConfig, base_dir: Path | None = None, scene: Scene | None = None) -> None:
+        if not cfg.cameras:
+            raise ConfigError("virtual_rig.cameras is empty: add at least one camera")
+        self.cfg = cfg
+        self.imaging = cfg.imaging
+        self.cameras: dict[str, CameraModel] = {n: device_model(n, o) for n, o in cfg.cameras.items()}
+        self.projector: CameraModel = device_model(PROJECTOR_NAME, cfg.projector)
+        self.scene = scene if scene is not None else Scene(cfg.scene, base_dir)
+        self._truth: dict[str, GroundTruth] = {}
+        self._renderers: dict[str, FrameRenderer] = {}
+        self._lock = threading.Lock()
+        seed = self.imaging.seed
+        self._rng = {n: np.random.default_rng(None if seed is None else [seed, i])
+                     for i, n in enumerate(self.cameras)}
+
+    def camera_names(self) -> list[str]:
+        """Camera names in configuration order."""
+        return list(self.cameras)
+
+    def prepare(self, camera: str | None = None) -> None:
+        """Compute the per-camera geometry now (all cameras when ``camera`` is None)."""
+        for name in [camera] if camera is not None else self.camera_names():
+            self._state(name)
+
+    def set_scene(self, scene: Scene) -> None:
+        """Replace the scene (e.g. a calibration board at another pose); geometry is recomputed lazily."""
+        with self._lock:
+            self.scene = scene
+            self._truth.clear()
+            self._renderers.clear()
+
+    # --- geometry ------------------------------------------------------------------------------------------
+
+    def _check_camera(self, camera: str) -> CameraModel:
+        try:
+            return self.cameras[camera]
+        except KeyError:
+            raise ConfigError(
+                f"virtual rig: camera {camera!r} is not in virtual_rig.cameras {self.camera_names()}"
+            ) from None
+
+    def _state(self, camera: str) -> tuple[GroundTruth, FrameRenderer]:
+        cam = self._check_camera(camera)
+        with self._lock:
+            if camera not in self._truth:
+                truth, gain, ambient = self._compute(cam)
+                self._truth[camera] = truth
+                self._renderers[camera] = FrameRenderer(truth.proj_uv, gain, ambient, self.imaging)
+            return self._truth[camera], self._renderers[camera]
+
+    def _compute(self, cam: CameraModel) -> tuple[GroundTruth, F64, F64]:
+        h, w = cam.height, cam.width
+        n = h * w
+        rays = np.ascontiguousarray(cam.pixel_rays_device().reshape(n, 3))
+        dirs = np.empty((n, 3))
+        _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
+        centre = cam.center
+        hits = self.scene.intersect(centre, dirs, t_min=1e-6)
+        hit = hits.object_id >= 0
+        xyz = centre + np.where(hit, hits.t, np.nan)[:, None] * dirs
+        nrm = np.where(hit[:, None], hits.normal, np.nan)
+        flip = _dot(nrm, dirs) > 0
+        nrm[flip] *= -1.0
+        dev = np.empty((n, 3))
+        _k.affine_rows(xyz, cam.R, cam.T, dev)
+        depth = dev[:, 2].copy()
+
+        proj = self.projector
+        uv = np.empty((n, 2))
+        pz = np.empty(n)
+        _k.project_points(xyz, proj.R, proj.T, proj.K, proj.dist_padded(8), uv, pz)
+        to_p = proj.center - xyz
+        dist = np.sqrt(_dot(to_p, to_p))
+        ldir = to_p / dist[:, None]
+        cos_inc = _dot(nrm, ldir)
+        candidate = hit & (pz > 0) & (cos_inc > 0)
+        illum = np.zeros(n, dtype=bool)
+        sel = np.flatnonzero(candidate)
+        if sel.size:
+            start = xyz[sel] + SHADOW_OFFSET_MM * nrm[sel]
+            illum[sel] = ~self.scene.occluded(start, ldir[sel], dist[sel], t_min=1e-6)
+        pw, ph = proj.width, proj.height
+        with np.errstate(invalid="ignore"):
+            inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < ph - 0.5)
+        lit = illum & inside
+
+        albedo = self.scene.albedo(xyz, hits.object_id)
+        window = np.empty(n)
+        _k.projector_window(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), pw, ph,
+                            self.imaging.projector_blur_px, window)
+        gain = np.where(illum, self.imaging.projector_gain_dn * albedo * cos_inc * window, 0.0)
+        ambient = self.imaging.ambient_dn * albedo
+        truth = GroundTruth(
+            xyz=xyz.reshape(h, w, 3),
+            depth=depth.reshape(h, w),
+            hit=hit.reshape(h, w),
+            lit=lit.reshape(h, w),
+            proj_uv=uv.reshape(h, w, 2),
+            normal=nrm.reshape(h, w, 3),
+            object_id=hits.object_id.reshape(h, w),
+        )
+        for arr in (truth.xyz, truth.depth, truth.hit, truth.lit, truth.proj_uv, truth.normal, truth.object_id):
+            arr.flags.writeable = False
+        return truth, gain.reshape(h, w), ambient.reshape(h, w)
+
+    def ground_truth(self, camera: str) -> GroundTruth:
+        """Exact per-pixel geometry of ``camera`` (read-only arrays); see :class:`GroundTruth`."""
+        return self._state(camera)[0]
+
+    # --- images --------------------------------------------------------------------------------------------
+
+    @property
+    def image_dtype(self) -> type[np.uint8] | type[np.uint16]:
+        """uint8 for 8-bit cameras, uint16 for 12 and 16 bits."""
+        return np.uint8 if self.imaging.bit_depth == 8 else np.uint16
+
+    def render_frame(self, frame: Frame, camera: str, out: ImageArray | None = None,
+                     rng: np.random.Generator | None = None) -> ImageArray:
+        """Camera image of one projected frame.
+
+        Parameters
+        ----------
+        frame : Frame
+            Gray, phase, white or black frame (projector coordinates of this rig's projector).
+        camera : str
+            Camera name.
+        out : ndarray, shape (H, W), optional
+            C-contiguous destination of the camera's dtype (see :attr:`image_dtype`).
+        rng : numpy.random.Generator, optional
+            Noise source; default the camera's own generator seeded from ``imaging.seed``.
+
+        Returns
+        -------
+        ndarray, shape (H, W), uint8 (8-bit) or uint16 (12/16-bit)
+        """
+        renderer = self._state(camera)[1]
+        if out is None:
+            out = np.empty((renderer.height, renderer.width), dtype=self.image_dtype)
+        return renderer.render(frame, out, rng if rng is not None else self._rng[camera])
+
+    def render(self, sequence: Sequence, camera: str, out: npt.NDArray[np.uint8] | npt.NDArray[np.uint16] | None
+               = None, seed: int | None | Literal["config"] = _CONFIG_SEED) -> ImageArray:
+        """Camera images of every frame of ``sequence``.
+
+        Parameters
+        ----------
+        sequence : Sequence
+            Frames to project; its size must be the projector's.
+        camera : str
+            Camera name.
+        out : ndarray, shape (F, H, W), optional
+            C-contiguous destination of the camera's dtype.
+        seed : int, None or 'config'
+            Noise seed of this render ('config': ``imaging.seed`` mixed with the camera index, so a
+            repeated render is identical; None: fresh noise).
+
+        Returns
+        -------
+        ndarray, shape (F, H, W), uint8 or uint16
+        """
+        cam = self._check_camera(camera)
+        if (sequence.width, sequence.height) != (self.projector.width, self.projector.height):
+            raise PatternError(
+                f"virtual rig: sequence is {sequence.width}x{sequence.height} but the projector is "
+                f"{self.projector.width}x{self.projector.height}; generate the sequence for the projector"
+            )
+        shape = (len(sequence), cam.height, cam.width)
+        if out is None:
+            out = np.empty(shape, dtype=self.image_dtype)
+        elif out.shape != shape or out.dtype != self.image_dtype or not out.flags.c_contiguous:
+            raise ValueError(f"out: shape {out.shape} dtype {out.dtype}: must be C-contiguous {shape} "
+                             f"{np.dtype(self.image_dtype).name}")
+        if isinstance(seed, str):
+            base = self.imaging.seed
+            idx = self.camera_names().index(camera)
+            rng = np.random.default_rng(None if base is None else [base, idx])
+        else:
+            rng = np.random.default_rng(seed)
+        for i, frame in enumerate(sequence):
+            self.render_frame(frame, camera, out=out[i], rng=rng)
+        return out
