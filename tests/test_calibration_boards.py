@@ -15,7 +15,9 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CHARUCO = DATA / "charuco_sample"
 PROCAM = DATA / "procam_graycode_calib"
 
-CHARUCO_SPEC = BoardSpec(type="charuco", cols=5, rows=7, square_mm=40, marker_mm=20, dictionary="DICT_6X6_250")
+CHARUCO_SPEC = BoardSpec(
+    type="charuco", cols=5, rows=7, square_mm=40, marker_mm=20, dictionary="DICT_6X6_250"
+)
 
 
 def _need(folder: Path) -> None:

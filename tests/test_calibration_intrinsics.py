@@ -1,4 +1,4 @@
-"""Camera intrinsics: the procam photos against the published values, and synthetic views with ground truth."""
+"""Camera intrinsics: procam photos against the published values; synthetic views with ground truth."""
 
 from __future__ import annotations
 

@@ -21,25 +21,19 @@ from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from appliance.config.schema import ARUCO_DICTIONARIES, BoardConfig
 from appliance.errors import CalibrationError
 
 F64 = npt.NDArray[np.float64]
 BoardType = Literal["chessboard", "circles", "acircles", "charuco"]
-
-ARUCO_DICTIONARIES = (
-    "DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000",
-    "DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250", "DICT_5X5_1000",
-    "DICT_6X6_50", "DICT_6X6_100", "DICT_6X6_250", "DICT_6X6_1000",
-    "DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000",
-    "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10",
-    "DICT_APRILTAG_36h11",
-)  # fmt: skip
+__all__ = ["ARUCO_DICTIONARIES", "BoardSpec", "Detection", "board_from_args", "detect", "render_board", "to_gray8"]
 
 
-class BoardSpec(BaseModel):
-    """A calibration board, described once (YAML or command line).
+class BoardSpec(BoardConfig):
+    """A calibration board, described once (the configuration's ``calibration.board``, YAML or command line).
+
+    The fields and their validation live in :class:`appliance.config.schema.BoardConfig`.
 
     Attributes
     ----------
@@ -59,32 +53,10 @@ class BoardSpec(BaseModel):
         ChArUco boards made before OpenCV 4.6 with an even number of rows start with a marker-less square.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    type: BoardType = Field(description="Board kind: chessboard, circles, acircles or charuco.")
-    cols: int = Field(ge=2, le=200, description="Inner corners (chessboard), dots per row, or squares (ChArUco).")
-    rows: int = Field(ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco).")
-    square_mm: float | None = Field(None, gt=0, description="Square side (chessboard, ChArUco), mm.")
-    pitch_mm: float | None = Field(None, gt=0, description="Dot spacing (circle grids), mm.")
-    marker_mm: float | None = Field(None, gt=0, description="ArUco marker side (ChArUco), mm.")
-    dictionary: str = Field("DICT_6X6_250", description="ArUco dictionary (ChArUco).")
-    legacy_charuco: bool = Field(False, description="Pre-4.6 OpenCV ChArUco layout (even rows only).")
-
-    @model_validator(mode="after")
-    def _complete(self) -> BoardSpec:
-        if self.type in ("chessboard", "charuco") and self.square_mm is None:
-            raise ValueError(f"board type {self.type!r} needs square_mm (square side, mm)")
-        if self.type in ("circles", "acircles") and self.pitch_mm is None:
-            raise ValueError(f"board type {self.type!r} needs pitch_mm (dot spacing, mm)")
-        if self.type == "charuco":
-            if self.marker_mm is None:
-                raise ValueError("board type 'charuco' needs marker_mm (marker side, mm)")
-            assert self.square_mm is not None
-            if self.marker_mm >= self.square_mm:
-                raise ValueError(f"marker_mm {self.marker_mm} must be < square_mm {self.square_mm}")
-            if self.dictionary not in ARUCO_DICTIONARIES:
-                raise ValueError(f"dictionary {self.dictionary!r}: must be one of {', '.join(ARUCO_DICTIONARIES)}")
-        return self
+    @classmethod
+    def from_config(cls, cfg: BoardConfig) -> BoardSpec:
+        """The board of a configuration section."""
+        return cls(**cfg.model_dump())
 
     @property
     def n_points(self) -> int:
@@ -255,12 +227,16 @@ def _canonical_order(pts: F64, spec: BoardSpec) -> F64:
     return pts
 
 
-def _detect_chessboard(gray: npt.NDArray[np.uint8], spec: BoardSpec) -> tuple[npt.NDArray[np.int32], F64] | None:
+def _detect_chessboard(
+    gray: npt.NDArray[np.uint8], spec: BoardSpec
+) -> tuple[npt.NDArray[np.int32], F64] | None:
     import cv2
 
     pattern = spec.grid_size
     # no CALIB_CB_NORMALIZE_IMAGE: histogram equalisation costs accuracy (0.31 vs 0.30 px RMS on real photos)
-    ok, corners = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    ok, corners = cv2.findChessboardCornersSB(
+        gray, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    )
     if not ok:
         ok, corners = cv2.findChessboardCorners(
             gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -292,6 +268,7 @@ def _charuco_board(spec: BoardSpec) -> Any:
     import cv2
 
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, spec.dictionary))
+    assert spec.square_mm is not None and spec.marker_mm is not None
     board = cv2.aruco.CharucoBoard((spec.cols, spec.rows), spec.square_mm, spec.marker_mm, dictionary)
     if spec.legacy_charuco:
         board.setLegacyPattern(True)
@@ -314,7 +291,9 @@ def _detect_charuco(gray: npt.NDArray[np.uint8], spec: BoardSpec) -> tuple[npt.N
     return ids[order], pts[order]
 
 
-def render_board(spec: BoardSpec, px_per_mm: float, margin_mm: float = 10.0) -> tuple[npt.NDArray[np.uint8], F64]:
+def render_board(
+    spec: BoardSpec, px_per_mm: float, margin_mm: float = 10.0
+) -> tuple[npt.NDArray[np.uint8], F64]:
     """A printable image of the board (and the test target for synthetic views).
 
     Parameters
@@ -337,18 +316,18 @@ def render_board(spec: BoardSpec, px_per_mm: float, margin_mm: float = 10.0) -> 
     m = margin_mm * px_per_mm
     if spec.type == "charuco":
         assert spec.square_mm is not None
-        w = int(round(spec.cols * spec.square_mm * px_per_mm + 2 * m))
-        h = int(round(spec.rows * spec.square_mm * px_per_mm + 2 * m))
+        w = round(spec.cols * spec.square_mm * px_per_mm + 2 * m)
+        h = round(spec.rows * spec.square_mm * px_per_mm + 2 * m)
         m = float(round(m))
         img = _charuco_board(spec).generateImage((w, h), marginSize=int(m), borderBits=1)
-        # a square edge drawn at integer x lies between pixels x - 1 and x: at x - 0.5 (pixel centres at integers)
+        # an edge drawn at integer x lies between pixels x - 1 and x: at x - 0.5 (pixel centres at integers)
         return np.asarray(img, np.uint8), np.array([m, m]) - 0.5
     if spec.type == "chessboard":
         assert spec.square_mm is not None
         s = spec.square_mm * px_per_mm
         # (cols + 1) x (rows + 1) squares around the inner corners; origin = first inner corner
-        w = int(round((spec.cols + 1) * s + 2 * m))
-        h = int(round((spec.rows + 1) * s + 2 * m))
+        w = round((spec.cols + 1) * s + 2 * m)
+        h = round((spec.rows + 1) * s + 2 * m)
         acc = np.zeros((h, w))
         n_sub = 4  # supersampling: edges at their exact (sub-pixel) place, pixel centres at integers
         for k in range(n_sub * n_sub):
@@ -363,11 +342,11 @@ def render_board(spec: BoardSpec, px_per_mm: float, margin_mm: float = 10.0) -> 
     obj = spec.object_points()[:, :2] * px_per_mm
     radius = 0.25 * spec.pitch_mm * px_per_mm if spec.type == "circles" else 0.3 * spec.pitch_mm * px_per_mm
     pad = m + radius
-    w = int(round(obj[:, 0].max() + 2 * pad))
-    h = int(round(obj[:, 1].max() + 2 * pad))
+    w = round(obj[:, 0].max() + 2 * pad)
+    h = round(obj[:, 1].max() + 2 * pad)
     img = np.full((h, w), 255, np.uint8)
     shift = 4
     for x, y in obj + pad:
-        centre = (int(round(x * (1 << shift))), int(round(y * (1 << shift))))
-        cv2.circle(img, centre, int(round(radius * (1 << shift))), 0, -1, cv2.LINE_AA, shift)
+        centre = (round(x * (1 << shift)), round(y * (1 << shift)))
+        cv2.circle(img, centre, round(radius * (1 << shift)), 0, -1, cv2.LINE_AA, shift)
     return img, np.array([pad, pad])

@@ -49,8 +49,8 @@ def model_flags(model: str) -> tuple[int, int, tuple[str, ...]]:
 
     model = MODEL_ALIASES.get(model, model)
     if model not in DISTORTION_MODELS:
-        names = ", ".join([*DISTORTION_MODELS, *MODEL_ALIASES])
-        raise CalibrationError(f"distortion model {model!r}: must be one of {names}")
+        known = ", ".join([*DISTORTION_MODELS, *MODEL_ALIASES])
+        raise CalibrationError(f"distortion model {model!r}: must be one of {known}")
     if model == "rational":
         return cv2.CALIB_RATIONAL_MODEL, 8, PARAM_NAMES
     radial = 0 if model == "none" else int(model[1])
@@ -61,7 +61,7 @@ def model_flags(model: str) -> tuple[int, int, tuple[str, ...]]:
     tangential = model.endswith("p")
     if not tangential:
         flags |= cv2.CALIB_ZERO_TANGENT_DIST
-    names = ("fx", "fy", "cx", "cy", *(f"k{k}" for k in range(1, min(radial, 2) + 1)))
+    names: tuple[str, ...] = ("fx", "fy", "cx", "cy", *(f"k{k}" for k in range(1, min(radial, 2) + 1)))
     names += ("p1", "p2") if tangential else ()
     names += ("k3",) if radial == 3 else ()
     return flags, 5, names
@@ -124,7 +124,8 @@ class CameraResult:
             f"  fx {cam.K[0, 0]:.2f} ± {sd.get('fx', 0):.2f}  fy {cam.K[1, 1]:.2f} ± {sd.get('fy', 0):.2f}  "
             f"cx {cam.K[0, 2]:.2f} ± {sd.get('cx', 0):.2f}  cy {cam.K[1, 2]:.2f} ± {sd.get('cy', 0):.2f} px",
             "  dist " + " ".join(f"{v:.5g}" for v in cam.dist),
-            "  per-view RMS (px): " + ", ".join(f"#{i}: {e:.3f}" for i, e in zip(self.views, self.per_view_errors)),
+            "  per-view RMS (px): "
+            + ", ".join(f"#{i}: {e:.3f}" for i, e in zip(self.views, self.per_view_errors, strict=True)),
         ]
         lines += [f"  rejected view #{i}: {why}" for i, why in sorted(self.rejected.items())]
         lines += [f"  warning: {w}" for w in self.warnings]
@@ -222,11 +223,12 @@ def calibrate_camera(
     std = np.asarray(fit["std"], np.float64).ravel()
     std_devs = {p: float(std[PARAM_NAMES.index(p)]) for p in names if PARAM_NAMES.index(p) < std.size}
     dets = [detections[i] for i in usable]
+    used = [d for d in dets if d is not None]
     residuals = [
-        d.image_points - reproject(camera, d.object_points, r, t)  # type: ignore[union-attr]
-        for d, r, t in zip(dets, fit["rvecs"], fit["tvecs"])
+        d.image_points - reproject(camera, d.object_points, r, t)
+        for d, r, t in zip(used, fit["rvecs"], fit["tvecs"], strict=True)
     ]
-    coverage = coverage_map([d.image_points for d in dets], (width, height))  # type: ignore[union-attr]
+    coverage = coverage_map([d.image_points for d in used], (width, height))
     cov_fraction = float(np.mean(coverage > 0))
     warnings = _warnings(len(usable), coverage, rejected)
     return CameraResult(
@@ -241,10 +243,10 @@ def calibrate_camera(
         rejected=rejected,
         rvecs=np.asarray(fit["rvecs"], np.float64).reshape(-1, 3),
         tvecs=np.asarray(fit["tvecs"], np.float64).reshape(-1, 3),
-        object_points=[d.object_points for d in dets],  # type: ignore[union-attr]
-        image_points=[d.image_points for d in dets],  # type: ignore[union-attr]
+        object_points=[d.object_points for d in used],
+        image_points=[d.image_points for d in used],
         residuals=residuals,
-        ids=[d.ids for d in dets],  # type: ignore[union-attr]
+        ids=[d.ids for d in used],
     )
 
 
@@ -253,16 +255,19 @@ def _fit(dets: list[Detection], size: tuple[int, int], flags: int, K_guess: F64 
 
     obj = [np.ascontiguousarray(d.object_points, np.float32).reshape(-1, 1, 3) for d in dets]
     img = [np.ascontiguousarray(d.image_points, np.float32).reshape(-1, 1, 2) for d in dets]
-    K = None if K_guess is None else np.array(K_guess, np.float64)
+    K: Any = None if K_guess is None else np.array(K_guess, np.float64)
     if K is not None:
         flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    no_dist: Any = None
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     try:
         rms, K, dist, rvecs, tvecs, std_i, _std_e, per_view = cv2.calibrateCameraExtended(
-            obj, img, size, K, None, flags=flags, criteria=crit
+            obj, img, size, K, no_dist, flags=flags, criteria=crit
         )
     except cv2.error as exc:
-        raise CalibrationError(f"calibration failed in OpenCV: {exc.err}; check the views and the board") from exc
+        raise CalibrationError(
+            f"calibration failed in OpenCV: {exc.err}; check the views and the board"
+        ) from exc
     if not np.isfinite(rms):
         raise CalibrationError("calibration diverged (RMS is not finite); add views with more board tilt")
     # OpenCV's per-view error is sqrt(sum e^2 / N) per view
@@ -317,7 +322,11 @@ def coverage_map(image_points: Sequence[F64], image_size: tuple[int, int]) -> np
     return out
 
 
-_REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
+_REGIONS = (
+    ("top-left", "top", "top-right"),
+    ("left", "centre", "right"),
+    ("bottom-left", "bottom", "bottom-right"),
+)
 
 
 def _warnings(n_views: int, coverage: npt.NDArray[np.int32], rejected: dict[int, str]) -> list[str]:

@@ -13,13 +13,18 @@ intrinsics (:mod:`appliance.calibration.stereo`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence as Sequence_
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
-from appliance.calibration.boards import Detection
+from appliance.calibration.boards import BoardSpec, Detection, detect
+from appliance.calibration.intrinsics import CameraResult
+from appliance.calibration.stereo import StereoResult
 from appliance.errors import CalibrationError
+from appliance.geometry.camera import CameraModel
+from appliance.patterns.sequence import Sequence, WhiteFrame
 
 F64 = npt.NDArray[np.float64]
 
@@ -53,7 +58,7 @@ class CornerFit:
     @property
     def valid(self) -> npt.NDArray[np.bool_]:
         """True where the corner has a projector coordinate."""
-        return np.isfinite(self.points).all(axis=1)
+        return np.asarray(np.isfinite(self.points).all(axis=1), dtype=np.bool_)
 
 
 def corner_spacing_px(image_points: F64) -> float:
@@ -86,7 +91,7 @@ def corner_projector_coords(
     radius_px : float, optional
         Half-size of the square fitting window (camera px); default 0.4 x the corner spacing, 6..40 px.
     min_pixels : int
-        A corner needs at least this many inlier pixels, spread over at least 3 of the 4 quadrants.
+        A corner needs at least this many inlier pixels, in two opposite quadrants around it.
     seed : int
         Seed of the RANSAC sampling (the result is deterministic for a given seed).
 
@@ -161,7 +166,7 @@ def _robust_homography(
         z = res / (TUKEY_C * scale)
         weights = np.where(z < 1.0, (1.0 - z * z) ** 2, 0.0)
     inliers = weights > 0
-    if inliers.sum() < min_pixels or _quadrants(dx[inliers], dy[inliers]) < 3:
+    if inliers.sum() < min_pixels or not _surrounds(dx[inliers], dy[inliers]):
         return None
     resid = float(np.sqrt(np.mean(res[inliers] ** 2)))
     return np.array([p[0] + u0, p[3] + v0]), resid, int(inliers.sum())
@@ -184,9 +189,11 @@ def _weighted_homography(dx: F64, dy: F64, tu: F64, tv: F64, w: F64) -> F64:
         return np.asarray(sol, np.float64)
 
 
-def _quadrants(dx: F64, dy: F64) -> int:
-    q = (dx > 0).astype(np.int64) + 2 * (dy > 0)
-    return int(np.count_nonzero(np.bincount(q, minlength=4)))
+def _surrounds(dx: F64, dy: F64) -> bool:
+    # two opposite quadrants hold >= 5 % of the support each, so the fit interpolates at the corner;
+    # on a chessboard the dark squares decode poorly and the two light squares are opposite
+    q = np.bincount((dx > 0).astype(np.int64) + 2 * (dy > 0), minlength=4) >= max(3, 0.05 * len(dx))
+    return bool((q[0] and q[3]) or (q[1] and q[2]))
 
 
 def projector_detection(cam: Detection, fit: CornerFit, projector_size: tuple[int, int]) -> Detection | None:
@@ -213,3 +220,147 @@ def projector_detection(cam: Detection, fit: CornerFit, projector_size: tuple[in
     if ok.sum() < 4:
         return None
     return Detection(cam.ids[ok], pts[ok], cam.object_points[ok], (pw, ph))
+
+
+@dataclass(frozen=True)
+class ProcamView:
+    """One board pose seen by a camera under white light and structured light.
+
+    Attributes
+    ----------
+    camera : Detection or None
+        The board in the white frame (None: not found).
+    projector : Detection or None
+        The corners with a projector coordinate, as the projector "sees" them (None: fewer than 4).
+    fit : CornerFit or None
+        The local fits behind ``projector``.
+    """
+
+    camera: Detection | None
+    projector: Detection | None
+    fit: CornerFit | None
+
+
+def white_frame_index(sequence: Sequence) -> int:
+    """Index of the first all-white frame of ``sequence`` (the board is found in it)."""
+    for i, f in enumerate(sequence.frames):
+        if isinstance(f, WhiteFrame):
+            return i
+    raise CalibrationError(
+        f"sequence {sequence.describe()}: has no white frame; projector calibration finds the board "
+        "under white light: add a 'white' frame to the capture"
+    )
+
+
+def procam_view(
+    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
+    sequence: Sequence,
+    board: BoardSpec,
+    *,
+    radius_px: float | None = None,
+) -> ProcamView:
+    """Find the board and its corners' projector coordinates in one captured pose.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (F, H, W), uint8 or uint16
+        The camera's frames in the order of ``sequence`` (one white frame, Gray (+ phase) frames).
+    sequence : Sequence
+        What each frame shows.
+    board : BoardSpec
+        The board.
+    radius_px : float, optional
+        Local fit window half-size (camera px); see :func:`corner_projector_coords`.
+
+    Returns
+    -------
+    ProcamView
+    """
+    from appliance.reconstruct.decode import decode
+
+    det = detect(frames[white_frame_index(sequence)], board)
+    if det is None:
+        return ProcamView(None, None, None)
+    maps = decode(frames, sequence)
+    fit = corner_projector_coords(maps.u, maps.v, det.image_points, radius_px)
+    return ProcamView(det, projector_detection(det, fit, (sequence.width, sequence.height)), fit)
+
+
+@dataclass(frozen=True)
+class ProcamResult:
+    """A calibrated camera + projector pair.
+
+    Attributes
+    ----------
+    camera, projector : CameraResult
+        Intrinsics of each device (the projector as an inverse camera).
+    stereo : StereoResult
+        Camera -> projector pose (``x_projector = R x_camera + T``, mm) and the stereo RMS.
+    """
+
+    camera: CameraResult
+    projector: CameraResult
+    stereo: StereoResult
+
+    def devices(self) -> dict[str, CameraModel]:
+        """Camera (world frame) and projector with its pose, ready for a calibration file."""
+        cam = self.camera.camera
+        proj = self.projector.camera.with_pose(self.stereo.R, self.stereo.T)
+        return {cam.name: cam, proj.name: proj}
+
+    def summary(self) -> str:
+        """Human summary of both devices and the stereo pose."""
+        st = self.stereo
+        return "\n".join(
+            [
+                self.camera.summary(),
+                self.projector.summary(),
+                f"stereo {self.camera.camera.name} -> {self.projector.camera.name}: RMS {st.rms:.3f} px over "
+                f"{len(st.views)} poses, baseline {st.baseline_mm:.2f} mm, T = "
+                + " ".join(f"{t:.2f}" for t in st.T)
+                + " mm",
+            ]
+        )
+
+
+def calibrate_procam(
+    views: Sequence_[ProcamView],
+    camera_size: tuple[int, int],
+    projector_size: tuple[int, int],
+    *,
+    camera_model: str = "k3p",
+    projector_model: str = "k2p",
+    camera_name: str = "cam0",
+    projector_name: str = "projector",
+) -> ProcamResult:
+    """Calibrate a camera, a projector (inverse camera) and their relative pose.
+
+    Parameters
+    ----------
+    views : sequence of ProcamView
+        One per board pose (see :func:`procam_view`).
+    camera_size, projector_size : tuple of int
+        (width, height) of the camera and the projector (px).
+    camera_model, projector_model : str
+        Distortion models (:data:`~appliance.calibration.intrinsics.DISTORTION_MODELS`); projectors
+        usually have little distortion, so the default is k1 k2 p1 p2.
+    camera_name, projector_name : str
+        Device names in the result.
+
+    Returns
+    -------
+    ProcamResult
+    """
+    from appliance.calibration.intrinsics import calibrate_camera
+    from appliance.calibration.stereo import stereo_calibrate
+
+    cam = calibrate_camera([v.camera for v in views], camera_size, camera_model, name=camera_name)
+    proj = calibrate_camera(
+        [v.projector for v in views], projector_size, projector_model, name=projector_name
+    )
+    pairs = [
+        (v.camera, v.projector) if i in cam.views and i in proj.views else (None, None)
+        for i, v in enumerate(views)
+    ]
+    st = stereo_calibrate(cam.camera, proj.camera, pairs, fix_intrinsics=True)
+    return ProcamResult(cam, proj, st)

@@ -52,20 +52,21 @@ def residual_plot(result: CameraResult) -> U8:
 
     cam = result.camera
     s = PLOT_WIDTH_PX / cam.width
-    h = int(round(cam.height * s))
+    h = round(cam.height * s)
     img = np.full((h + 30, PLOT_WIDTH_PX, 3), 255, np.uint8)
     cv2.rectangle(img, (0, 0), (PLOT_WIDTH_PX - 1, h - 1), (0, 0, 0), 1)
     allres = np.concatenate(result.residuals) if result.residuals else np.zeros((0, 2))
     p95 = float(np.percentile(np.linalg.norm(allres, axis=1), 95)) if len(allres) else 0.0
     gain = 25.0 / p95 if p95 > 0 else 1.0  # the 95th-percentile residual draws 25 plot px long
-    for k, (pts, res) in enumerate(zip(result.image_points, result.residuals)):
+    for k, (pts, res) in enumerate(zip(result.image_points, result.residuals, strict=False)):
         colour = _bgr(_VIEW_COLOURS[k % len(_VIEW_COLOURS)])
-        for (x, y), (dx, dy) in zip(pts * s, res):
-            a = (int(round(x)), int(round(y)))
-            b = (int(round(x + dx * gain)), int(round(y + dy * gain)))
+        for (x, y), (dx, dy) in zip(pts * s, res, strict=False):
+            a = (round(x), round(y))
+            b = (round(x + dx * gain), round(y + dy * gain))
             cv2.circle(img, a, 2, colour, -1, cv2.LINE_AA)
             cv2.line(img, a, b, colour, 1, cv2.LINE_AA)
-    text = f"{cam.name}: residuals x{gain * cam.width / PLOT_WIDTH_PX:.0f} (p95 {p95:.3f} px), RMS {result.rms:.3f} px"
+    mag = gain * cam.width / PLOT_WIDTH_PX
+    text = f"{cam.name}: residuals x{mag:.0f} (p95 {p95:.3f} px), RMS {result.rms:.3f} px"
     cv2.putText(img, text, (5, h + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     return img
 
@@ -83,7 +84,7 @@ def bar_plot(values: Sequence[float], labels: Sequence[str], title: str, unit: s
     cv2.line(img, (50, base), (PLOT_WIDTH_PX - 5, base), (0, 0, 0), 1)
     cv2.putText(img, title, (5, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(img, f"{vmax:.3g} {unit}", (2, top + 10), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-    for i, (v, lab) in enumerate(zip(values, labels)):
+    for i, (v, lab) in enumerate(zip(values, labels, strict=False)):
         x0 = int(50 + i * bw + 0.15 * bw)
         x1 = int(50 + (i + 1) * bw - 0.15 * bw)
         y = int(base - (base - top) * v / vmax)
@@ -99,17 +100,23 @@ def coverage_plot(result: CameraResult) -> U8:
 
     cam = result.camera
     s = PLOT_WIDTH_PX / cam.width
-    h = int(round(cam.height * s))
+    h = round(cam.height * s)
     cov = result.coverage.astype(np.float64)
     norm = np.clip(cov / max(float(cov.max()), 1.0) * 255, 0, 255).astype(np.uint8)
-    heat = cv2.applyColorMap(cv2.resize(norm, (PLOT_WIDTH_PX, h), interpolation=cv2.INTER_NEAREST), cv2.COLORMAP_VIRIDIS)
-    heat[cv2.resize((cov == 0).astype(np.uint8), (PLOT_WIDTH_PX, h), interpolation=cv2.INTER_NEAREST) > 0] = 40
+    heat = cv2.applyColorMap(
+        cv2.resize(norm, (PLOT_WIDTH_PX, h), interpolation=cv2.INTER_NEAREST), cv2.COLORMAP_VIRIDIS
+    )
+    heat[cv2.resize((cov == 0).astype(np.uint8), (PLOT_WIDTH_PX, h), interpolation=cv2.INTER_NEAREST) > 0] = (
+        40
+    )
     for pts in result.image_points:
         for x, y in pts * s:
-            cv2.circle(heat, (int(round(x)), int(round(y))), 1, (255, 255, 255), -1)
+            cv2.circle(heat, (round(x), round(y)), 1, (255, 255, 255), -1)
     img = np.full((h + 30, PLOT_WIDTH_PX, 3), 255, np.uint8)
     img[:h] = heat
-    text = f"{cam.name}: coverage {100 * result.coverage_fraction:.0f} % (max {int(cov.max())} views per cell)"
+    text = (
+        f"{cam.name}: coverage {100 * result.coverage_fraction:.0f} % (max {int(cov.max())} views per cell)"
+    )
     cv2.putText(img, text, (5, h + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     return img
 
@@ -126,7 +133,7 @@ def _png(img: U8) -> bytes:
 def _param_table(result: CameraResult) -> str:
     cam = result.camera
     values = {"fx": cam.K[0, 0], "fy": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2]}
-    for name, val in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), cam.dist):
+    for name, val in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), cam.dist, strict=False):
         values[name] = val
     rows = "".join(
         f"<tr><td>{n}</td><td>{v:.6g}</td><td>{result.std_devs[n]:.3g}</td></tr>"
@@ -168,8 +175,13 @@ def write_report(
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"calibration report: cannot create {folder} ({exc.strerror}); check permissions") from exc
-    parts = [f"<h1>{html.escape(title)}</h1>", f"<p>calibration file: {html.escape(str(calibration_path))}</p>"]
+        raise OutputError(
+            f"calibration report: cannot create {folder} ({exc.strerror}); check permissions"
+        ) from exc
+    parts = [
+        f"<h1>{html.escape(title)}</h1>",
+        f"<p>calibration file: {html.escape(str(calibration_path))}</p>",
+    ]
     parts += [f"<p>{html.escape(n)}</p>" for n in notes]
 
     def figure(name: str, img: U8) -> str:
@@ -186,24 +198,41 @@ def write_report(
         parts.append(_param_table(res))
         parts.append(figure(f"{cam.name}_residuals.png", residual_plot(res)))
         labels = [f"#{i}" for i in res.views]
-        parts.append(figure(f"{cam.name}_per_view.png", bar_plot(list(res.per_view_errors), labels,
-                                                               f"{cam.name}: per-view RMS (px)")))
+        parts.append(
+            figure(
+                f"{cam.name}_per_view.png",
+                bar_plot(list(res.per_view_errors), labels, f"{cam.name}: per-view RMS (px)"),
+            )
+        )
         parts.append(figure(f"{cam.name}_coverage.png", coverage_plot(res)))
     for entry in stereo:
         st = entry.result
         R = np.array2string(st.R, precision=6, suppress_small=True)
         T = np.array2string(st.T, precision=3, suppress_small=True)
         parts.append(f"<h2>stereo {html.escape(entry.first)} &rarr; {html.escape(entry.second)}</h2>")
-        parts.append(f"<p>RMS {st.rms:.4f} px, baseline {st.baseline_mm:.3f} mm</p><pre>R =\n{R}\nT (mm) = {T}</pre>")
+        parts.append(
+            f"<p>RMS {st.rms:.4f} px, baseline {st.baseline_mm:.3f} mm</p><pre>R =\n{R}\nT (mm) = {T}</pre>"
+        )
         vals = [float(v) for row in st.per_view_errors for v in row]
         labels = [f"#{i}{'ab'[k]}" for i in st.views for k in range(2)]
-        parts.append(figure(f"stereo_{entry.first}_{entry.second}_per_view.png",
-                            bar_plot(vals, labels, f"stereo {entry.first}(a) / {entry.second}(b): per-view RMS")))
-    style = "body{font-family:sans-serif} table{border-collapse:collapse} td,th{border:1px solid #999;padding:2px 6px}"
-    doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-           f"<style>{style} .warn{{color:#b00}}</style></head><body>{''.join(parts)}</body></html>")
+        parts.append(
+            figure(
+                f"stereo_{entry.first}_{entry.second}_per_view.png",
+                bar_plot(vals, labels, f"stereo {entry.first}(a) / {entry.second}(b): per-view RMS"),
+            )
+        )
+    style = (
+        "body{font-family:sans-serif} table{border-collapse:collapse} "
+        "td,th{border:1px solid #999;padding:2px 6px}"
+    )
+    doc = (
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+        f"<style>{style} .warn{{color:#b00}}</style></head><body>{''.join(parts)}</body></html>"
+    )
     try:
         page.write_text(doc, encoding="utf-8")
     except OSError as exc:
-        raise OutputError(f"calibration report: cannot write {page} ({exc.strerror}); check permissions") from exc
+        raise OutputError(
+            f"calibration report: cannot write {page} ({exc.strerror}); check permissions"
+        ) from exc
     return page

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -111,22 +112,34 @@ def stereo_calibrate(
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     K1, d1, K2, d2 = first.K.copy(), first.dist.copy(), second.K.copy(), second.dist.copy()
     try:
-        out = cv2.stereoCalibrateExtended(
-            obj, img1, img2, K1, d1, K2, d2, first.size, np.eye(3), np.zeros((3, 1)), flags=flags, criteria=crit
+        out: Any = cv2.stereoCalibrateExtended(
+            obj,
+            img1,
+            img2,
+            K1,
+            d1,
+            K2,
+            d2,
+            first.size,
+            np.eye(3),
+            np.zeros((3, 1)),
+            flags=flags,
+            criteria=crit,
         )
     except cv2.error as exc:
         raise CalibrationError(f"stereo {first.name} -> {second.name}: OpenCV failed: {exc.err}") from exc
-    rms, K1, d1, K2, d2, R, T, _E, _F, rvecs, tvecs, per_view = out
-    R = np.asarray(R, np.float64)
-    T = np.asarray(T, np.float64).ravel()
-    cam1 = CameraModel(first.name, K1, np.asarray(d1).ravel()[: max(first.dist.size, 5)], *first.size)
-    cam2 = CameraModel(second.name, K2, np.asarray(d2).ravel()[: max(second.dist.size, 5)], *second.size)
+    rms, K1o, d1o, K2o, d2o, R, T, _E, _F, rvecs, tvecs, per_view = out
+    R_: F64 = np.asarray(R, np.float64)
+    T_: F64 = np.asarray(T, np.float64).ravel()
+    cam1 = CameraModel(first.name, K1o, np.asarray(d1o).ravel()[: max(first.dist.size, 5)], *first.size)
+    cam2 = CameraModel(second.name, K2o, np.asarray(d2o).ravel()[: max(second.dist.size, 5)], *second.size)
     residuals = []
-    for o, p1, p2, rv, tv in zip(obj, img1, img2, rvecs, tvecs):
+    for ob, q1, q2, rv, tv in zip(obj, img1, img2, rvecs, tvecs, strict=True):
         R0, _ = cv2.Rodrigues(np.asarray(rv, np.float64))
         t0 = np.asarray(tv, np.float64).ravel()
-        x1 = o.reshape(-1, 3).astype(np.float64) @ R0.T + t0
-        r1 = p1.reshape(-1, 2) - cam1.with_pose(np.eye(3), np.zeros(3)).project(x1)[0]
-        r2 = p2.reshape(-1, 2) - cam2.with_pose(R, T).project(x1)[0]
-        residuals.append((r1.astype(np.float64), r2.astype(np.float64)))
-    return StereoResult(R, T, float(rms), np.asarray(per_view, np.float64).reshape(-1, 2), views, residuals)
+        x1 = ob.reshape(-1, 3).astype(np.float64) @ R0.T + t0
+        r1 = q1.reshape(-1, 2).astype(np.float64) - cam1.project(x1)[0]
+        r2 = q2.reshape(-1, 2).astype(np.float64) - cam2.with_pose(R_, T_).project(x1)[0]
+        residuals.append((r1, r2))
+    per_view_errors = np.asarray(per_view, np.float64).reshape(-1, 2)
+    return StereoResult(R_, T_, float(rms), per_view_errors, views, residuals)

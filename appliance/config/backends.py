@@ -138,6 +138,9 @@ class SerialTriggerConfig(_Strict):
     pulse_width_us: int = Field(100, ge=1, le=100_000, description="Trigger pulse width (µs).")
     period_us: int = Field(16667, ge=100, le=10_000_000, description="Pulse period of a sequence (µs).")
     heartbeat_timeout_s: float = Field(3.5, gt=0, le=60, description="Link dead after this long without a heartbeat.")
+    heartbeat_interval_ms: int = Field(
+        1000, ge=10, le=60_000, description="Heartbeat period asked of the controller (ms); ~timeout / 3.5."
+    )
 
 
 class GpioTriggerConfig(_Strict):

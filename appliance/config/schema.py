@@ -169,7 +169,9 @@ class ImagingConfig(_Strict):
     ambient_dn: float = Field(10.0, ge=0, description="Ambient light (DN at albedo 1).")
     read_noise_dn: float = Field(2.0, ge=0, description="Read noise sigma (DN).")
     shot_noise: bool = Field(True, description="Poisson shot noise.")
-    electrons_per_dn: float = Field(4.0, gt=0, description="Conversion gain for shot noise (e-/DN).")
+    electrons_per_dn: float = Field(
+        25.0, gt=0, description="Conversion gain for shot noise (e- per DN, 8-bit scale; ~6000 e- full well)."
+    )
     projector_blur_px: float = Field(0.6, ge=0, description="Projector defocus (Gaussian sigma, projector px).")
     camera_blur_px: float = Field(0.5, ge=0, description="Camera defocus (Gaussian sigma, camera px).")
     bit_depth: Literal[8, 12, 16] = Field(8, description="Camera bit depth; saturates at full scale.")
@@ -178,20 +180,20 @@ class ImagingConfig(_Strict):
 
 def _default_cameras() -> dict[str, DeviceOptics]:
     return {
-        "cam0": DeviceOptics(width=1280, height=1024, focal_px=1800.0, dist=(-0.08, 0.12, 0.0005, -0.0003, 0.0),
-                             position_mm=(0.0, 0.0, 0.0), look_at_mm=(0.0, 0.0, 580.0)),
+        "cam0": DeviceOptics(width=1280, height=1024, focal_px=2400.0, dist=(-0.08, 0.12, 0.0005, -0.0003, 0.0),
+                             position_mm=(0.0, 0.0, 0.0), look_at_mm=(0.0, 0.0, 600.0)),
     }
 
 
 def _default_projector() -> DeviceOptics:
-    return DeviceOptics(width=1280, height=800, focal_px=1600.0, principal_px=(640.0, 760.0),
-                        dist=(0.02, -0.01, 0.0, 0.0, 0.0), position_mm=(175.0, 0.0, 0.0),
-                        look_at_mm=(0.0, 40.0, 580.0))
+    # 190 mm baseline; its image covers the camera's whole view of the scene (520-650 mm)
+    return DeviceOptics(width=1280, height=800, focal_px=1750.0, dist=(0.02, -0.01, 0.0, 0.0, 0.0),
+                        position_mm=(190.0, 0.0, 0.0), look_at_mm=(0.0, 0.0, 600.0))
 
 
 def _default_scene() -> tuple[SceneObject, ...]:
     return (
-        PlaneObject(point_mm=(0.0, 0.0, 650.0), normal=(0.0, 0.1, -1.0), texture=0.3),
+        PlaneObject(point_mm=(0.0, 0.0, 630.0), normal=(0.0, 0.1, -1.0), texture=0.3),
         SphereObject(center_mm=(-20.0, 10.0, 560.0), radius_mm=40.0, texture=0.2),
         BoxObject(center_mm=(70.0, -40.0, 600.0), size_mm=(60.0, 50.0, 40.0), rotation_deg=(10.0, 25.0, 5.0)),
     )
@@ -219,6 +221,9 @@ class OutputConfig(_Strict):
     min_free_mb: float = Field(200.0, ge=0, description="Refuse a scan when less than this is free (MB).")
     preview: bool = Field(True, description="Write a preview PNG beside each cloud.")
     normals: bool = Field(False, description="Write normals into the PLY.")
+    require_mount: bool = Field(
+        False, description="The share counts as present only when output.directory is a mount point."
+    )
 
 
 class MdnsConfig(_Strict):
@@ -226,6 +231,8 @@ class MdnsConfig(_Strict):
     interfaces: tuple[str, ...] = Field(("127.0.0.1",), description="Addresses to announce on (loopback by default).")
     instance_name: str | None = Field(None, description="Service instance name; hostname when unset.")
     announce_smb_share: str | None = Field(None, description="Also announce this SMB share name (_smb._tcp).")
+    port: int = Field(0, ge=0, le=65535, description="Port in the _scan3d._tcp SRV record (0: none; the "
+                      "control socket is local).")
 
 
 class ServiceConfig(_Strict):
@@ -236,7 +243,132 @@ class ServiceConfig(_Strict):
     queue_max: int = Field(1, ge=1, le=16, description="Queued triggers kept when busy_policy is 'queue'.")
     scan_timeout_s: float = Field(30.0, gt=0, le=600, description="Fail a scan that takes longer (s).")
     watchdog: bool = Field(True, description="Send WATCHDOG=1 to systemd when WatchdogSec is set.")
+    config_poll_s: float = Field(2.0, ge=0, le=3600, description="Check the config file's mtime this often "
+                                 "(s); 0: only on SIGHUP.")
+    retry_max_s: float = Field(30.0, gt=0, le=3600, description="Longest wait between hardware retries (s).")
+    stop_grace_s: float = Field(20.0, ge=0, le=600, description="On SIGTERM, let a running scan finish this "
+                                "long before aborting it (s).")
     mdns: MdnsConfig = Field(default_factory=MdnsConfig)
+
+
+# --- calibration and verification ---------------------------------------------------------------------
+
+ARUCO_DICTIONARIES = (
+    "DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000",
+    "DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250", "DICT_5X5_1000",
+    "DICT_6X6_50", "DICT_6X6_100", "DICT_6X6_250", "DICT_6X6_1000",
+    "DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000",
+    "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10",
+    "DICT_APRILTAG_36h11",
+)  # fmt: skip
+
+
+DistortionName = Literal["none", "k1", "k2", "k2p", "k3", "k3p", "rational", "standard", "simple"]
+
+
+class BoardConfig(_Strict):
+    """A calibration board (``appliance.calibration.boards.BoardSpec`` adds detection helpers to it)."""
+
+    type: Literal["chessboard", "circles", "acircles", "charuco"] = Field(
+        "chessboard", description="Board kind: chessboard, circles, acircles or charuco."
+    )
+    cols: int = Field(9, ge=2, le=200, description="Inner corners (chessboard), dots per row, or squares (ChArUco).")
+    rows: int = Field(7, ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco).")
+    square_mm: float | None = Field(20.0, gt=0, description="Square side (chessboard, ChArUco), mm.")
+    pitch_mm: float | None = Field(None, gt=0, description="Dot spacing (circle grids), mm.")
+    marker_mm: float | None = Field(None, gt=0, description="ArUco marker side (ChArUco), mm.")
+    dictionary: str = Field("DICT_6X6_250", description="ArUco dictionary (ChArUco).")
+    legacy_charuco: bool = Field(False, description="Pre-4.6 OpenCV ChArUco layout (even rows only).")
+
+    @model_validator(mode="after")
+    def _complete(self) -> BoardConfig:
+        if self.type in ("chessboard", "charuco") and self.square_mm is None:
+            raise ValueError(f"board type {self.type!r} needs square_mm (square side, mm)")
+        if self.type in ("circles", "acircles") and self.pitch_mm is None:
+            raise ValueError(f"board type {self.type!r} needs pitch_mm (dot spacing, mm)")
+        if self.type == "charuco":
+            if self.marker_mm is None:
+                raise ValueError("board type 'charuco' needs marker_mm (marker side, mm)")
+            assert self.square_mm is not None
+            if self.marker_mm >= self.square_mm:
+                raise ValueError(f"marker_mm {self.marker_mm} must be < square_mm {self.square_mm}")
+            if self.dictionary not in ARUCO_DICTIONARIES:
+                raise ValueError(f"dictionary {self.dictionary!r}: must be one of {', '.join(ARUCO_DICTIONARIES)}")
+        return self
+
+
+class ArtefactSphere(_Strict):
+    """A calibrated sphere of the verification artefact."""
+
+    center_mm: Vec3 = Field(description="Nominal centre in the world frame (mm); points are segmented around it.")
+    diameter_mm: float = Field(gt=0, le=1000, description="Calibrated diameter (mm).")
+
+
+class ArtefactPlane(_Strict):
+    """The flat of the verification artefact."""
+
+    point_mm: Vec3 = Field(description="Nominal point on the plane, world frame (mm).")
+    normal: Vec3 = Field((0.0, 0.0, -1.0), description="Nominal normal (any length).")
+    size_mm: tuple[float, float] = Field(
+        (300.0, 200.0), description="Evaluated extent around point_mm (mm); the virtual rig's plane is unbounded."
+    )
+
+
+def _default_spheres() -> tuple[ArtefactSphere, ...]:
+    return (ArtefactSphere(center_mm=(-50.0, 0.0, 590.0), diameter_mm=30.0),
+            ArtefactSphere(center_mm=(50.0, 0.0, 590.0), diameter_mm=30.0))  # fmt: skip
+
+
+class ArtefactConfig(_Strict):
+    """The known artefact scanned by ``scan3d verify`` (a ball bar and a plane, VDI/VDE 2634 style)."""
+
+    spheres: tuple[ArtefactSphere, ...] = Field(
+        default_factory=_default_spheres, max_length=8, description="Spheres; two make a ball bar."
+    )
+    ball_bar_length_mm: float | None = Field(
+        None, gt=0, description="Calibrated centre distance of the first two spheres (mm); nominal centres when unset."
+    )
+    plane: ArtefactPlane | None = Field(
+        default_factory=lambda: ArtefactPlane(point_mm=(0.0, 0.0, 640.0), normal=(0.0, 0.1, -1.0)),
+        description="The flat (none: no flatness check).",
+    )
+    search_margin_mm: float = Field(
+        4.0, gt=0, le=100, description="Segmentation: points within radius + this of a nominal centre, or this "
+        "far from the nominal plane (mm).",
+    )
+    albedo: float = Field(0.8, ge=0, le=1, description="Reflectance of the artefact on the virtual rig.")
+
+
+class VerifyTolerances(_Strict):
+    """Pass/fail limits of ``scan3d verify`` (mm)."""
+
+    flatness_mm: float = Field(0.1, gt=0, description="Plane form error: peak-to-valley of the cell means (mm).")
+    flatness_cell_mm: float = Field(
+        5.0, ge=0, le=100, description="Cell size over which plane residuals are averaged before the "
+        "peak-to-valley (mm); 0: raw points (noise included).",
+    )
+    sphere_diameter_mm: float = Field(0.05, gt=0, description="|fitted - calibrated| sphere diameter (mm).")
+    ball_bar_length_mm: float = Field(0.1, gt=0, description="|measured - calibrated| sphere distance (mm).")
+    exclude_fraction: float = Field(
+        0.003, ge=0, le=0.1, description="Share of the largest residuals excluded before form and peak-to-valley "
+        "values (VDI/VDE 2634: 0.3 %).",
+    )
+
+
+class CalibrationConfig(_Strict):
+    """Calibration board, live capture and verification."""
+
+    board: BoardConfig = Field(default_factory=BoardConfig)
+    poses_wanted: int = Field(12, ge=3, le=100, description="Live calibration: enough board poses.")
+    coverage_target: float = Field(
+        0.6, gt=0, le=1, description="Live calibration: share of each device's image the board must have covered."
+    )
+    camera_model: DistortionName = Field(
+        "k3p", description="Camera distortion: kN radial k1..kN, p tangential, rational k1..k6 p1 p2."
+    )
+    projector_model: DistortionName = Field("k2p", description="Projector distortion model (as camera_model).")
+    artefact: ArtefactConfig = Field(default_factory=ArtefactConfig)
+    tolerances: VerifyTolerances = Field(default_factory=VerifyTolerances)
 
 
 # --- the whole file -----------------------------------------------------------------------------------
@@ -266,6 +398,7 @@ class AppConfig(_Strict):
     virtual_rig: VirtualRigConfig = Field(default_factory=VirtualRigConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     service: ServiceConfig = Field(default_factory=ServiceConfig)
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
 
     @model_validator(mode="after")
     def _consistent(self) -> AppConfig:

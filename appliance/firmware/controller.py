@@ -143,6 +143,12 @@ class Controller:
             self._seq(msg)
         elif msg.kind == P.FIRE:
             self._fire(msg)
+        elif msg.kind == P.BYE:
+            self._stop()
+            self.session = False
+            self.leds = (False, False, False)
+            self.pins.set_leds(False, False, False)
+            self._send(P.OK, msg.seq)
         elif msg.kind == P.ABORT:
             done = self.next_i if self.state == P.S_RUNNING else 0
             self._stop()

@@ -8,6 +8,10 @@ A frame is one ASCII line ``TYPE SEQ key=value ... *CRC\\n`` of at most :data:`M
 CRC-16/CCITT-FALSE over every byte before ``" *"``, as four hex digits.
 """
 
+TYPE_CHECKING = False
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
 PROTO_VERSION = 1
 FW_VERSION = "1.0.0"
 
@@ -22,6 +26,7 @@ SEQ = "SEQ"
 FIRE = "FIRE"
 ABORT = "ABORT"
 LED = "LED"
+BYE = "BYE"
 # Controller -> host (HELLO also answers HELLO)
 OK = "OK"
 ERR = "ERR"
@@ -31,7 +36,7 @@ DONE = "DONE"
 HB = "HB"
 FAULT = "FAULT"
 
-REQUESTS = (HELLO, PING, CFG, SEQ, FIRE, ABORT, LED)
+REQUESTS = (HELLO, PING, CFG, SEQ, FIRE, ABORT, LED, BYE)
 REPLIES = (HELLO, OK, ERR, BUTTON, TRIG, DONE, HB, FAULT)
 
 # ERR codes
@@ -172,7 +177,7 @@ def _is_value(text: str) -> bool:
     return True
 
 
-def encode(kind: str, seq: int = 0, fields: "dict[str, object] | None" = None) -> bytes:
+def encode(kind: str, seq: int = 0, fields: "Mapping[str, object] | None" = None) -> bytes:
     """Build one frame, ``\\n`` included.
 
     Parameters
@@ -181,7 +186,7 @@ def encode(kind: str, seq: int = 0, fields: "dict[str, object] | None" = None) -
         Message type (upper-case letters), e.g. ``"SEQ"``.
     seq : int
         Sequence number 0..65535 (0 for unsolicited messages).
-    fields : dict, optional
+    fields : mapping, optional
         ``key -> value``; values are written with ``str()`` (bools as 0/1).
 
     Returns
@@ -235,7 +240,7 @@ def decode(line: bytes) -> "Message | None":
     body = bytes(line[:cut])
     crc_text = bytes(line[cut + 2 :]).decode()
     for ch in crc_text:
-        if not ("0" <= ch <= "9" or "A" <= ch <= "F" or "a" <= ch <= "f"):
+        if not ("0" <= ch <= "9" or "A" <= ch <= "F"):  # upper case only: a flipped case bit is an error
             return None
     if int(crc_text, 16) != crc16(body):
         return None

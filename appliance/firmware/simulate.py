@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from types import FrameType
 
 from appliance.firmware import protocol as P
-from appliance.firmware.controller import Channel, Controller, Pins
+from appliance.firmware.controller import DEBOUNCE_US, Channel, Controller, Pins
 
 # Module-level so tests can shorten them.
 POLL_S = 0.001  # the main loop's idle wait, like the board's sleep_ms(1)
@@ -115,6 +115,7 @@ class SimulatedController:
         self._stop = False
         self._paused = False
         self._presses: list[tuple[int, bool]] = []  # pending (t_us, pressed) button edges
+        self._last_edge_us = -(10**12)
         self._thread: threading.Thread | None = None
         self.rx_bytes = 0
         self.tx_bytes = 0
@@ -156,12 +157,14 @@ class SimulatedController:
     # --- hooks -------------------------------------------------------------------------------------------
 
     def press_button(self, hold_s: float | None = None) -> None:
-        """Press and release the button (held ``hold_s``, default :data:`BUTTON_HOLD_S`)."""
+        """Press and release the button (held ``hold_s``, default :data:`BUTTON_HOLD_S`), after others."""
         hold_us = int((BUTTON_HOLD_S if hold_s is None else hold_s) * 1e6)
 
         def press() -> None:
-            now = self.clock_us()
-            self._presses += [(now, True), (now + hold_us, False)]
+            # a distinct press: after the previous one is released and settled
+            start = max(self.clock_us(), self._last_edge_us + 2 * DEBOUNCE_US)
+            self._presses += [(start, True), (start + hold_us, False)]
+            self._last_edge_us = start + hold_us
             self._presses.sort()
 
         self._call(press)
@@ -173,6 +176,7 @@ class SimulatedController:
             now = self.clock_us()
             self._presses += [(now + dt, level) for dt, level in edges_us]
             self._presses.sort()
+            self._last_edge_us = max(self._last_edge_us, self._presses[-1][0])
 
         self._call(inject)
 
@@ -185,8 +189,18 @@ class SimulatedController:
         self._call(lambda: setattr(self, "_paused", False))
 
     def unplug(self) -> None:
-        """Close the pty, as if the USB cable were pulled (the host's next read fails)."""
-        self._call(self._close_pty)
+        """Close the pty and remove the link, as when the USB cable is pulled (the host's next read fails)."""
+
+        def pull() -> None:
+            self._close_pty()
+            if self.link is not None and os.path.islink(self.link):
+                os.unlink(self.link)  # like udev removing /dev/serial/by-id/...
+
+        self._call(pull)
+
+    def send_raw(self, data: bytes) -> None:
+        """Write bytes to the host as they are (noise on the line)."""
+        self._call(lambda: self._write(data))
 
     def plug(self) -> str:
         """Open a new pty (a new path, like a re-enumerated USB device) and re-point the link to it."""
@@ -272,10 +286,10 @@ class SimulatedController:
                     break
             if self._paused or self._stop:
                 continue
-            if self._master >= 0 and self._master in ready:
+            if self._master >= 0:  # read before polling, also right after a resume: input first
                 try:
                     data = os.read(self._master, 4096)
-                except OSError:
+                except OSError:  # nothing there (non-blocking) or no host
                     data = b""
                 if data:
                     self.rx_bytes += len(data)

@@ -234,12 +234,14 @@ def gray_phase_sequence(
     period: int = 16,
     steps: int = 4,
     inverses: bool = True,
+    periods: tuple[int, ...] | list[int] | None = None,
 ) -> Sequence:
     """The standard sequence: white, black, complementary Gray code (stripe = period / 2), phase shift.
 
     The Gray code carries one bit more than the period count needs (stripe = half the period), so the
     phase is unwrapped against the centre of a half period: a Gray error of up to a quarter period at a
-    fringe edge cannot cause a period jump.
+    fringe edge cannot cause a period jump. With several ``periods`` the Gray stripe is half the coarsest
+    one; each period, once unwrapped, unwraps the next finer one, and the finest sets the result.
 
     Parameters
     ----------
@@ -248,19 +250,29 @@ def gray_phase_sequence(
     axes : str
         'x', 'y' or 'xy'.
     period : int
-        Fringe period (projector pixels, even, >= 4).
+        Fringe period (projector pixels, even, >= 4); used when ``periods`` is not given.
     steps : int
         Phase steps (>= 3).
     inverses : bool
         Project the inverse of every Gray bit.
+    periods : sequence of int, optional
+        Several fringe periods (projector pixels, each even, >= 4), projected coarsest first.
     """
-    if period < 4 or period % 2:
-        raise PatternError(f"gray_phase_sequence: period = {period}: must be an even number >= 4 pixels")
+    chosen = (period,) if periods is None else tuple(int(p) for p in periods)
+    if not chosen:
+        raise PatternError("gray_phase_sequence: periods = (): give at least one period")
+    for p in chosen:
+        if p < 4 or p % 2:
+            raise PatternError(f"gray_phase_sequence: period = {p}: must be an even number >= 4 pixels")
+    if len(set(chosen)) != len(chosen):
+        raise PatternError(f"gray_phase_sequence: periods = {chosen}: must be different")
+    ordered = sorted(chosen, reverse=True)
     frames: list[Frame] = [WhiteFrame(), BlackFrame()]
     for axis in axes:
         if axis not in ("x", "y"):
             raise PatternError(f"gray_phase_sequence: axes = {axes!r}: use 'x', 'y' or 'xy'")
         size = width if axis == "x" else height
-        frames.extend(gray_code_frames(size, axis, stripe=period // 2, inverses=inverses))  # type: ignore[arg-type]
-        frames.extend(phase_shift_frames(axis, period, steps))  # type: ignore[arg-type]
+        frames.extend(gray_code_frames(size, axis, stripe=ordered[0] // 2, inverses=inverses))  # type: ignore[arg-type]
+        for p in ordered:
+            frames.extend(phase_shift_frames(axis, p, steps))  # type: ignore[arg-type]
     return Sequence(width, height, tuple(frames))

@@ -10,7 +10,8 @@ Plan tables (built by ``decode.plan_decode``):
 - ``gray_tab`` int64 (G, 4): axis (0 = x, 1 = y), bit, positive frame, negative frame (-1: absent).
   The positive frame is lit where the bit is 1; a bit with one frame is compared to (white + black) / 2.
 - ``axis_tab`` int64 (2, 6): coded, has Gray, stripe (px), stripe count, tolerate one weak bit, size (px).
-- ``ph_tab`` int64 (S, 4): axis, steps, source (-2 axis centre, -1 Gray, 1 previous set), first row
+- ``ph_tab`` int64 (S, 4): axis, steps, source (-2 axis centre, -1 Gray stripe centre, -3 Gray edge-aware,
+  1 previous set), first row
   in ``ph_idx`` / ``ph_sin`` / ``ph_cos``; sets ordered coarse to fine within an axis.
 """
 
@@ -18,11 +19,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numba import njit, prange
 
-BIG = np.int32(2**30)  # "no contrast seen yet"
+BIG = np.uint32(0x7FFFFFFF)  # "no contrast seen yet"
+#: A Gray bit whose contrast is below this fraction of the next weakest bit marks a stripe edge.
+EDGE_RATIO = 0.75
 _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
@@ -37,10 +39,8 @@ _A6 = 0.039781224444597835
 _A7 = -0.014401356954857433
 _A8 = 0.0024567240725950623
 
-_OPTS = {"nogil": True, "cache": True, "error_model": "numpy"}
 
-
-@njit(**_OPTS)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _atan2(y: float, x: float) -> float:
     """Branch-free atan2 (vectorisable); atan2(0, 0) = 0."""
     ax = abs(x)
@@ -64,98 +64,178 @@ def _atan2(y: float, x: float) -> float:
     return -a if y < 0.0 else a
 
 
-@njit(**_OPTS)
-def _gray_to_binary(g: int) -> int:
-    g ^= g >> 1
-    g ^= g >> 2
-    g ^= g >> 4
-    g ^= g >> 8
-    g ^= g >> 16
+_U1 = np.uint32(1)
+_U2 = np.uint32(2)
+_U4 = np.uint32(4)
+_U8 = np.uint32(8)
+_U16 = np.uint32(16)
+_U5 = np.uint32(5)
+_U31 = np.uint32(31)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_to_binary(g):  # type: ignore[no-untyped-def]
+    """Prefix XOR of a uint32 Gray code (uint32 shift amounts keep it vectorisable)."""
+    g ^= g >> _U1
+    g ^= g >> _U2
+    g ^= g >> _U4
+    g ^= g >> _U8
+    g ^= g >> _U16
     return g
 
 
-@njit(**_OPTS)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _add_bit(d_row, bit, code, m1, m2):  # type: ignore[no-untyped-def]
-    """Fold one Gray bit's signed contrast row ``d_row`` into code and the two smallest contrasts."""
+    """Fold one Gray bit's signed contrast row ``d_row`` into code (uint32) and the two smallest contrasts."""
+    on = np.uint32(1 << bit)
+    off = np.uint32(0)
     for x in range(d_row.shape[0]):
-        d = d_row[x]
-        code[x] |= np.int32(d > 0) << bit
-        ad = abs(d)
-        m2[x] = min(m2[x], max(m1[x], ad))
-        m1[x] = min(m1[x], ad)
+        code[x] |= on if d_row[x] > 0 else off
+    _fold_min(d_row, np.uint32(bit), m1, m2)
 
 
-@njit(**_OPTS)
-def _finish_row(r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr,  # type: ignore[no-untyped-def]
-                u, v, mask, quality, cg, cc, ok, qa, qmin, allok):
+@njit(nogil=True, cache=True, error_model="numpy")
+def _fold_min(d_row, bit, m1, m2):  # type: ignore[no-untyped-def]
+    """Keep the two smallest keys ``contrast * 32 + bit`` (unique, so the result is order independent)."""
+    for x in range(d_row.shape[0]):
+        key = (np.uint32(abs(d_row[x])) << _U5) | bit
+        m2[x] = min(m2[x], max(m1[x], key))
+        m1[x] = min(m1[x], key)
+
+
+# The final step is split into short loops over a row, each touching few arrays, so that LLVM
+# vectorises them (numba cannot declare arrays non-aliasing; long loops over many arrays stay scalar).
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_index(code, stripe, nstripes, cg, ok):  # type: ignore[no-untyped-def]
+    nstripes = np.int32(nstripes)
+    for x in range(code.shape[0]):
+        k = np.int32(_gray_to_binary(code[x]))  # int32 -> float64 vectorises on AVX2; int64/uint32 do not
+        cg[x] = (np.float64(k) + 0.5) * stripe - 0.5
+        ok[x] = k < nstripes
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_gate(m1, m2, relv, tolerate, ok, qa):  # type: ignore[no-untyped-def]
+    for x in range(m1.shape[0]):
+        q1 = np.float64(np.int32(m1[x] >> _U5))
+        strong1 = q1 >= relv[x]
+        strong2 = tolerate & (np.float64(np.int32(m2[x] >> _U5)) >= relv[x])
+        ok[x] = ok[x] & (strong1 | strong2)
+    for x in range(m1.shape[0]):
+        q1 = np.float64(np.int32(m1[x] >> _U5))
+        qa[x] = q1 if q1 >= relv[x] else np.float64(np.int32(m2[x] >> _U5))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_edge(code, m1, m2, stripe, cg, cb):  # type: ignore[no-untyped-def]
+    """Edge-aware coarse estimate: the stripe edge where the weakest bit flips, if it is clearly weak.
+
+    With stripe = period, both edges of a stripe have the same phase, so a pixel on an edge needs to
+    know which edge; the weakest bit names it (the edge to the neighbouring stripe where it flips).
+    """
+    for x in range(code.shape[0]):
+        g = code[x]
+        k = np.int32(_gray_to_binary(g))
+        flip = np.uint32(1) << (m1[x] & _U31)
+        k2 = np.int32(_gray_to_binary(g ^ flip))
+        weak = np.float64(np.int32(m1[x] >> _U5)) < EDGE_RATIO * np.float64(np.int32(m2[x] >> _U5))
+        near = weak & (abs(k2 - k) == 1)
+        edge = np.float64(max(k, k2)) * stripe - 0.5
+        cb[x] = edge if near else cg[x]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _phase_wrapped(ss, cs, scale, period, mod, cph):  # type: ignore[no-untyped-def]
+    for x in range(ss.shape[0]):
+        sv = ss[x]
+        cv = cs[x]
+        mod[x] = scale * math.sqrt(sv * sv + cv * cv)
+        c = period * _atan2(-sv, cv) / _TWO_PI
+        cph[x] = c + period if c < 0.0 else c
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _unwrap(cph, c0, period, cc):  # type: ignore[no-untyped-def]
+    for x in range(cph.shape[0]):
+        c = cph[x]
+        cc[x] = c + period * math.floor((c0[x] - c) / period + 0.5)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
+    for x in range(mod.shape[0]):
+        ok[x] = ok[x] & (mod[x] >= relv[x])
+    for x in range(mod.shape[0]):
+        qa[x] = min(qa[x], mod[x])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _emit_axis(cc, ok, lit, out):  # type: ignore[no-untyped-def]
+    for x in range(cc.shape[0]):
+        good = ok[x] & lit[x]
+        out[x] = np.float32(cc[x]) if good else np.float32(np.nan)
+        lit[x] = good
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _finish_row(  # type: ignore[no-untyped-def]
+    r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr, u, v, mask, quality, scratch, ok, lit
+):
     """Per-pixel final step shared by batch and streaming: gates, Gray index, phase, unwrapping.
 
-    ``r`` int32 (W,): contrast range; ``code``/``m1``/``m2`` int32 (2, W); ``ssum``/``csum`` float64 (S, W);
-    ``cg``, ``cc``, ``qa``, ``qmin`` float64 (W,) and ``ok``, ``allok`` bool (W,) are scratch.
+    ``r`` int32 (W,): contrast range; ``code``/``m1``/``m2`` uint32 (2, W); ``ssum``/``csum`` float64 (S, W);
+    ``scratch`` float64 (8, W), ``ok`` and ``lit`` bool (W,) are scratch.
     """
     w = r.shape[0]
-    nset = ph_tab.shape[0]
+    relv = scratch[0]
+    cg = scratch[1]
+    cc = scratch[2]
+    qa = scratch[3]
+    qmin = scratch[4]
+    mod = scratch[5]
+    cph = scratch[6]
+    cb = scratch[7]
     for x in range(w):
         rr = np.float64(r[x])
-        allok[x] = (rr >= thr) and (rr > 0.0)
-        qmin[x] = np.inf
+        relv[x] = rel * rr
+        lit[x] = (rr >= thr) & (rr > 0.0)
+    qmin[:] = np.inf
     for a in range(2):
         out = u if a == 0 else v
         if axis_tab[a, 0] == 0:
-            for x in range(w):
-                out[x] = np.nan
+            out[:] = np.nan
             continue
         stripe = np.float64(axis_tab[a, 2])
-        nstripes = axis_tab[a, 3]
-        tolerate = axis_tab[a, 4] != 0
-        centre = 0.5 * np.float64(axis_tab[a, 5] - 1)
         if axis_tab[a, 1] != 0:
-            ca = code[a]
-            m1a = m1[a]
-            m2a = m2[a]
-            for x in range(w):
-                k = _gray_to_binary(ca[x])
-                relv = rel * np.float64(r[x])
-                q1 = np.float64(m1a[x])
-                q2 = np.float64(m2a[x])
-                strong1 = q1 >= relv
-                strong2 = tolerate and q2 >= relv
-                ok[x] = (strong1 or strong2) and k < nstripes
-                qa[x] = q1 if strong1 else q2
-                cg[x] = (np.float64(k) + 0.5) * stripe - 0.5
-                cc[x] = cg[x]
+            _gray_index(code[a], stripe, axis_tab[a, 3], cg, ok)
+            _gray_gate(m1[a], m2[a], relv, axis_tab[a, 4] != 0, ok, qa)
         else:
-            for x in range(w):
-                ok[x] = True
-                qa[x] = np.inf
-                cg[x] = centre
-                cc[x] = centre
-        for s in range(nset):
+            ok[:] = True
+            qa[:] = np.inf
+            cg[:] = 0.5 * np.float64(axis_tab[a, 5] - 1)
+        cc[:] = cg
+        for s in range(ph_tab.shape[0]):
             if ph_tab[s, 0] != a:
                 continue
             period = ph_period[s]
-            scale = 4.0 / np.float64(ph_tab[s, 1])
+            _phase_wrapped(ssum[s], csum[s], 4.0 / np.float64(ph_tab[s, 1]), period, mod, cph)
             src = ph_tab[s, 2]
-            ss = ssum[s]
-            cs = csum[s]
-            for x in range(w):
-                sv = ss[x]
-                cv = cs[x]
-                mod = scale * math.sqrt(sv * sv + cv * cv)
-                ok[x] = ok[x] and mod >= rel * np.float64(r[x])
-                qa[x] = min(qa[x], mod)
-                c0 = cc[x] if src > 0 else cg[x]
-                cph = period * _atan2(-sv, cv) / _TWO_PI
-                cph = cph + period if cph < 0.0 else cph
-                cc[x] = cph + period * math.floor((c0 - cph) / period + 0.5)
+            if src == -2:
+                cb[:] = 0.5 * np.float64(axis_tab[a, 5] - 1)
+            elif src == -3:
+                _gray_edge(code[a], m1[a], m2[a], stripe, cg, cb)
+            else:
+                cb[:] = cc if src > 0 else cg
+            _unwrap(cph, cb, period, cc)
+            _phase_gate(mod, relv, ok, qa)
+        _emit_axis(cc, ok, lit, out)
         for x in range(w):
-            good = ok[x] and allok[x]
-            out[x] = np.float32(cc[x]) if good else np.float32(np.nan)
             qmin[x] = min(qmin[x], qa[x])
-            allok[x] = good
     for x in range(w):
-        mask[x] = allok[x]
-        quality[x] = np.float32(qmin[x]) if allok[x] else np.float32(0.0)
+        mask[x] = lit[x]
+        quality[x] = np.float32(qmin[x]) if lit[x] else np.float32(0.0)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -163,7 +243,7 @@ def _finish_row(r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, t
 # --------------------------------------------------------------------------------------------------
 
 
-@njit(**_OPTS, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def range_hist(hi, lo, shift, nbins):  # type: ignore[no-untyped-def]
     """Histogram of ``max(hi - lo, 0) >> shift`` (clipped to ``nbins - 1``) over (H, W) images."""
     h = hi.shape[0]
@@ -177,7 +257,7 @@ def range_hist(hi, lo, shift, nbins):  # type: ignore[no-untyped-def]
     return parts.sum(axis=0)
 
 
-@njit(**_OPTS)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _range_row(frames, y, wb, used, r, mx, mn, maxval):  # type: ignore[no-untyped-def]
     w = frames.shape[2]
     if wb[0] >= 0:
@@ -199,7 +279,7 @@ def _range_row(frames, y, wb, used, r, mx, mn, maxval):  # type: ignore[no-untyp
         r[x] = mx[x] - mn[x]
 
 
-@njit(**_OPTS, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def range_hist_stack(frames, wb, used, maxval, shift, nbins):  # type: ignore[no-untyped-def]
     """Histogram of the contrast range of a (F, H, W) stack without white/black (max - min over ``used``)."""
     h = frames.shape[1]
@@ -222,7 +302,7 @@ def range_hist_stack(frames, wb, used, maxval, shift, nbins):  # type: ignore[no
 # --------------------------------------------------------------------------------------------------
 
 
-@njit(**_OPTS)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _gray_row(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-untyped-def]
     w = frames.shape[2]
     for g in range(gray_tab.shape[0]):
@@ -245,7 +325,7 @@ def _gray_row(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-unty
         _add_bit(d, bit, code[a], m1[a], m2[a])
 
 
-@njit(**_OPTS)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: ignore[no-untyped-def]
     w = frames.shape[2]
     for s in range(ph_tab.shape[0]):
@@ -265,39 +345,40 @@ def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: 
                 cs[x] += val * ck
 
 
-@njit(**_OPTS, parallel=True)
-def decode_stack(frames, wb, used, maxval, gray_tab, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos,  # type: ignore[no-untyped-def]
-                 rel, thr, u, v, mask, quality):
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def decode_stack(  # type: ignore[no-untyped-def]
+    frames, wb, used, maxval, gray_tab, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos,
+    rel, thr, nthreads, u, v, mask, quality,
+):  # fmt: skip
     """Decode a (F, H, W) stack into u, v, mask, quality (H, W) in one pass over rows."""
     h = frames.shape[1]
     w = frames.shape[2]
     nset = max(ph_tab.shape[0], 1)
-    nch = min(h, 8 * numba.get_num_threads())
+    nch = min(h, 8 * nthreads)
     for ch in prange(nch):
         r = np.empty(w, np.int32)
         d = np.empty(w, np.int32)
         mx = np.empty(w, np.int32)
         mn = np.empty(w, np.int32)
-        code = np.empty((2, w), np.int32)
-        m1 = np.empty((2, w), np.int32)
-        m2 = np.empty((2, w), np.int32)
+        code = np.empty((2, w), np.uint32)
+        m1 = np.empty((2, w), np.uint32)
+        m2 = np.empty((2, w), np.uint32)
         ssum = np.empty((nset, w), np.float64)
         csum = np.empty((nset, w), np.float64)
-        cg = np.empty(w, np.float64)
-        cc = np.empty(w, np.float64)
-        qa = np.empty(w, np.float64)
-        qmin = np.empty(w, np.float64)
+        scratch = np.empty((8, w), np.float64)
         ok = np.empty(w, np.bool_)
-        allok = np.empty(w, np.bool_)
+        lit = np.empty(w, np.bool_)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
-            code[:] = 0
+            code[:] = np.uint32(0)
             m1[:] = BIG
             m2[:] = BIG
             _gray_row(frames, y, wb, gray_tab, d, code, m1, m2)
             _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
-            _finish_row(r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr,
-                        u[y], v[y], mask[y], quality[y], cg, cc, ok, qa, qmin, allok)
+            _finish_row(
+                r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr,
+                u[y], v[y], mask[y], quality[y], scratch, ok, lit,
+            )  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------------
@@ -305,7 +386,7 @@ def decode_stack(frames, wb, used, maxval, gray_tab, axis_tab, ph_tab, ph_period
 # --------------------------------------------------------------------------------------------------
 
 
-@njit(**_OPTS, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_pair(pos, neg, bit, code, m1, m2):  # type: ignore[no-untyped-def]
     """Fold a (pattern, inverse) pair of (H, W) images into the axis state (H, W) arrays."""
     h, w = pos.shape
@@ -318,7 +399,7 @@ def stream_pair(pos, neg, bit, code, m1, m2):  # type: ignore[no-untyped-def]
         _add_bit(d, bit, code[y], m1[y], m2[y])
 
 
-@njit(**_OPTS, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_single(img, sign, white, black, bit, code, m1, m2):  # type: ignore[no-untyped-def]
     """Fold a Gray frame without inverse, thresholded at (white + black) / 2, into the axis state."""
     h, w = img.shape
@@ -332,7 +413,7 @@ def stream_single(img, sign, white, black, bit, code, m1, m2):  # type: ignore[n
         _add_bit(d, bit, code[y], m1[y], m2[y])
 
 
-@njit(**_OPTS, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_phase(img, sk, ck, ssum, csum):  # type: ignore[no-untyped-def]
     """Add one phase step (H, W) into the set's sums (exact: quantised coefficients)."""
     h, w = img.shape
@@ -346,7 +427,7 @@ def stream_phase(img, sk, ck, ssum, csum):  # type: ignore[no-untyped-def]
             cs[x] += val * ck
 
 
-@njit(**_OPTS, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
     """Running per-pixel maximum / minimum (contrast range when there are no white/black frames)."""
     h, w = img.shape
@@ -359,25 +440,24 @@ def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
             lr[x] = min(lr[x], row[x])
 
 
-@njit(**_OPTS, parallel=True)
-def stream_finish(hi, lo, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr,  # type: ignore[no-untyped-def]
-                  u, v, mask, quality):
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def stream_finish(  # type: ignore[no-untyped-def]
+    hi, lo, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr, nthreads, u, v, mask, quality
+):
     """Final step of streaming: state arrays (H, W) / (2, H, W) / (S, H, W) -> outputs (H, W)."""
     h, w = hi.shape
-    nch = min(h, 8 * numba.get_num_threads())
+    nch = min(h, 8 * nthreads)
     for ch in prange(nch):
         r = np.empty(w, np.int32)
-        cg = np.empty(w, np.float64)
-        cc = np.empty(w, np.float64)
-        qa = np.empty(w, np.float64)
-        qmin = np.empty(w, np.float64)
+        scratch = np.empty((8, w), np.float64)
         ok = np.empty(w, np.bool_)
-        allok = np.empty(w, np.bool_)
+        lit = np.empty(w, np.bool_)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             hr = hi[y]
             lr = lo[y]
             for x in range(w):
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
-            _finish_row(r, code[:, y, :], m1[:, y, :], m2[:, y, :], ssum[:, y, :], csum[:, y, :],
-                        axis_tab, ph_tab, ph_period, rel, thr, u[y], v[y], mask[y], quality[y],
-                        cg, cc, ok, qa, qmin, allok)
+            _finish_row(
+                r, code[:, y, :], m1[:, y, :], m2[:, y, :], ssum[:, y, :], csum[:, y, :],
+                axis_tab, ph_tab, ph_period, rel, thr, u[y], v[y], mask[y], quality[y], scratch, ok, lit,
+            )  # fmt: skip

@@ -14,7 +14,7 @@ from numba import njit, prange
 _NAN = np.float32(np.nan)
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def distort_jac(x, y, d):  # type: ignore[no-untyped-def]
     """Distorted normalised coords and their 2x2 Jacobian w.r.t. (x, y)."""
     r2 = x * x + y * y
@@ -35,7 +35,7 @@ def distort_jac(x, y, d):  # type: ignore[no-untyped-def]
     return xd, yd, j11, j12, j21, j22
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def code_line_table(c_grid, code_grid, kmat, d, epi, axis):  # type: ignore[no-untyped-def]
     """Solve, for every epipolar line ``c`` and projector code, the undistorted coordinate on that line.
 
@@ -92,7 +92,7 @@ def code_line_table(c_grid, code_grid, kmat, d, epi, axis):  # type: ignore[no-u
     return out
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def epipolar_intercepts(norm, rcp, tcp, c0, inv_dc, axis, min_sin):  # type: ignore[no-untyped-def]
     """Per camera pixel: fractional index of its epipolar line in the code-line table (NaN if ill-posed)."""
     h, w = norm.shape[0], norm.shape[1]
@@ -119,7 +119,7 @@ def epipolar_intercepts(norm, rcp, tcp, c0, inv_dc, axis, min_sin):  # type: ign
     return out
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def tri_plane(code, mask, norm, cidx, table, code0, rcp, tcp, rwc, cwc, to_world, zmin, zmax, axis, out):  # type: ignore[no-untyped-def]
     """Ray / light-surface intersection for one coded axis, organised output (NaN where invalid)."""
     h, w = code.shape[0], code.shape[1]
@@ -174,7 +174,7 @@ def tri_plane(code, mask, norm, cidx, table, code0, rcp, tcp, rwc, cwc, to_world
     return out
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def tri_ray(u, v, mask, norm, und, origin, kmat, d, rcp, tcp, rwc, cwc, to_world, zmin, zmax, out):  # type: ignore[no-untyped-def]
     """Ray-ray triangulation: the point on the camera ray nearest (in projector px) to the coded ray."""
     h, w = u.shape[0], u.shape[1]
@@ -239,7 +239,7 @@ def tri_ray(u, v, mask, norm, und, origin, kmat, d, rcp, tcp, rwc, cwc, to_world
     return out
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def project_dirs(rot, a0, b0, step, hr, wr, kmat, d):  # type: ignore[no-untyped-def]
     """Distorted pixel of every rectified-grid direction ``rot @ (a, b, 1)`` (device frame); NaN behind."""
     out = np.empty((hr, wr, 2), dtype=np.float32)
@@ -262,7 +262,7 @@ def project_dirs(rot, a0, b0, step, hr, wr, kmat, d):  # type: ignore[no-untyped
     return out
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-def]
     """Bilinear resampling of a code map; NaN unless all 4 neighbours are valid and within ``max_spread``."""
     h, w = src.shape[0], src.shape[1]
@@ -292,7 +292,7 @@ def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-
     return out
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def crossing_table(rect, code_offset, max_step, out):  # type: ignore[no-untyped-def]
     """Per rectified row, the sub-pixel x where the code crosses each integer (NaN none, inf ambiguous)."""
     hr, wr = rect.shape[0], rect.shape[1]
@@ -320,7 +320,7 @@ def crossing_table(rect, code_offset, max_step, out):  # type: ignore[no-untyped
     return out
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignore[no-untyped-def]
     """Sub-pixel x on fractional row ``y + w`` where the code equals ``fu`` (NaN when not consistent)."""
     k = math.floor(fu)
@@ -341,10 +341,35 @@ def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignor
     return x0 + w * (x1 - x0)
 
 
-@njit(nogil=True, cache=True, parallel=True)
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stereo_match(  # type: ignore[no-untyped-def]
-    u0, v0, mask0, rect0, cross0, cross1, v1rect, use_v, code_offset, geom, rr_t, c0, r0z, t0z,
-    proj_r, proj_t, kp, dp, use_proj, max_code_err, max_gap, max_row_jump, max_lr, max_epi, zmin, zmax, out,
+    u0,
+    v0,
+    mask0,
+    rect0,
+    cross0,
+    cross1,
+    v1rect,
+    use_v,
+    code_offset,
+    geom,
+    rr_t,
+    c0,
+    r0z,
+    t0z,
+    proj_r,
+    proj_t,
+    kp,
+    dp,
+    use_proj,
+    max_code_err,
+    max_gap,
+    max_row_jump,
+    max_lr,
+    max_epi,
+    zmin,
+    zmax,
+    out,
 ):
     """Match every cam0 pixel along its rectified row in cam1 by code and triangulate (world frame, mm).
 
@@ -414,3 +439,169 @@ def stereo_match(  # type: ignore[no-untyped-def]
             out[r, col, 1] = py
             out[r, col, 2] = pz
     return out
+
+
+# --- filters and cloud assembly --------------------------------------------------------------------------
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def filter_depth(xyz, rz, tz, zmin, zmax):  # type: ignore[no-untyped-def]
+    """NaN every point whose depth ``rz . p + tz`` is outside [zmin, zmax]; returns how many."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    removed = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            z = rz[0] * xyz[r, c, 0] + rz[1] * xyz[r, c, 1] + rz[2] * xyz[r, c, 2] + tz
+            if z == z and not (z >= zmin and z <= zmax):
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                n += 1
+        removed[r] = n
+    return removed.sum()
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def filter_quality(xyz, quality, min_quality):  # type: ignore[no-untyped-def]
+    """NaN every valid point whose quality is below ``min_quality`` (or NaN); returns how many."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    removed = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            if xyz[r, c, 2] == xyz[r, c, 2] and not quality[r, c] >= min_quality:
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                n += 1
+        removed[r] = n
+    return removed.sum()
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def isolated_keep(xyz, min_nb, max_jump, keep):  # type: ignore[no-untyped-def]
+    """keep[r, c] = valid point with >= ``min_nb`` of its 8 neighbours valid and nearer than ``max_jump``."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    j2 = max_jump * max_jump
+    for r in prange(h):
+        for c in range(w):
+            x = xyz[r, c, 0]
+            y = xyz[r, c, 1]
+            z = xyz[r, c, 2]
+            if z != z:
+                keep[r, c] = False
+                continue
+            n = 0
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= h:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
+                        continue
+                    ex = xyz[rr, cc, 0] - x
+                    ey = xyz[rr, cc, 1] - y
+                    ez = xyz[rr, cc, 2] - z
+                    if ex * ex + ey * ey + ez * ez < j2:  # NaN neighbours compare false
+                        n += 1
+            keep[r, c] = n >= min_nb
+    return keep
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def apply_keep(xyz, keep):  # type: ignore[no-untyped-def]
+    """NaN the valid points where ``keep`` is False; returns how many."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    removed = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            if not keep[r, c] and xyz[r, c, 2] == xyz[r, c, 2]:
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                n += 1
+        removed[r] = n
+    return removed.sum()
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def normals(xyz, eye, out):  # type: ignore[no-untyped-def]
+    """Unit normals from central differences of the organised cloud, turned towards ``eye`` (NaN if none)."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    for r in prange(h):
+        for c in range(w):
+            out[r, c, 0] = _NAN
+            out[r, c, 1] = _NAN
+            out[r, c, 2] = _NAN
+            if xyz[r, c, 2] != xyz[r, c, 2]:
+                continue
+            ri = np.int64(r)
+            ci = np.int64(c)
+            cl = ci - 1 if ci > 0 and xyz[ri, ci - 1, 2] == xyz[ri, ci - 1, 2] else ci
+            cr = ci + 1 if ci + 1 < w and xyz[ri, ci + 1, 2] == xyz[ri, ci + 1, 2] else ci
+            ru = ri - 1 if ri > 0 and xyz[ri - 1, ci, 2] == xyz[ri - 1, ci, 2] else ri
+            rd = ri + 1 if ri + 1 < h and xyz[ri + 1, ci, 2] == xyz[ri + 1, ci, 2] else ri
+            if cl == cr or ru == rd:
+                continue
+            ax = np.float64(xyz[r, cr, 0]) - xyz[r, cl, 0]
+            ay = np.float64(xyz[r, cr, 1]) - xyz[r, cl, 1]
+            az = np.float64(xyz[r, cr, 2]) - xyz[r, cl, 2]
+            bx = np.float64(xyz[rd, c, 0]) - xyz[ru, c, 0]
+            by = np.float64(xyz[rd, c, 1]) - xyz[ru, c, 1]
+            bz = np.float64(xyz[rd, c, 2]) - xyz[ru, c, 2]
+            nx = ay * bz - az * by
+            ny = az * bx - ax * bz
+            nz = ax * by - ay * bx
+            nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if nn == 0.0:
+                continue
+            vx = eye[0] - xyz[r, c, 0]
+            vy = eye[1] - xyz[r, c, 1]
+            vz = eye[2] - xyz[r, c, 2]
+            if nx * vx + ny * vy + nz * vz < 0.0:
+                nn = -nn
+            out[r, c, 0] = nx / nn
+            out[r, c, 1] = ny / nn
+            out[r, c, 2] = nz / nn
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def row_counts(xyz):  # type: ignore[no-untyped-def]
+    """Number of valid points in every row."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    counts = np.zeros(h + 1, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            if xyz[r, c, 2] == xyz[r, c, 2]:
+                n += 1
+        counts[r + 1] = n
+    return counts
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def compact(xyz, quality, intensity, nrm, starts, o_xyz, o_row, o_col, o_q, o_i, o_n):  # type: ignore[no-untyped-def]
+    """Copy the valid points of the organised arrays into the cloud arrays (rows start at ``starts``)."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    has_n = nrm.shape[0] == h
+    for r in prange(h):
+        k = starts[r]
+        for c in range(w):
+            if xyz[r, c, 2] != xyz[r, c, 2]:
+                continue
+            o_xyz[k, 0] = xyz[r, c, 0]
+            o_xyz[k, 1] = xyz[r, c, 1]
+            o_xyz[k, 2] = xyz[r, c, 2]
+            o_row[k] = r
+            o_col[k] = c
+            o_q[k] = quality[r, c]
+            o_i[k] = intensity[r, c]
+            if has_n:
+                o_n[k, 0] = nrm[r, c, 0]
+                o_n[k, 1] = nrm[r, c, 1]
+                o_n[k, 2] = nrm[r, c, 2]
+            k += 1

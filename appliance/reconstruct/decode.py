@@ -33,6 +33,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -88,7 +89,9 @@ class DecodeParams:
         if not (self.min_contrast_dn >= 0.0 and math.isfinite(self.min_contrast_dn)):
             raise DecodeError(f"decode params: min_contrast_dn = {self.min_contrast_dn}: must be >= 0")
         if not 0.0 <= self.relative_contrast < 1.0:
-            raise DecodeError(f"decode params: relative_contrast = {self.relative_contrast}: must be in [0, 1)")
+            raise DecodeError(
+                f"decode params: relative_contrast = {self.relative_contrast}: must be in [0, 1)"
+            )
         if not 0.0 <= self.shadow_fraction <= 1.0:
             raise DecodeError(f"decode params: shadow_fraction = {self.shadow_fraction}: must be in [0, 1]")
         if self.max_value is not None and not self.max_value > 0:
@@ -107,7 +110,10 @@ class GrayAxisPlan:
 
 @dataclass(frozen=True)
 class PhaseSetPlan:
-    """One phase set: frame indices in step order and what unwraps it (``'gray'``, ``'axis'``, ``'period P'``)."""
+    """One phase set: frame indices in step order and its unwrapping source.
+
+    ``source`` is ``'gray'`` (the Gray code), ``'axis'`` (the period covers the axis) or ``'period P'``.
+    """
 
     axis: Axis
     period: float
@@ -228,7 +234,9 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
         elif isinstance(f, PhaseFrame):
             pk = (f.axis, f.period)
             if f.step in phases[pk]:
-                ignored.append(f"frame {i}: duplicate step of frame {phases[pk][f.step]} ({_describe(f)}); unused")
+                ignored.append(
+                    f"frame {i}: duplicate step of frame {phases[pk][f.step]} ({_describe(f)}); unused"
+                )
                 continue
             phases[pk][f.step] = i
             phase_kind[pk].add((f.steps, f.offset))
@@ -286,7 +294,9 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
             name = f"phase {axis} period {period:g}"
             kinds = phase_kind[pk]
             if len(kinds) > 1:
-                problems.append(f"{name}: frames disagree on steps/offset {sorted(kinds)}; use one set per period")
+                problems.append(
+                    f"{name}: frames disagree on steps/offset {sorted(kinds)}; use one set per period"
+                )
                 continue
             steps, offset = next(iter(kinds))
             missing = [s for s in range(steps) if s not in phases[pk]]
@@ -338,11 +348,13 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
         raise PatternError(
             f"sequence ({sequence.describe()}): no Gray code or phase frames: nothing to decode"
         )
-    plan = DecodePlan(
-        sequence, axes, white, black, tuple(gray_plans.values()), tuple(phase_plans), ignored
-    )
+    plan = DecodePlan(sequence, axes, white, black, tuple(gray_plans.values()), tuple(phase_plans), ignored)
     plan.tables.update(_tables(plan))
     return plan
+
+
+def _gray_stripe(plan: DecodePlan, axis: Axis) -> int:
+    return next(g.stripe for g in plan.gray if g.axis == axis)
 
 
 def _tables(plan: DecodePlan) -> dict[str, Any]:
@@ -364,6 +376,8 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
     ph_cos: list[float] = []
     for s, p in enumerate(plan.phase):
         src = 1 if p.source.startswith("period") else (-1 if p.source == "gray" else -2)
+        if src == -1 and 2 * _gray_stripe(plan, p.axis) > p.period:
+            src = -3  # stripe > period / 2: no margin at stripe edges; find the edge from the weak bit
         ph_tab[s] = (_AXES.index(p.axis), p.steps, src, len(ph_idx))
         for n, idx in enumerate(p.frames):
             theta = p.offset + 2.0 * math.pi * n / p.steps
@@ -413,8 +427,12 @@ def otsu_threshold(hist: npt.NDArray[np.int64]) -> int:
     with np.errstate(divide="ignore", invalid="ignore"):
         between = w0 * w1 * (m0 / w0 - (m0[-1] - m0) / w1) ** 2
     between[~np.isfinite(between)] = -1.0
-    best = int(np.argmax(between))
-    return best + 1 if between[best] > 0 else 0
+    top = float(between.max())
+    if top <= 0:
+        return 0
+    # two well separated classes give a plateau over the empty gap: take its middle
+    plateau = np.flatnonzero(between >= top * (1.0 - 1e-9))
+    return (int(plateau[0]) + int(plateau[-1])) // 2 + 1
 
 
 def lit_threshold(hist: npt.NDArray[np.int64], dtype: np.dtype[Any], params: DecodeParams) -> float:
@@ -456,7 +474,7 @@ def empty_maps(shape: tuple[int, int]) -> DecodedMaps:
 def decode(
     frames: FrameStack,
     sequence: Sequence | DecodePlan,
-    params: DecodeParams = DecodeParams(),  # noqa: B008 (frozen, immutable)
+    params: DecodeParams = DecodeParams(),
     *,
     out: DecodedMaps | None = None,
 ) -> DecodedMaps:
@@ -490,8 +508,8 @@ def decode(
     n = len(plan.sequence)
     if frames_arr.ndim != 3 or frames_arr.shape[0] != n:
         raise DecodeError(
-            f"decode: frames have shape {frames_arr.shape}: must be ({n}, height, width), one image per frame "
-            "of the sequence"
+            f"decode: frames have shape {frames_arr.shape}: must be ({n}, height, width), one image per "
+            "frame of the sequence"
         )
     if frames_arr.dtype not in (np.uint8, np.uint16):
         raise DecodeError(f"decode: frames have dtype {frames_arr.dtype}: must be uint8 or uint16")
@@ -512,7 +530,7 @@ def decode(
     _k.decode_stack(
         stack, t["wb"], t["used"], maxval, t["gray_tab"], t["axis_tab"], t["ph_tab"], t["ph_period"],
         t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
-        out.u, out.v, out.mask, out.quality,
+        numba.get_num_threads(), out.u, out.v, out.mask, out.quality,
     )  # fmt: skip
     out.ignored = list(plan.ignored)
     return out
@@ -547,7 +565,7 @@ class StreamingDecoder:
         sequence: Sequence | DecodePlan,
         shape: tuple[int, int],
         dtype: Any = np.uint8,
-        params: DecodeParams = DecodeParams(),  # noqa: B008 (frozen, immutable)
+        params: DecodeParams = DecodeParams(),
     ) -> None:
         self.plan = _as_plan(sequence)
         self.params = params
@@ -563,9 +581,9 @@ class StreamingDecoder:
         # hi/lo: white/black, or running max/min when the sequence has no white/black
         self._hi = np.empty((h, w), self.dtype)
         self._lo = np.empty((h, w), self.dtype)
-        self._code = np.empty((2, h, w), np.int32)
-        self._m1 = np.empty((2, h, w), np.int32)
-        self._m2 = np.empty((2, h, w), np.int32)
+        self._code = np.empty((2, h, w), np.uint32)
+        self._m1 = np.empty((2, h, w), np.uint32)
+        self._m2 = np.empty((2, h, w), np.uint32)
         nset = len(self.plan.phase)
         self._ssum = np.empty((max(nset, 1), h, w), np.float64)
         self._csum = np.empty((max(nset, 1), h, w), np.float64)
@@ -625,7 +643,8 @@ class StreamingDecoder:
         img = np.asarray(frame)
         if img.shape != self.shape or img.dtype != self.dtype:
             raise DecodeError(
-                f"streaming decoder: frame {index} is {img.shape} {img.dtype}: must be {self.shape} {self.dtype}"
+                f"streaming decoder: frame {index} is {img.shape} {img.dtype}: "
+                f"must be {self.shape} {self.dtype}"
             )
         if index in self._pushed:
             raise DecodeError(f"streaming decoder: frame {index} pushed twice; call reset() between scans")
@@ -648,7 +667,9 @@ class StreamingDecoder:
             _k.stream_minmax(img, self._hi, self._lo)
         if kind == "phase":
             s = int(self._ph_set[row])
-            _k.stream_phase(img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s])
+            _k.stream_phase(
+                img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s]
+            )
         elif kind == "single":
             if self.plan.white in self._pushed and self.plan.black in self._pushed:
                 self._single(row, img)
@@ -703,7 +724,7 @@ class StreamingDecoder:
         _k.stream_finish(
             self._hi, self._lo, self._code, self._m1, self._m2, self._ssum, self._csum, t["axis_tab"],
             t["ph_tab"], t["ph_period"], float(self.params.relative_contrast), float(thr),
-            out.u, out.v, out.mask, out.quality,
+            numba.get_num_threads(), out.u, out.v, out.mask, out.quality,
         )  # fmt: skip
         out.ignored = list(self.plan.ignored)
         return out

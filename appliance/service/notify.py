@@ -50,7 +50,7 @@ class SdNotifier:
     def send(self, **fields: str | int) -> bool:
         """Send one datagram ``KEY=value\\n...``; True when it was delivered.
 
-        Values must not contain newlines (they are replaced by spaces). A failure is logged once, never raised.
+        Newlines in values are replaced by spaces. A failure is logged once, never raised.
         """
         if self.address is None:
             return False

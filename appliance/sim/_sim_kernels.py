@@ -19,9 +19,14 @@ triangle ranges; ``bvh_count == 0`` for inner nodes). An empty hierarchy has no 
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from numba import njit, prange
+
+KERNEL_LOCK = threading.Lock()
+"""Held around the parallel kernels: numba's fallback 'workqueue' threading layer aborts the process when
+two threads launch parallel kernels at once (e.g. two simulated cameras rendering together)."""
 
 PLANE = 0
 SPHERE = 1
@@ -41,7 +46,7 @@ def _hit_plane(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: fl
     den = p[3] * dx + p[4] * dy + p[5] * dz
     if den == 0.0:
         return _INF
-    t = (p[3] * (p[0] - ox) + p[4] * (p[1] - oy) + p[5] * (p[2] - oz)) / den
+    t: float = (p[3] * (p[0] - ox) + p[4] * (p[1] - oy) + p[5] * (p[2] - oz)) / den
     if t <= t_min:
         return _INF
     nrm[0] = p[3]
@@ -56,7 +61,7 @@ def _hit_sphere(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: f
     cx = ox - p[0]
     cy = oy - p[1]
     cz = oz - p[2]
-    r = p[3]
+    r: float = p[3]
     b = cx * dx + cy * dy + cz * dz
     dd = dx * dx + dy * dy + dz * dz
     # distance of the centre from the ray's line, computed stably (no b*b - c cancellation)
@@ -76,7 +81,7 @@ def _hit_sphere(p: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy: f
     t1 = c / q
     if t0 > t1:
         t0, t1 = t1, t0
-    t = t0 if t0 > t_min else t1
+    t: float = t0 if t0 > t_min else t1
     if t <= t_min:
         return _INF
     nrm[0] = (cx + t * dx) / r
@@ -244,7 +249,7 @@ def _hit_triangle(v: np.ndarray, ox: float, oy: float, oz: float, dx: float, dy:
     w = (dx * qx + dy * qy + dz * qz) * inv
     if w < 0.0 or u + w > 1.0:
         return _INF
-    t = (e2x * qx + e2y * qy + e2z * qz) * inv
+    t: float = (e2x * qx + e2y * qy + e2z * qz) * inv
     if t <= t_min:
         return _INF
     return t
@@ -265,7 +270,7 @@ def _hit_aabb(bmin: np.ndarray, bmax: np.ndarray, ox: float, oy: float, oz: floa
     t1 = (bmax[2] - oz) * iz
     lo = max(lo, min(t0, t1))
     hi = min(hi, max(t0, t1))
-    return hi >= max(lo, t_min) and lo <= t_max
+    return bool(hi >= max(lo, t_min) and lo <= t_max)
 
 
 @njit(nogil=True, cache=True)
@@ -379,15 +384,37 @@ def cast_rays(origins: np.ndarray, dirs: np.ndarray, t_min: float, t_max: np.nda
 # --- per-frame photometry ----------------------------------------------------------------------------------
 
 
+def _phi_table() -> np.ndarray:
+    x = np.linspace(-_PHI_RANGE, _PHI_RANGE, _PHI_SIZE + 1)
+    return np.array([0.5 * math.erfc(-v * _SQRT1_2) for v in x])
+
+
+_PHI_RANGE = 6.0
+_PHI_SIZE = 4096
+_PHI_SCALE = _PHI_SIZE / (2.0 * _PHI_RANGE)
+_PHI = _phi_table()  # standard normal CDF on [-6, 6]; linear interpolation is good to 3e-7
+
+
 @njit(nogil=True, cache=True)
 def _phi(x: float) -> float:
-    return 0.5 * math.erfc(-x * _SQRT1_2)
+    t = (x + _PHI_RANGE) * _PHI_SCALE
+    if t <= 0.0:
+        return 0.0
+    if t >= _PHI_SIZE:
+        return 1.0
+    k = int(t)
+    f = t - k
+    return float(_PHI[k] + f * (_PHI[k + 1] - _PHI[k]))
 
 
 @njit(nogil=True, cache=True)
 def gray_blurred(u: float, stripe: float, bit: int, sigma: float) -> float:
-    """Gray bit ``bit`` of ``floor((u + 0.5) / stripe)`` (pixel centres at integers) blurred by N(0, sigma)."""
-    run = stripe * (1 << bit)  # the bit flips at codes 2^bit (2m + 1): edges x_m = run (2m + 1) - 0.5
+    """Gray bit ``bit`` of ``floor((u + 0.5) / stripe)`` (pixel centres at integers), blurred by N(0, sigma)
+
+    The bit flips at codes ``2^bit (2m + 1)``: edges at ``run (2m + 1) - 0.5``, ``run = stripe 2^bit``. The
+    blurred value is the local bit plus erf terms of the nearby edges, alternating in sign.
+    """
+    run = stripe * (1 << bit)
     m0 = math.floor(((u + 0.5) / run - 1.0) * 0.5)
     v0 = 1.0 - float(m0 & 1)
     if sigma <= 0.0:
@@ -399,7 +426,7 @@ def gray_blurred(u: float, stripe: float, bit: int, sigma: float) -> float:
     d_right = x_left + period - u
     acc = 0.0
     sign = 1.0
-    reach = 8.0 * sigma
+    reach = 6.0 * sigma
     while d_left < reach or d_right < reach:
         acc += sign * (_phi(-d_left / sigma) + _phi(-d_right / sigma))
         d_left += period
@@ -416,48 +443,120 @@ def window_1d(u: float, size: int, sigma: float) -> float:
     return _phi((u + 0.5) / sigma) - _phi((u - size + 0.5) / sigma)
 
 
+@njit(nogil=True, cache=True)
+def _apply_gamma(light: float, gamma: float) -> float:
+    if gamma != 1.0 and light > 0.0:
+        return float(light**gamma)
+    return light
+
+
 @njit(nogil=True, cache=True, parallel=True)
-def shade_frame(kind: int, coord: np.ndarray, gain: np.ndarray, ambient: np.ndarray, stripe: float, bit: int,
-                inverted: bool, freq: float, phase0: float, modulation: float, sigma: float, gamma: float,
-                out: np.ndarray) -> None:
-    """Noise-free image (DN): ``ambient + gain * light(coord) ** gamma``; kinds 0 white 1 black 2 gray 3 phase."""
-    n = out.shape[0]
-    for i in prange(n):
+def shade_const(level: float, gain: np.ndarray, ambient: np.ndarray, gamma: float, out: np.ndarray) -> None:
+    """``out = ambient + gain * level ** gamma`` (white: level 1, black: 0)."""
+    light = _apply_gamma(level, gamma)
+    for i in prange(out.shape[0]):
+        out[i] = ambient[i] + gain[i] * light
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def shade_gray(coord: np.ndarray, gain: np.ndarray, ambient: np.ndarray, stripe: float, bit: int,
+               inverted: bool, sigma: float, gamma: float, out: np.ndarray) -> None:
+    """``out = ambient + gain * gray_blurred(coord) ** gamma`` (inverted: 1 - the bit)."""
+    for i in prange(out.shape[0]):
         g = gain[i]
-        if g <= 0.0:
-            out[i] = ambient[i]
-            continue
-        if kind == 0:
-            light = 1.0
-        elif kind == 1:
-            light = 0.0
-        elif kind == 2:
+        if g > 0.0:
             light = gray_blurred(coord[i], stripe, bit, sigma)
             if inverted:
                 light = 1.0 - light
+            out[i] = ambient[i] + g * _apply_gamma(light, gamma)
         else:
-            light = 0.5 * (1.0 + modulation * math.cos(freq * coord[i] + phase0))
-        if gamma != 1.0 and light > 0.0:
-            light = light**gamma
-        out[i] = ambient[i] + g * light
+            out[i] = ambient[i]
 
 
 @njit(nogil=True, cache=True, parallel=True)
-def add_noise_quantise(clean: np.ndarray, normal: np.ndarray, read_var: float, shot_scale: float,
-                       scale: float, full: float, out: np.ndarray) -> None:
-    """``out = clip(rint(scale * (clean + sqrt(read_var + shot_scale * clean) * normal)), 0, full)``."""
+def shade_phase(cos_t: np.ndarray, sin_t: np.ndarray, gain: np.ndarray, ambient: np.ndarray, mc: float,
+                ms: float, gamma: float, out: np.ndarray) -> None:
+    """``out = ambient + gain * ((1 + mc cos t - ms sin t) / 2) ** gamma``: m cos(t + phase0) expanded."""
+    for i in prange(out.shape[0]):
+        g = gain[i]
+        if g > 0.0:
+            light = 0.5 * (1.0 + mc * cos_t[i] - ms * sin_t[i])
+            out[i] = ambient[i] + g * _apply_gamma(light, gamma)
+        else:
+            out[i] = ambient[i]
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def phase_table(coord: np.ndarray, freq: float, cos_out: np.ndarray, sin_out: np.ndarray) -> None:
+    """``cos(freq * coord)``, ``sin(freq * coord)`` per pixel."""
+    for i in prange(coord.shape[0]):
+        t = freq * coord[i]
+        cos_out[i] = math.cos(t)
+        sin_out[i] = math.sin(t)
+
+
+def _normal_table() -> np.ndarray:
+    """Inverse normal CDF at ``k / 2**16`` (ends clipped half a step in), scaled to unit variance."""
+    from statistics import NormalDist
+
+    n = 1 << 16
+    p = np.clip(np.arange(n + 1) / n, 0.5 / n, 1.0 - 0.5 / n)
+    inv = NormalDist().inv_cdf
+    t = np.array([inv(float(v)) for v in p])
+    a, b = t[:-1], t[1:]
+    return t / math.sqrt(float(np.mean((a * a + a * b + b * b) / 3.0)))  # piecewise-linear variance -> 1
+
+
+_NORMAL = _normal_table()
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_S16 = np.uint64(16)
+_S27 = np.uint64(27)
+_S30 = np.uint64(30)
+_S31 = np.uint64(31)
+_S32 = np.uint64(32)
+_LOW16 = np.uint64(0xFFFF)
+
+
+@njit(nogil=True, cache=True)
+def _splitmix64(x: np.uint64) -> np.uint64:
+    z = (x ^ (x >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@njit(nogil=True, cache=True)
+def _normal(bits: np.uint64) -> float:
+    """A standard normal deviate from 32 random bits: 16 pick a quantile bin, 16 interpolate in it."""
+    k = int((bits >> _S16) & _LOW16)
+    f = float(bits & _LOW16) * (1.0 / 65536.0)
+    return float(_NORMAL[k] + f * (_NORMAL[k + 1] - _NORMAL[k]))
+
+
+@njit(nogil=True, cache=True)
+def _noisy(x: float, z: float, read_var: float, shot_scale: float, scale: float, full: float) -> float:
+    var = read_var + shot_scale * max(x, 0.0)
+    y = math.floor((x + math.sqrt(var) * z) * scale + 0.5)
+    return min(max(y, 0.0), full)
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def add_noise_quantise(clean: np.ndarray, key: np.uint64, read_var: float, shot_scale: float, scale: float,
+                       full: float, out: np.ndarray) -> None:
+    """``out = clip(rint(scale * (clean + sqrt(read_var + shot_scale * clean) * N(0, 1))), 0, full)``.
+
+    The normal deviates come from a counter-based generator (splitmix64 of ``key`` and the pixel pair
+    index through a 65536-bin inverse-CDF table; tails end at 4.4 sigma), so the result depends on
+    ``key`` only, not on the thread count.
+    """
     n = out.shape[0]
-    for i in prange(n):
-        x = clean[i]
-        var = read_var + shot_scale * max(x, 0.0)
-        if var > 0.0:
-            x += math.sqrt(var) * normal[i]
-        y = math.floor(x * scale + 0.5)
-        if y < 0.0:
-            y = 0.0
-        elif y > full:
-            y = full
-        out[i] = y
+    for j in prange((n + 1) // 2):
+        h = _splitmix64(key + np.uint64(j) * _GOLDEN)
+        i = 2 * j
+        out[i] = _noisy(clean[i], _normal(h >> _S32), read_var, shot_scale, scale, full)
+        if i + 1 < n:
+            out[i + 1] = _noisy(clean[i + 1], _normal(h), read_var, shot_scale, scale, full)
 
 
 @njit(nogil=True, cache=True, parallel=True)

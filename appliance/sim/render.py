@@ -5,10 +5,11 @@ The projector image is never rasterised. For a camera pixel that sees projector 
 
 - Gray bit: the bit of ``floor((u + 0.5) / stripe)``'s Gray code (exactly the projector pixels of
   :func:`appliance.patterns.render.frame_profile`), its edges blurred by the projector defocus, a Gaussian
-  of sigma ``projector_blur_px``: a sum of ``Φ`` (erf) terms over the nearby edges, exact.
+  of sigma ``projector_blur_px``: a sum of ``Φ`` terms over the nearby edges (Φ tabulated to 3e-7).
 - Phase step: ``(1 + m cos(2π u / P + offset + 2π step / steps)) / 2`` with
-  ``m = sinc(1 / P) exp(-2π² σ² / P²)``: the fundamental of the pixelated, blurred sinusoid (the pixel
-  aliases it neglects are below 2e-4 of the modulation for ``P >= 8`` and ``σ >= 0.5``).
+  ``m = sinc(1 / P) exp(-2π² σ² / P²)``: the fundamental of the pixelated, blurred sinusoid. The pixel
+  aliases it leaves out (frequencies ``1 ± 1/P``) are 1.3e-4 of the modulation for ``P = 16``,
+  ``σ = 0.6`` (a phase ripple of 3e-4 projector px), 3.5e-3 for ``P = 8``, ``σ = 0.5``.
 - White / black: 1 / 0. Every frame is multiplied by the blurred edge of the projector's image.
 
 With ``gamma_corrected`` false the light is raised to ``projector_gamma`` after the blur (an
@@ -25,6 +26,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,7 +39,8 @@ from appliance.sim import _sim_kernels as _k
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
-ImageArray = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+ImageArray = npt.NDArray[np.unsignedinteger[Any]]
+"""A camera image: uint8 (8-bit camera) or uint16 (12/16-bit)."""
 
 _WHITE, _BLACK, _GRAY, _PHASE = 0, 1, 2, 3
 
@@ -71,7 +74,8 @@ def frame_light(frame: Frame, projector_blur_px: float) -> FrameLight:
         return FrameLight(_PHASE, frame.axis, freq=2.0 * math.pi * f,
                           phase0=frame.offset + 2.0 * math.pi * frame.step / frame.steps, modulation=mod)
     raise PatternError(
-        f"virtual rig: frame kind {frame.pattern!r} is not known; cannot render it (use gray, phase, white, black)"
+        f"virtual rig: frame kind {frame.pattern!r} is not known; cannot render it "
+        "(use gray, phase, white, black)"
     )
 
 
@@ -100,20 +104,36 @@ def projected_light(frame: Frame, u: F64, v: F64, width: int, height: int, proje
     vv = np.ascontiguousarray(np.asarray(v, dtype=np.float64).ravel())
     if uu.shape != vv.shape:
         raise ValueError(f"u has {uu.size} values and v {vv.size}: must be equal")
-    fl = frame_light(frame, projector_blur_px)
-    ok = np.isfinite(uu) & np.isfinite(vv)
     win = np.empty(uu.size)
-    _k.projector_window(uu, vv, width, height, projector_blur_px, win)
-    coord = np.where(ok, uu if fl.axis == "x" else vv, 0.0)
+    with _k.KERNEL_LOCK:
+        _k.projector_window(uu, vv, width, height, projector_blur_px, win)
+    coord = np.nan_to_num(uu if frame_light(frame, 0.0).axis == "x" else vv, nan=-1e6)
     out = np.empty(uu.size)
-    _shade(fl, coord, win, np.zeros(uu.size), projector_blur_px, gamma, out)
+    _shade(frame, coord, None, win, np.zeros(uu.size), projector_blur_px, gamma, out)
     return out
 
 
-def _shade(fl: FrameLight, coord: F64, gain: F64 | F32, ambient: F64 | F32, sigma: float, gamma: float,
-           out: F64 | F32) -> None:
-    _k.shade_frame(fl.kind, coord, gain, ambient, fl.stripe, fl.bit, fl.inverted, fl.freq, fl.phase0,
-                   fl.modulation, sigma, gamma, out)
+def _shade(frame: Frame, coord: F64, table: tuple[F32, F32] | None, gain: F64 | F32, ambient: F64 | F32,
+           sigma: float, gamma: float, out: F64 | F32) -> None:
+    """Noise-free DN ``ambient + gain * light ** gamma``; ``table``: cos/sin of a phase frame's angle."""
+    with _k.KERNEL_LOCK:
+        _shade_locked(frame, coord, table, gain, ambient, sigma, gamma, out)
+
+
+def _shade_locked(frame: Frame, coord: F64, table: tuple[F32, F32] | None, gain: F64 | F32,
+                  ambient: F64 | F32, sigma: float, gamma: float, out: F64 | F32) -> None:
+    fl = frame_light(frame, sigma)
+    if fl.kind in (_WHITE, _BLACK):
+        _k.shade_const(1.0 if fl.kind == _WHITE else 0.0, gain, ambient, gamma, out)
+    elif fl.kind == _GRAY:
+        _k.shade_gray(coord, gain, ambient, fl.stripe, fl.bit, fl.inverted, sigma, gamma, out)
+    else:
+        if table is None:
+            table = (np.empty(coord.size, dtype=np.float32), np.empty(coord.size, dtype=np.float32))
+            _k.phase_table(coord, fl.freq, table[0], table[1])
+        mc = fl.modulation * math.cos(fl.phase0)
+        ms = fl.modulation * math.sin(fl.phase0)
+        _k.shade_phase(table[0], table[1], gain, ambient, mc, ms, gamma, out)
 
 
 class FrameRenderer:
@@ -132,7 +152,8 @@ class FrameRenderer:
 
     Notes
     -----
-    Thread-safe: one lock serialises renders of this camera (the buffers are shared).
+    Phase frames use per-pixel cos/sin tables of ``2π u / P``, built on the first frame of each
+    (axis, period) and kept. Thread-safe: one lock serialises renders of this camera.
     """
 
     def __init__(self, proj_uv: F64, gain: F64, ambient: F64, imaging: ImagingConfig) -> None:
@@ -140,49 +161,66 @@ class FrameRenderer:
         self.height, self.width = h, w
         self.imaging = imaging
         uv = np.nan_to_num(np.asarray(proj_uv, dtype=np.float64), nan=-1e6)
-        self._u = np.ascontiguousarray(uv[..., 0].ravel())
-        self._v = np.ascontiguousarray(uv[..., 1].ravel())
+        self._coord = {"x": np.ascontiguousarray(uv[..., 0].ravel()),
+                       "y": np.ascontiguousarray(uv[..., 1].ravel())}
         self._gain = np.ascontiguousarray(gain, dtype=np.float32).ravel()
         self._ambient = np.ascontiguousarray(ambient, dtype=np.float32).ravel()
+        self._tables: dict[tuple[str, float], tuple[F32, F32]] = {}
         self._clean = np.empty((h, w), dtype=np.float32)
         self._blurred = np.empty((h, w), dtype=np.float32)
-        self._normal = np.empty((h, w), dtype=np.float32)
         self._lock = threading.Lock()
         self.dtype: type[np.uint8] | type[np.uint16] = np.uint8 if imaging.bit_depth == 8 else np.uint16
         self._scale = float(2 ** (imaging.bit_depth - 8))
         self._full = float(2**imaging.bit_depth - 1)
         self._gamma = 1.0 if imaging.gamma_corrected else float(imaging.projector_gamma)
 
-    def clean(self, frame: Frame) -> F32:
-        """Noise-free, unblurred image of ``frame`` (DN, 8-bit scale), shape (H, W); a shared buffer."""
+    def _table(self, frame: PhaseFrame) -> tuple[F32, F32]:
+        key = (frame.axis, float(frame.period))
+        if key not in self._tables:
+            coord = self._coord[frame.axis]
+            table = (np.empty(coord.size, dtype=np.float32), np.empty(coord.size, dtype=np.float32))
+            with _k.KERNEL_LOCK:
+                _k.phase_table(coord, 2.0 * math.pi / frame.period, table[0], table[1])
+            self._tables[key] = table
+        return self._tables[key]
+
+    def _clean_into(self, frame: Frame) -> F32:
         fl = frame_light(frame, self.imaging.projector_blur_px)
-        coord = self._u if fl.axis == "x" else self._v
-        _shade(fl, coord, self._gain, self._ambient, self.imaging.projector_blur_px, self._gamma,
-               self._clean.ravel())
+        table = self._table(frame) if isinstance(frame, PhaseFrame) else None
+        _shade(frame, self._coord[fl.axis], table, self._gain, self._ambient, self.imaging.projector_blur_px,
+               self._gamma, self._clean.ravel())
         return self._clean
+
+    def clean(self, frame: Frame, blur: bool = False) -> F32:
+        """Noise-free image of ``frame`` (DN, 8-bit scale), shape (H, W), float32 (a new array).
+
+        ``blur`` applies the camera defocus.
+        """
+        with self._lock:
+            img = self._clean_into(frame).copy()
+        if blur and self.imaging.camera_blur_px > 0:
+            s = self.imaging.camera_blur_px
+            img = np.asarray(cv2.GaussianBlur(img, (0, 0), s, sigmaY=s, borderType=cv2.BORDER_REPLICATE),
+                             dtype=np.float32)
+        return img
 
     def render(self, frame: Frame, out: ImageArray, rng: np.random.Generator) -> ImageArray:
         """Render ``frame`` into ``out`` (shape (H, W), uint8 or uint16 by bit depth) and return it."""
         if out.shape != (self.height, self.width) or out.dtype != self.dtype or not out.flags.c_contiguous:
             raise ValueError(
-                f"out: shape {out.shape} dtype {out.dtype}: must be C-contiguous ({self.height}, {self.width}) "
-                f"{np.dtype(self.dtype).name}"
+                f"out: shape {out.shape} dtype {out.dtype}: must be C-contiguous "
+                f"({self.height}, {self.width}) {np.dtype(self.dtype).name}"
             )
         im = self.imaging
+        key = np.uint64(rng.integers(0, 2**63, dtype=np.int64))
         with self._lock:
-            clean = self.clean(frame)
+            src = self._clean_into(frame)
             if im.camera_blur_px > 0:
-                cv2.GaussianBlur(clean, (0, 0), im.camera_blur_px, dst=self._blurred,
+                cv2.GaussianBlur(src, (0, 0), im.camera_blur_px, dst=self._blurred,
                                  sigmaY=im.camera_blur_px, borderType=cv2.BORDER_REPLICATE)
                 src = self._blurred
-            else:
-                src = clean
-            read_var = im.read_noise_dn**2
             shot = 1.0 / im.electrons_per_dn if im.shot_noise else 0.0
-            if read_var > 0 or shot > 0:
-                rng.standard_normal(dtype=np.float32, out=self._normal)
-            else:
-                self._normal.fill(0.0)
-            _k.add_noise_quantise(src.ravel(), self._normal.ravel(), read_var, shot, self._scale, self._full,
-                                  out.ravel())
+            with _k.KERNEL_LOCK:
+                _k.add_noise_quantise(src.ravel(), key, im.read_noise_dn**2, shot, self._scale, self._full,
+                                      out.ravel())
         return out

@@ -97,7 +97,7 @@ _CONFIG_SEED: Literal["config"] = "config"
 
 def _dot(a: F64, b: F64) -> F64:
     """Row-wise dot products of (N, 3) arrays."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]  # type: ignore[no-any-return]
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
 class VirtualRig:
@@ -127,7 +127,8 @@ class VirtualRig:
     for 1280 x 1024. Rendering different cameras from different threads is safe.
     """
 
-    def __init__(self, cfg: VirtualRigConfig, base_dir: Path | None = None, scene: Scene | None = None) -> None:
+    def __init__(self, cfg: VirtualRigConfig, base_dir: Path | None = None,
+                 scene: Scene | None = None) -> None:
         if not cfg.cameras:
             raise ConfigError("virtual_rig.cameras is empty: add at least one camera")
         self.cfg = cfg
@@ -137,6 +138,7 @@ class VirtualRig:
         self.scene = scene if scene is not None else Scene(cfg.scene, base_dir)
         self._truth: dict[str, GroundTruth] = {}
         self._renderers: dict[str, FrameRenderer] = {}
+        self._rays: dict[str, F64] = {}
         self._lock = threading.Lock()
         seed = self.imaging.seed
         self._rng = {n: np.random.default_rng(None if seed is None else [seed, i])
@@ -152,7 +154,10 @@ class VirtualRig:
             self._state(name)
 
     def set_scene(self, scene: Scene) -> None:
-        """Replace the scene (e.g. a calibration board at another pose); geometry is recomputed lazily."""
+        """Replace the scene (e.g. a calibration board at another pose).
+
+        Geometry is recomputed lazily; the cameras' pixel rays are kept, so a new pose costs one ray cast.
+        """
         with self._lock:
             self.scene = scene
             self._truth.clear()
@@ -177,12 +182,20 @@ class VirtualRig:
                 self._renderers[camera] = FrameRenderer(truth.proj_uv, gain, ambient, self.imaging)
             return self._truth[camera], self._renderers[camera]
 
+    def _world_rays(self, cam: CameraModel) -> F64:
+        """Unit world directions (H*W, 3) of the camera's pixel rays, kept across scene changes."""
+        if cam.name not in self._rays:
+            rays = np.ascontiguousarray(cam.pixel_rays_device().reshape(-1, 3))
+            dirs = np.empty_like(rays)
+            with _k.KERNEL_LOCK:
+                _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
+            self._rays[cam.name] = dirs
+        return self._rays[cam.name]
+
     def _compute(self, cam: CameraModel) -> tuple[GroundTruth, F64, F64]:
         h, w = cam.height, cam.width
         n = h * w
-        rays = np.ascontiguousarray(cam.pixel_rays_device().reshape(n, 3))
-        dirs = np.empty((n, 3))
-        _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
+        dirs = self._world_rays(cam)
         centre = cam.center
         hits = self.scene.intersect(centre, dirs, t_min=1e-6)
         hit = hits.object_id >= 0
@@ -191,13 +204,13 @@ class VirtualRig:
         flip = _dot(nrm, dirs) > 0
         nrm[flip] *= -1.0
         dev = np.empty((n, 3))
-        _k.affine_rows(xyz, cam.R, cam.T, dev)
-        depth = dev[:, 2].copy()
-
         proj = self.projector
         uv = np.empty((n, 2))
         pz = np.empty(n)
-        _k.project_points(xyz, proj.R, proj.T, proj.K, proj.dist_padded(8), uv, pz)
+        with _k.KERNEL_LOCK:
+            _k.affine_rows(xyz, cam.R, cam.T, dev)
+            _k.project_points(xyz, proj.R, proj.T, proj.K, proj.dist_padded(8), uv, pz)
+        depth = dev[:, 2].copy()
         to_p = proj.center - xyz
         dist = np.sqrt(_dot(to_p, to_p))
         ldir = to_p / dist[:, None]
@@ -215,8 +228,9 @@ class VirtualRig:
 
         albedo = self.scene.albedo(xyz, hits.object_id)
         window = np.empty(n)
-        _k.projector_window(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), pw, ph,
-                            self.imaging.projector_blur_px, window)
+        with _k.KERNEL_LOCK:
+            _k.projector_window(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), pw, ph,
+                                self.imaging.projector_blur_px, window)
         gain = np.where(illum, self.imaging.projector_gain_dn * albedo * cos_inc * window, 0.0)
         ambient = self.imaging.ambient_dn * albedo
         truth = GroundTruth(
@@ -228,7 +242,8 @@ class VirtualRig:
             normal=nrm.reshape(h, w, 3),
             object_id=hits.object_id.reshape(h, w),
         )
-        for arr in (truth.xyz, truth.depth, truth.hit, truth.lit, truth.proj_uv, truth.normal, truth.object_id):
+        for arr in (truth.xyz, truth.depth, truth.hit, truth.lit, truth.proj_uv, truth.normal,
+                    truth.object_id):
             arr.flags.writeable = False
         return truth, gain.reshape(h, w), ambient.reshape(h, w)
 
@@ -267,8 +282,27 @@ class VirtualRig:
             out = np.empty((renderer.height, renderer.width), dtype=self.image_dtype)
         return renderer.render(frame, out, rng if rng is not None else self._rng[camera])
 
-    def render(self, sequence: Sequence, camera: str, out: npt.NDArray[np.uint8] | npt.NDArray[np.uint16] | None
-               = None, seed: int | None | Literal["config"] = _CONFIG_SEED) -> ImageArray:
+    def render_clean(self, frame: Frame, camera: str, blur: bool = True) -> npt.NDArray[np.float32]:
+        """Noise-free camera image of ``frame`` before quantisation (the mean of :meth:`render_frame`).
+
+        Parameters
+        ----------
+        frame : Frame
+            The projected frame.
+        camera : str
+            Camera name.
+        blur : bool
+            Apply the camera defocus.
+
+        Returns
+        -------
+        ndarray, shape (H, W), float32
+            DN on the 8-bit scale (not clipped, not scaled to the bit depth).
+        """
+        return self._state(camera)[1].clean(frame, blur=blur)
+
+    def render(self, sequence: Sequence, camera: str, out: ImageArray | None = None,
+               seed: int | Literal["config"] | None = _CONFIG_SEED) -> ImageArray:
         """Camera images of every frame of ``sequence``.
 
         Parameters

@@ -18,7 +18,14 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.schema import BoxObject, CylinderObject, MeshObject, PlaneObject, SceneObject, SphereObject
+from appliance.config.schema import (
+    BoxObject,
+    CylinderObject,
+    MeshObject,
+    PlaneObject,
+    SceneObject,
+    SphereObject,
+)
 from appliance.errors import ConfigError
 from appliance.sim import _sim_kernels as _k
 
@@ -58,11 +65,13 @@ class RayHits:
 def rotation_xyz_deg(angles_deg: Iterable[float]) -> F64:
     """Rotation matrix (3, 3) of rotations about x, then y, then z (degrees): ``Rz @ Ry @ Rx``."""
     ax, ay, az = (math.radians(a) for a in angles_deg)
-    cx, sx, cy, sy, cz, sz = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
+    cx, sx = math.cos(ax), math.sin(ax)
+    cy, sy = math.cos(ay), math.sin(ay)
+    cz, sz = math.cos(az), math.sin(az)
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
     ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
     rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-    return rz @ ry @ rx  # type: ignore[no-any-return]
+    return np.asarray(rz @ ry @ rx, dtype=np.float64)
 
 
 def _unit(v: Iterable[float], what: str) -> F64:
@@ -70,7 +79,7 @@ def _unit(v: Iterable[float], what: str) -> F64:
     n = float(np.linalg.norm(a))
     if not n > 0:
         raise ConfigError(f"scene: {what} = {tuple(a)}: must be a non-zero vector")
-    return a / n  # type: ignore[no-any-return]
+    return a / n
 
 
 def icosphere(center_mm: Iterable[float], radius_mm: float, subdivisions: int = 3) -> tuple[F64, I64]:
@@ -101,22 +110,22 @@ def icosphere(center_mm: Iterable[float], radius_mm: float, subdivisions: int = 
     v = [np.asarray(p, dtype=np.float64) / np.linalg.norm(p) for p in verts]
     for _ in range(subdivisions):
         cache: dict[tuple[int, int], int] = {}
-
-        def mid(a: int, b: int) -> int:
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                m = v[a] + v[b]
-                v.append(m / np.linalg.norm(m))
-                cache[key] = len(v) - 1
-            return cache[key]
-
         new: list[tuple[int, int, int]] = []
         for a, b, c in tris:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            ab, bc, ca = (_midpoint(v, cache, p, q) for p, q in ((a, b), (b, c), (c, a)))
             new += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
         tris = new
     vertices = np.asarray(v) * float(radius_mm) + np.asarray(tuple(center_mm), dtype=np.float64)
     return vertices, np.asarray(tris, dtype=np.int64)
+
+
+def _midpoint(v: list[F64], cache: dict[tuple[int, int], int], a: int, b: int) -> int:
+    key = (min(a, b), max(a, b))
+    if key not in cache:
+        m = v[a] + v[b]
+        v.append(m / np.linalg.norm(m))
+        cache[key] = len(v) - 1
+    return cache[key]
 
 
 def load_mesh(path: Path) -> tuple[F64, I64]:
@@ -183,7 +192,9 @@ def _load_ply(path: Path) -> tuple[F64, I64]:
     try:
         from plyfile import PlyData
     except ImportError as exc:
-        raise ConfigError(f"scene mesh {path}: reading PLY needs the 'plyfile' package; pip install plyfile") from exc
+        raise ConfigError(
+            f"scene mesh {path}: reading PLY needs the 'plyfile' package; pip install plyfile"
+        ) from exc
     ply = PlyData.read(str(path))
     vx = ply["vertex"]
     v = np.stack([np.asarray(vx["x"]), np.asarray(vx["y"]), np.asarray(vx["z"])], axis=1).astype(np.float64)
@@ -228,7 +239,7 @@ class ProceduralAlbedo:
         s = np.zeros(p.shape[0])
         for j, ph in enumerate((1.0, 1.7, 2.3)):
             s += np.sin(p[:, 0] * k[j, 0] + p[:, 1] * k[j, 1] + p[:, 2] * k[j, 2] + ph * self.phase)
-        return np.clip(self.albedo * (1.0 + self.texture * s / 3.0), 0.0, 1.0)  # type: ignore[no-any-return]
+        return np.clip(self.albedo * (1.0 + self.texture * s / 3.0), 0.0, 1.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,7 +288,7 @@ class PlaneImageAlbedo:
         r1 = np.minimum(r0 + 1, h - 1)
         val = ((img[r0, c0] * (1 - fc) + img[r0, c1] * fc) * (1 - fr)
                + (img[r1, c0] * (1 - fc) + img[r1, c1] * fc) * fr)
-        return np.where(inside, val, self.outside)  # type: ignore[no-any-return]
+        return np.where(inside, val, self.outside)
 
 
 # --- the scene ----------------------------------------------------------------------------------------------
@@ -371,7 +382,11 @@ class Scene:
         return np.ascontiguousarray(v[t].reshape(-1, 9))
 
     def set_albedo(self, object_id: int, fn: AlbedoFn | None) -> None:
-        """Replace the albedo function of one object (``None`` restores its configured texture)."""
+        """Replace the albedo function of one object (``None`` restores its configured texture).
+
+        A :class:`~appliance.sim.rig.VirtualRig` reads albedo when it computes a camera's geometry: swap it
+        before the first render, or pass the scene to ``VirtualRig.set_scene`` again.
+        """
         if not 0 <= object_id < self.n_objects:
             raise ConfigError(f"scene: object_id = {object_id}: must be in 0..{self.n_objects - 1}")
         if fn is None:
@@ -414,8 +429,10 @@ class Scene:
         obj = np.empty(n, dtype=np.int32)
         nrm = np.empty((n, 3))
         b = self._bvh
-        _k.cast_rays(o, d, float(t_min), tm, any_hit, self._prim_type, self._prims, self._prim_obj, self._tri,
-                     self._tri_obj, b.bmin, b.bmax, b.left, b.right, b.start, b.count, t, obj, nrm)
+        with _k.KERNEL_LOCK:
+            _k.cast_rays(o, d, float(t_min), tm, any_hit, self._prim_type, self._prims, self._prim_obj,
+                         self._tri, self._tri_obj, b.bmin, b.bmax, b.left, b.right, b.start, b.count, t, obj,
+                         nrm)
         return RayHits(t, obj, nrm)
 
     def intersect(self, origins: F64, dirs: F64, t_min: float = 0.0, t_max: F64 | float = np.inf) -> RayHits:
@@ -443,7 +460,7 @@ class Scene:
 
         Parameters as :meth:`intersect`; returns ndarray, shape (N,), bool.
         """
-        return self._cast(origins, dirs, t_min, t_max, True).object_id >= 0  # type: ignore[no-any-return]
+        return self._cast(origins, dirs, t_min, t_max, True).object_id >= 0
 
 
 # --- bounding volume hierarchy ------------------------------------------------------------------------------

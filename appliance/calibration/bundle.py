@@ -1,0 +1,356 @@
+"""Joint refinement of every device of a rig (bundle adjustment over cameras, projector and board poses).
+
+Unknowns: each device's intrinsics (fx, fy, cx, cy and the free distortion coefficients of its model),
+each non-reference device's pose (world -> device), and each board pose (board -> world; the world is
+the reference camera). Observations: board points seen by a device in a view (a projector "sees" the
+corners through a camera's decoding; several cameras give several projector observations of one pose).
+The reprojection error of all observations is minimised together by Levenberg-Marquardt with the
+analytic Jacobian from OpenCV (``projectPoints`` and ``composeRT``); the normal equations are small
+(a few hundred unknowns), so they are solved densely.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.calibration.intrinsics import MODEL_ALIASES, model_flags
+from appliance.errors import CalibrationError
+from appliance.geometry.camera import CameraModel
+
+F64 = npt.NDArray[np.float64]
+
+MAX_ITERATIONS = 100
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+OUTLIER_SIGMAS = 5.0
+"""After a first solve, points whose residual exceeds this many robust sigmas (and 1 px) are dropped."""
+
+
+def free_distortion(model: str) -> tuple[int, tuple[int, ...]]:
+    """Length of the distortion vector and the indices the model estimates (OpenCV order)."""
+    name = MODEL_ALIASES.get(model, model)
+    model_flags(name)  # validates the name
+    table: dict[str, tuple[int, tuple[int, ...]]] = {
+        "none": (5, ()), "k1": (5, (0,)), "k2": (5, (0, 1)), "k2p": (5, (0, 1, 2, 3)),
+        "k3": (5, (0, 1, 4)), "k3p": (5, (0, 1, 2, 3, 4)), "rational": (8, tuple(range(8))),
+    }  # fmt: skip
+    return table[name]
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Board points seen by one device in one view.
+
+    Attributes
+    ----------
+    device : str
+        Device name.
+    view : int
+        Board pose index.
+    object_points : ndarray, shape (N, 3)
+        Board-frame points (mm).
+    image_points : ndarray, shape (N, 2)
+        Observed pixels (px) in the device's image.
+    source : str
+        Where the observation came from (the decoding camera for a projector).
+    """
+
+    device: str
+    view: int
+    object_points: F64
+    image_points: F64
+    source: str = ""
+
+
+@dataclass
+class BundleResult:
+    """The refined rig.
+
+    Attributes
+    ----------
+    devices : dict of str to CameraModel
+        Refined devices with their poses (world = the reference camera); ``rms`` per device.
+    board_poses : dict of int to (ndarray (3,), ndarray (3,))
+        Board pose of each view: Rodrigues vector and translation, board -> world (mm).
+    rms : float
+        Reprojection RMS over all kept observations (px).
+    std_devs : dict of str to dict of str to float
+        Per device: standard deviation of ``fx fy cx cy``, the free distortion coefficients and, for
+        non-reference devices, ``rx ry rz`` (rad) and ``tx ty tz`` (mm).
+    residuals : list of ndarray
+        Per observation (in input order): (N, 2) observed minus reprojected (px); NaN rows were dropped
+        as outliers.
+    iterations : int
+        Levenberg-Marquardt iterations.
+    dropped_points : int
+        Points dropped as outliers.
+    """
+
+    devices: dict[str, CameraModel]
+    board_poses: dict[int, tuple[F64, F64]]
+    rms: float
+    std_devs: dict[str, dict[str, float]]
+    residuals: list[F64] = field(default_factory=list)
+    iterations: int = 0
+    dropped_points: int = 0
+
+
+class _Layout:
+    """Where each unknown lives in the parameter vector."""
+
+    def __init__(self, devices: dict[str, CameraModel], models: dict[str, str], views: list[int]) -> None:
+        self.names = list(devices)
+        self.ref = self.names[0]
+        self.dist_len: dict[str, int] = {}
+        self.dist_free: dict[str, tuple[int, ...]] = {}
+        self.intr: dict[str, int] = {}
+        self.pose: dict[str, int] = {}
+        self.view: dict[int, int] = {}
+        k = 0
+        for n in self.names:
+            self.dist_len[n], self.dist_free[n] = free_distortion(models[n])
+            self.intr[n] = k
+            k += 4 + len(self.dist_free[n])
+        for n in self.names[1:]:
+            self.pose[n] = k
+            k += 6
+        for v in views:
+            self.view[v] = k
+            k += 6
+        self.size = k
+
+    def n_intr(self, name: str) -> int:
+        return 4 + len(self.dist_free[name])
+
+    def intrinsics(self, x: F64, name: str) -> tuple[F64, F64]:
+        i = self.intr[name]
+        K = np.array([[x[i], 0.0, x[i + 2]], [0.0, x[i + 1], x[i + 3]], [0.0, 0.0, 1.0]])
+        d = np.zeros(self.dist_len[name])
+        d[list(self.dist_free[name])] = x[i + 4 : i + self.n_intr(name)]
+        return K, d
+
+
+def _rvec(R: F64) -> F64:
+    import cv2
+
+    r, _ = cv2.Rodrigues(np.asarray(R, np.float64))
+    return np.asarray(r, np.float64).ravel()
+
+
+def _rmat(r: F64) -> F64:
+    import cv2
+
+    R, _ = cv2.Rodrigues(np.asarray(r, np.float64).reshape(3, 1))
+    return np.asarray(R, np.float64)
+
+
+def _evaluate(
+    x: F64, lay: _Layout, obs: Sequence[Observation], keep: list[npt.NDArray[np.bool_]], jac: bool
+) -> tuple[F64, F64 | None]:
+    import cv2
+
+    rows = sum(2 * int(k.sum()) for k in keep)
+    r = np.empty(rows)
+    J = np.zeros((rows, lay.size)) if jac else None
+    at = 0
+    for o, k in zip(obs, keep, strict=True):
+        m = int(k.sum())
+        if m == 0:
+            continue
+        K, d = lay.intrinsics(x, o.device)
+        vi = lay.view[o.view]
+        rv, tv = x[vi : vi + 3], x[vi + 3 : vi + 6]
+        if o.device == lay.ref:
+            r3, t3 = rv, tv
+            comp = None
+        else:
+            pi = lay.pose[o.device]
+            comp = cv2.composeRT(rv, tv, x[pi : pi + 3], x[pi + 3 : pi + 6])
+            r3, t3 = comp[0].ravel(), comp[1].ravel()
+        px, jp = cv2.projectPoints(o.object_points[k].reshape(-1, 1, 3), r3, t3, K, d)
+        sl = slice(at, at + 2 * m)
+        r[sl] = (px.reshape(-1, 2) - o.image_points[k]).ravel()
+        if J is not None:
+            Jr, Jt = jp[:, 0:3], jp[:, 3:6]
+            ii = lay.intr[o.device]
+            J[sl, ii : ii + 2] = jp[:, 6:8]
+            J[sl, ii + 2 : ii + 4] = jp[:, 8:10]
+            free = list(lay.dist_free[o.device])
+            if free:
+                J[sl, ii + 4 : ii + lay.n_intr(o.device)] = jp[:, 10:][:, free]
+            if comp is None:
+                J[sl, vi : vi + 3] = Jr
+                J[sl, vi + 3 : vi + 6] = Jt
+            else:
+                _, _, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = comp
+                J[sl, vi : vi + 3] = Jr @ dr3dr1 + Jt @ dt3dr1
+                J[sl, vi + 3 : vi + 6] = Jr @ dr3dt1 + Jt @ dt3dt1
+                pi = lay.pose[o.device]
+                J[sl, pi : pi + 3] = Jr @ dr3dr2 + Jt @ dt3dr2
+                J[sl, pi + 3 : pi + 6] = Jr @ dr3dt2 + Jt @ dt3dt2
+        at += 2 * m
+    return r, J
+
+
+def _levenberg_marquardt(
+    x: F64, lay: _Layout, obs: Sequence[Observation], keep: list[npt.NDArray[np.bool_]]
+) -> tuple[F64, F64, int]:
+    lam = 1e-3
+    r, J = _evaluate(x, lay, obs, keep, True)
+    assert J is not None
+    cost = float(r @ r)
+    it = 0
+    for it in range(1, MAX_ITERATIONS + 1):
+        A = J.T @ J
+        g = J.T @ r
+        diag = np.maximum(np.diag(A).copy(), 1e-12)
+        improved = False
+        while lam < 1e12:
+            try:
+                dx = np.linalg.solve(A + lam * np.diag(diag), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            r_new, _ = _evaluate(x + dx, lay, obs, keep, False)
+            c_new = float(r_new @ r_new)
+            if np.isfinite(c_new) and c_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        x = x + dx
+        rel = (cost - c_new) / max(cost, 1e-300)
+        cost = c_new
+        lam = max(lam / 10.0, 1e-12)
+        r, J = _evaluate(x, lay, obs, keep, True)
+        assert J is not None
+        if rel < 1e-12 or float(np.max(np.abs(dx) / (np.abs(x) + 1e-6))) < 1e-12:
+            break
+    assert J is not None
+    return x, J, it
+
+
+def bundle_adjust(
+    devices: dict[str, CameraModel],
+    models: dict[str, str],
+    observations: Sequence[Observation],
+    board_poses: dict[int, tuple[F64, F64]],
+    *,
+    reject_outliers: bool = True,
+) -> BundleResult:
+    """Refine all devices' intrinsics and poses and all board poses together.
+
+    Parameters
+    ----------
+    devices : dict of str to CameraModel
+        Initial devices; the first is the reference (its pose stays the identity), the others carry
+        their initial pose (world -> device).
+    models : dict of str to str
+        Distortion model of each device (:data:`~appliance.calibration.intrinsics.DISTORTION_MODELS`).
+    observations : sequence of Observation
+        Board points per device and view.
+    board_poses : dict of int to (ndarray (3,), ndarray (3,))
+        Initial board pose per view (Rodrigues vector, translation mm; board -> world); views without
+        a pose are ignored.
+    reject_outliers : bool
+        Drop points beyond ``OUTLIER_SIGMAS`` robust sigmas after a first solve and solve again.
+
+    Returns
+    -------
+    BundleResult
+
+    Raises
+    ------
+    CalibrationError
+        No usable observation, or the normal equations are singular.
+    """
+    obs = [o for o in observations if o.view in board_poses and o.device in devices]
+    if not obs:
+        raise CalibrationError("joint refinement: no observation with an initial board pose")
+    missing = [n for n in devices if not any(o.device == n for o in obs)]
+    if missing:
+        raise CalibrationError(f"joint refinement: device(s) {missing} have no observation; capture more poses")
+    views = sorted({o.view for o in obs})
+    lay = _Layout(devices, models, views)
+    x = np.zeros(lay.size)
+    for n, dev in devices.items():
+        i = lay.intr[n]
+        x[i : i + 4] = dev.K[0, 0], dev.K[1, 1], dev.K[0, 2], dev.K[1, 2]
+        dist = np.zeros(lay.dist_len[n])
+        dist[: min(dev.dist.size, dist.size)] = dev.dist[: dist.size]
+        x[i + 4 : i + lay.n_intr(n)] = dist[list(lay.dist_free[n])]
+        if n in lay.pose:
+            p = lay.pose[n]
+            x[p : p + 3], x[p + 3 : p + 6] = _rvec(dev.R), dev.T
+    for v in views:
+        i = lay.view[v]
+        x[i : i + 3], x[i + 3 : i + 6] = board_poses[v][0], board_poses[v][1]
+    keep = [np.ones(len(o.object_points), bool) for o in obs]
+    x, J, iters = _levenberg_marquardt(x, lay, obs, keep)
+    dropped = 0
+    if reject_outliers:
+        r, _ = _evaluate(x, lay, obs, keep, False)
+        err = np.hypot(r[0::2], r[1::2])
+        limit = max(OUTLIER_SIGMAS * 1.4826 * float(np.median(err)), 1.0)
+        at = 0
+        for k in keep:
+            m = int(k.sum())
+            bad = err[at : at + m] > limit
+            k[np.flatnonzero(k)[bad]] = False
+            dropped += int(bad.sum())
+            at += m
+        if dropped:
+            x, J, more = _levenberg_marquardt(x, lay, obs, keep)
+            iters += more
+    r, _ = _evaluate(x, lay, obs, keep, False)
+    n_res = r.size
+    sigma2 = float(r @ r) / max(n_res - lay.size, 1)
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma2
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError(
+            "joint refinement: the problem is degenerate (singular normal equations); "
+            "add board poses with more tilt"
+        ) from exc
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    out_devices: dict[str, CameraModel] = {}
+    std: dict[str, dict[str, float]] = {}
+    residuals: list[F64] = []
+    per_dev: dict[str, list[F64]] = {n: [] for n in devices}
+    at = 0
+    for o, k in zip(obs, keep, strict=True):
+        res = np.full((len(k), 2), np.nan)
+        m = int(k.sum())
+        res[k] = -r[at : at + 2 * m].reshape(-1, 2)
+        residuals.append(res)
+        per_dev[o.device].append(res[k])
+        at += 2 * m
+    for n, dev in devices.items():
+        K, d = lay.intrinsics(x, n)
+        R, T = np.eye(3), np.zeros(3)
+        i = lay.intr[n]
+        names = ["fx", "fy", "cx", "cy", *(DIST_NAMES[j] for j in lay.dist_free[n])]
+        std[n] = {nm: float(sd[i + j]) for j, nm in enumerate(names)}
+        if n in lay.pose:
+            p = lay.pose[n]
+            R, T = _rmat(x[p : p + 3]), x[p + 3 : p + 6].copy()
+            for j, nm in enumerate(("rx", "ry", "rz", "tx", "ty", "tz")):
+                std[n][nm] = float(sd[p + j])
+        e = np.concatenate(per_dev[n]) if per_dev[n] else np.zeros((0, 2))
+        rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("nan")
+        out_devices[n] = CameraModel(n, K, d, dev.width, dev.height, R, T, rms=rms)
+    poses = {v: (x[lay.view[v] : lay.view[v] + 3].copy(), x[lay.view[v] + 3 : lay.view[v] + 6].copy()) for v in views}
+    total = float(np.sqrt(np.mean(r[0::2] ** 2 + r[1::2] ** 2)))
+    # residuals align with the filtered observation list; map back to the input order
+    full: list[F64] = []
+    it_res = iter(residuals)
+    for o in observations:
+        if o.view in board_poses and o.device in devices:
+            full.append(next(it_res))
+        else:
+            full.append(np.full((len(o.object_points), 2), np.nan))
+    return BundleResult(out_devices, poses, total, std, full, iters, dropped)

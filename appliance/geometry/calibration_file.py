@@ -1,0 +1,260 @@
+"""The calibration file: OpenCV FileStorage YAML, one top-level map per device.
+
+Layout (every device named as in the configuration, the first camera is the world frame)::
+
+    %YAML:1.0
+    ---
+    cam0:
+       K: !!opencv-matrix {rows: 3, cols: 3, dt: d, data: [...]}   # camera matrix (px)
+       dist: !!opencv-matrix {rows: 1, cols: N, ...}                # OpenCV order k1 k2 p1 p2 [k3 ...]
+       size: [ 2448, 2048 ]                                         # [width, height] (px)
+       R: !!opencv-matrix {rows: 3, cols: 3, ...}                   # x_device = R x_world + T
+       T: !!opencv-matrix {rows: 3, cols: 1, ...}                   # (mm)
+       rms: 0.12                                                    # reprojection RMS (px)
+    projector:
+       ...
+
+``cv2.FileStorage(path, cv2.FILE_STORAGE_READ)`` reads it (OpenCV 4 and 5).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.errors import CalibrationError
+from appliance.geometry.camera import CameraModel
+
+PROJECTOR_NAME = "projector"
+"""The device name of the projector in the calibration file and the configuration."""
+
+_HEADER = "%YAML:1.0"
+
+
+@dataclass
+class Calibration:
+    """Every calibrated device of the rig.
+
+    Attributes
+    ----------
+    devices : dict of str to CameraModel
+        Devices in file (and configuration) order; the first camera's frame is the world frame.
+    """
+
+    devices: dict[str, CameraModel] = field(default_factory=dict)
+
+    @property
+    def camera_names(self) -> list[str]:
+        """Names of the cameras (every device but the projector), in order."""
+        return [n for n in self.devices if n != PROJECTOR_NAME]
+
+    @property
+    def cameras(self) -> list[CameraModel]:
+        """The camera models, in order."""
+        return [self.devices[n] for n in self.camera_names]
+
+    @property
+    def projector(self) -> CameraModel | None:
+        """The projector model, or None when the calibration has none."""
+        return self.devices.get(PROJECTOR_NAME)
+
+    def hash(self) -> str:
+        """Short hex digest (16 hex of SHA-256) of the canonical content: names, K, dist, size, R, T, rms."""
+        h = hashlib.sha256()
+        for name, dev in self.devices.items():
+            h.update(name.encode() + b"\0")
+            h.update(np.asarray([dev.width, dev.height], "<i8").tobytes())
+            for arr in (dev.K, dev.dist, dev.R, dev.T, np.array([dev.rms])):
+                a = np.asarray(arr, "<f8").ravel()
+                h.update(len(a).to_bytes(4, "little") + np.where(np.isnan(a), np.nan, a + 0.0).tobytes())
+        return h.hexdigest()[:16]
+
+
+def write_calibration(path: str | os.PathLike[str], calib: Calibration) -> None:
+    """Write a calibration file atomically (temporary file, fsync, rename).
+
+    Parameters
+    ----------
+    path : path-like
+        Destination (``.yaml``); its folder must exist.
+    calib : Calibration
+        The devices to write, in order.
+
+    Raises
+    ------
+    CalibrationError
+        When a device name is not a valid key or the file cannot be written.
+    """
+    import cv2
+
+    path = Path(path)
+    if not calib.devices:
+        raise CalibrationError(f"{path}: calibration has no devices: nothing to write")
+    for name in calib.devices:
+        if (
+            not name
+            or not (name[0].isalpha() or name[0] == "_")
+            or not all(c.isalnum() or c in "_-" for c in name)
+        ):
+            raise CalibrationError(
+                f"{path}: device name {name!r}: must start with a letter and hold only [A-Za-z0-9_-]"
+            )
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.yaml")
+    try:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+        if not fs.isOpened():
+            raise CalibrationError(
+                f"{path}: cannot open {tmp} for writing; check the folder exists and is writable"
+            )
+        for name, dev in calib.devices.items():
+            fs.startWriteStruct(name, cv2.FileNode_MAP)
+            fs.write("K", np.ascontiguousarray(dev.K, np.float64))
+            dist = dev.dist if dev.dist.size else np.zeros(5)  # "no distortion" is written as five zeros
+            fs.write("dist", np.ascontiguousarray(dist, np.float64).reshape(1, -1))
+            fs.startWriteStruct("size", cv2.FileNode_SEQ | cv2.FileNode_FLOW)
+            fs.write("", int(dev.width))
+            fs.write("", int(dev.height))
+            fs.endWriteStruct()
+            fs.write("R", np.ascontiguousarray(dev.R, np.float64))
+            fs.write("T", np.ascontiguousarray(dev.T, np.float64).reshape(3, 1))
+            fs.write("rms", float(dev.rms))
+            fs.endWriteStruct()
+        fs.release()
+        text = tmp.read_text()
+        # OpenCV 5 writes "%YAML 1.2"; "%YAML:1.0" is what OpenCV 4 writes and both versions read
+        lines = text.split("\n", 1)
+        if lines[0].startswith("%YAML"):
+            text = _HEADER + "\n" + (lines[1] if len(lines) > 1 else "")
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError as e:
+        raise CalibrationError(f"{path}: cannot write calibration: {e}") from e
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_calibration(path: str | os.PathLike[str]) -> Calibration:
+    """Read a calibration file with ``cv2.FileStorage``.
+
+    Parameters
+    ----------
+    path : path-like
+        The YAML file (see the module docstring for its layout).
+
+    Returns
+    -------
+    Calibration
+        Devices in file order.
+
+    Raises
+    ------
+    CalibrationError
+        Naming the file, the device and the key on any problem (missing, unparsable, wrong shape, not finite,
+        R not a rotation, ...).
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: calibration file not found; run the calibration or fix the path")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except Exception as e:  # cv2.error, or SystemError wrapping it
+        cause = e.__cause__ or e
+        raise CalibrationError(
+            f"{path}: not an OpenCV FileStorage YAML file: {str(cause).strip()[-200:]}"
+        ) from e
+    if not fs.isOpened():
+        raise CalibrationError(f"{path}: cannot be opened by cv2.FileStorage")
+    try:
+        root = fs.root()
+        devices: dict[str, CameraModel] = {}
+        for name in root.keys():
+            node = root.getNode(name)
+            if not node.isMap():
+                continue  # other top-level entries (comments, dates) are not devices
+            devices[name] = _read_device(path, name, node)
+    finally:
+        fs.release()
+    if not devices:
+        raise CalibrationError(f"{path}: no device maps (cam0:, projector:, ...) at the top level")
+    if all(n == PROJECTOR_NAME for n in devices):
+        raise CalibrationError(f"{path}: holds only the projector: at least one camera is needed")
+    return Calibration(devices)
+
+
+def _numbers(path: Path, name: str, key: str, node: Any) -> npt.NDArray[np.float64]:
+    """A node's values as float64: an opencv-matrix, a sequence or a number."""
+    where = f"{path}: {name}.{key}"
+    if node.empty() or node.isNone():
+        raise CalibrationError(f"{where}: missing; every device needs K, dist, size, R, T")
+    try:
+        if node.isSeq():
+            vals = [node.at(i).real() for i in range(node.size())]
+            arr = np.asarray(vals, np.float64)
+        elif node.isReal() or node.isInt():
+            arr = np.asarray([node.real()], np.float64)
+        else:
+            mat = node.mat()
+            if mat is None:
+                raise CalibrationError(f"{where}: not a matrix, sequence or number")
+            arr = np.asarray(mat, np.float64)
+    except CalibrationError:
+        raise
+    except Exception as e:
+        raise CalibrationError(f"{where}: unreadable ({e})") from e
+    return arr
+
+
+def _read_device(path: Path, name: str, node: Any) -> CameraModel:
+    def get(
+        key: str, shape: tuple[int, ...] | None, sizes: tuple[int, ...] | None = None
+    ) -> npt.NDArray[np.float64]:
+        arr = _numbers(path, name, key, node.getNode(key))
+        if shape is not None and arr.size != int(np.prod(shape)):
+            raise CalibrationError(
+                f"{path}: {name}.{key}: has {arr.size} values, shape {arr.shape}: must be {shape}"
+            )
+        if sizes is not None and arr.size not in sizes:
+            raise CalibrationError(
+                f"{path}: {name}.{key}: has {arr.size} values: must be one of {sizes} (OpenCV order)"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise CalibrationError(f"{path}: {name}.{key}: holds non-finite values {arr.ravel().tolist()}")
+        return arr.reshape(shape) if shape is not None else arr.ravel()
+
+    k = get("K", (3, 3))
+    if not (k[0, 0] > 0 and k[1, 1] > 0 and np.allclose(k[2], [0, 0, 1]) and k[1, 0] == 0):
+        raise CalibrationError(
+            f"{path}: {name}.K: {k.tolist()}: must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"
+        )
+    dist = get("dist", None, (4, 5, 8, 12, 14))
+    size = get("size", (2,))
+    if not (size[0] >= 1 and size[1] >= 1 and np.all(size == np.round(size))):
+        raise CalibrationError(
+            f"{path}: {name}.size: {size.tolist()}: must be [width, height], positive integers (px)"
+        )
+    r = get("R", (3, 3))
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+        raise CalibrationError(f"{path}: {name}.R: not a rotation matrix (R R^T != I or det < 0)")
+    t = get("T", (3,))
+    rms_node = node.getNode("rms")
+    rms = float("nan") if rms_node.empty() else float(rms_node.real())
+    try:
+        return CameraModel(name, k, dist, int(size[0]), int(size[1]), r, t, rms)
+    except CalibrationError as e:
+        raise CalibrationError(f"{path}: {e}") from e

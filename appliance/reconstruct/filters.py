@@ -1,0 +1,203 @@
+"""Filters of organised clouds (in place), normals, and the organised -> PointCloud step.
+
+An organised cloud is a float32 array (H, W, 3) of world-frame points (mm), one per camera pixel, NaN where
+there is no point. Filters set rejected points to NaN in place and return how many they removed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.geometry.camera import CameraModel
+from appliance.reconstruct import _tri_kernels as K
+from appliance.reconstruct.types import PointCloud
+
+F32 = npt.NDArray[np.float32]
+
+
+def _organised(xyz: F32) -> F32:
+    if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.dtype != np.float32 or not xyz.flags.c_contiguous:
+        raise ValueError(f"xyz: {xyz.shape} {xyz.dtype}: must be a C-contiguous float32 array (H, W, 3)")
+    return xyz
+
+
+def _image(
+    a: npt.NDArray[np.generic], shape: tuple[int, int], name: str, dtype: type
+) -> npt.NDArray[np.generic]:
+    if a.shape != shape:
+        raise ValueError(f"{name}: shape {a.shape}: must be {shape} (H, W) like the cloud")
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+def filter_depth(
+    xyz: F32, min_depth_mm: float, max_depth_mm: float, camera: CameraModel | None = None
+) -> int:
+    """Remove points outside a depth range, in place.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (H, W, 3), float32
+        Organised cloud, world frame (mm); modified in place.
+    min_depth_mm, max_depth_mm : float
+        Kept range of the depth (z in the camera's own frame, mm), inclusive.
+    camera : CameraModel, optional
+        The camera whose depth counts; None means the world frame is the camera frame.
+
+    Returns
+    -------
+    int
+        Number of points removed.
+    """
+    _organised(xyz)
+    rz = np.zeros(3) if camera is None else np.ascontiguousarray(camera.R[2])
+    tz = 0.0 if camera is None else float(camera.T[2])
+    if camera is None:
+        rz[2] = 1.0
+    return int(K.filter_depth(xyz, rz, tz, float(min_depth_mm), float(max_depth_mm)))
+
+
+def filter_quality(xyz: F32, quality: npt.NDArray[np.float32], min_quality: float) -> int:
+    """Remove points whose decoding quality is below ``min_quality``, in place.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (H, W, 3), float32
+        Organised cloud (mm); modified in place.
+    quality : ndarray, shape (H, W)
+        Per-pixel quality (see :class:`~appliance.reconstruct.types.DecodedMaps`, DN).
+    min_quality : float
+        Smallest kept quality (DN).
+
+    Returns
+    -------
+    int
+        Number of points removed.
+    """
+    _organised(xyz)
+    q = _image(quality, xyz.shape[:2], "quality", np.float32)
+    return int(K.filter_quality(xyz, q, np.float32(min_quality)))
+
+
+def filter_isolated(
+    xyz: F32, min_neighbours: int, max_jump_mm: float, scratch: npt.NDArray[np.bool_] | None = None
+) -> int:
+    """Remove isolated points, in place.
+
+    A point is kept when at least ``min_neighbours`` of its 8 pixel neighbours hold a point nearer than
+    ``max_jump_mm`` to it (3-D distance, which at working distance is its depth difference).
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (H, W, 3), float32
+        Organised cloud (mm); modified in place.
+    min_neighbours : int
+        0..8; 0 keeps everything.
+    max_jump_mm : float
+        Largest distance of a neighbour that counts (mm).
+    scratch : ndarray, shape (H, W), bool, optional
+        Work buffer (allocated when None).
+
+    Returns
+    -------
+    int
+        Number of points removed.
+    """
+    _organised(xyz)
+    if not 0 <= min_neighbours <= 8:
+        raise ValueError(f"min_neighbours = {min_neighbours}: must be 0..8")
+    if min_neighbours == 0:
+        return 0
+    h, w = xyz.shape[:2]
+    if scratch is None:
+        scratch = np.empty((h, w), np.bool_)
+    elif scratch.shape != (h, w) or scratch.dtype != np.bool_:
+        raise ValueError(f"scratch: {scratch.shape} {scratch.dtype}: must be bool {(h, w)}")
+    K.isolated_keep(xyz, int(min_neighbours), float(max_jump_mm), scratch)
+    return int(K.apply_keep(xyz, scratch))
+
+
+def estimate_normals(xyz: F32, eye_mm: npt.ArrayLike = (0.0, 0.0, 0.0), out: F32 | None = None) -> F32:
+    """Unit surface normals of an organised cloud (cross product of central differences).
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (H, W, 3), float32
+        Organised cloud (mm).
+    eye_mm : array_like, shape (3,)
+        The camera centre (world frame, mm); normals are turned towards it.
+    out : ndarray, shape (H, W, 3), float32, optional
+        Output buffer.
+
+    Returns
+    -------
+    ndarray, shape (H, W, 3), float32
+        Unit normals; NaN where the point or all neighbours along a direction are missing.
+    """
+    _organised(xyz)
+    if out is None:
+        out = np.empty_like(xyz)
+    else:
+        _organised(out)
+        if out.shape != xyz.shape:
+            raise ValueError(f"out: {out.shape}: must be {xyz.shape}")
+    eye = np.asarray(eye_mm, np.float64).reshape(3)
+    return K.normals(xyz, eye, out)  # type: ignore[no-any-return]
+
+
+def to_point_cloud(
+    xyz_org: F32,
+    quality: npt.NDArray[np.float32],
+    intensity: npt.NDArray[np.uint8] | None,
+    camera_index: int,
+    normals: F32 | None = None,
+) -> PointCloud:
+    """The valid points of an organised cloud as a :class:`PointCloud`, with their source pixels.
+
+    Parameters
+    ----------
+    xyz_org : ndarray, shape (H, W, 3), float32
+        Organised cloud (mm), NaN where there is no point.
+    quality : ndarray, shape (H, W)
+        Per-pixel quality (DN).
+    intensity : ndarray, shape (H, W), uint8, optional
+        Grey value under white light; zeros when None.
+    camera_index : int
+        Index of the source camera (0..255).
+    normals : ndarray, shape (H, W, 3), float32, optional
+        Normals (see :func:`estimate_normals`); kept per point when given.
+
+    Returns
+    -------
+    PointCloud
+        Points in row-major pixel order.
+    """
+    _organised(xyz_org)
+    shape = (xyz_org.shape[0], xyz_org.shape[1])
+    if not 0 <= camera_index <= 255:
+        raise ValueError(f"camera_index = {camera_index}: must be 0..255")
+    q = _image(quality, shape, "quality", np.float32)
+    inten = (
+        np.zeros(shape, np.uint8) if intensity is None else _image(intensity, shape, "intensity", np.uint8)
+    )
+    if normals is not None:
+        _organised(normals)
+        if normals.shape != xyz_org.shape:
+            raise ValueError(f"normals: {normals.shape}: must be {xyz_org.shape}")
+    starts = np.cumsum(K.row_counts(xyz_org))
+    n = int(starts[-1])
+    o_n = np.empty((n, 3), np.float32) if normals is not None else np.empty((0, 3), np.float32)
+    cloud = PointCloud(
+        np.empty((n, 3), np.float32),
+        np.empty(n, np.int32),
+        np.empty(n, np.int32),
+        np.full(n, camera_index, np.uint8),
+        np.empty(n, np.uint8),
+        np.empty(n, np.float32),
+        o_n if normals is not None else None,
+    )
+    nrm = normals if normals is not None else np.empty((0, 0, 3), np.float32)
+    K.compact(
+        xyz_org, q, inten, nrm, starts, cloud.xyz, cloud.row, cloud.col, cloud.quality, cloud.intensity, o_n
+    )
+    return cloud

@@ -1,0 +1,257 @@
+"""Camera-projector triangulation over precomputed tables.
+
+Method
+------
+Everything is solved along the camera ray of each pixel, whose undistorted direction ``(nx, ny, 1)`` comes
+from a :class:`~appliance.geometry.rays.RayTable` (camera frame, so the unknown is the depth z directly).
+
+* One coded axis (``'x'`` columns or ``'y'`` rows), ray / light-surface: under projector distortion the set
+  of points lit by projector column u is a curved surface, not a plane. Its intersection with the camera
+  ray is found exactly in the projector's normalised (undistorted) image plane: the ray images there as a
+  straight epipolar line through the epipole (the camera centre seen from the projector). Every epipolar
+  line is named by one number, its intercept c on the projector's axis ``x = 0`` (``y = 0`` for rows), which
+  is computed once per pixel. A table, built once by Newton's method on the full distortion model, holds
+  for a grid of c (every 2 projector px) and every projector column (-2 .. W+1) the undistorted x on line c
+  whose *distorted* column is that code. Per pixel the kernel interpolates the table bilinearly at (c, u)
+  and intersects the camera ray with the plane through the projector centre at that x: two multiply-adds
+  and one division, no iteration, no Python per pixel.
+* Both axes (``'xy'``), ray-ray: (u, v) is undistorted by bilinear lookup in a per-projector-pixel table
+  followed by one Newton step on the distortion model (exact to ~1e-12); the depth minimises the
+  linearised projector reprojection error in pixels (least squares over the two equations), i.e. the
+  point of the camera ray nearest to the coded projector ray, weighted by fx and fy.
+
+Residual error (with exact codes): the table interpolation error is measured when the table is built
+(:attr:`ProjectorTriangulator.table_error`, normalised units; the depth error is about
+``z**2 / baseline_mm * table_error``, e.g. 1e-8 -> 2e-5 mm at 600 mm and 175 mm baseline), plus float32
+rounding of the inputs (u to ~6e-5 px at 1000 px, i.e. ~1e-4 mm there). Tests hold it under 0.005 mm.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.errors import CalibrationError
+from appliance.geometry.camera import CameraModel
+from appliance.geometry.rays import RayTable
+from appliance.reconstruct import _tri_kernels as K
+from appliance.reconstruct.types import DecodedMaps
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+CODE_MARGIN_PX = 2
+"""Decoded codes may lie this far outside the projector image (px) and still triangulate."""
+LINE_STEP_PX = 2.0
+"""Spacing of the epipolar-line grid of the single-axis table (projector px)."""
+MIN_LINE_SIN = 0.1
+"""A pixel whose epipolar line meets the coded lines at less than asin(0.1) ~ 6 deg is left out."""
+
+
+def relative_pose(camera: CameraModel, other: CameraModel) -> tuple[F64, F64]:
+    """Pose of ``other`` relative to ``camera``: ``x_other = R @ x_camera + T`` (mm)."""
+    r = other.R @ camera.R.T
+    return r, other.T - r @ camera.T
+
+
+def distortion12(model: CameraModel) -> F64:
+    """The model's distortion padded to the 12 coefficients the kernels use (tilt is unsupported)."""
+    if model.dist.size > 12:
+        raise CalibrationError(
+            f"{model.name}: {model.dist.size} distortion coefficients (tilted sensor model): triangulation "
+            "supports at most 12 (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4); "
+            "recalibrate without CALIB_TILTED_MODEL"
+        )
+    return model.dist_padded(12)
+
+
+def check_maps(
+    maps: DecodedMaps, shape: tuple[int, int], name: str
+) -> tuple[F32, F32, npt.NDArray[np.bool_]]:
+    """C-contiguous float32 u, v and bool mask of ``maps``, checked against the camera's (H, W)."""
+    if maps.shape != shape or maps.u.shape != shape or maps.v.shape != shape:
+        raise ValueError(f"{name}: decoded maps are {maps.u.shape}, camera is {shape} (H, W): must match")
+    u = np.ascontiguousarray(maps.u, dtype=np.float32)
+    v = np.ascontiguousarray(maps.v, dtype=np.float32)
+    return u, v, np.ascontiguousarray(maps.mask, dtype=np.bool_)
+
+
+def check_out(out: F32 | None, shape: tuple[int, int]) -> F32:
+    """A (H, W, 3) float32 C-contiguous output buffer (allocated when ``out`` is None)."""
+    if out is None:
+        return np.empty((*shape, 3), np.float32)
+    if out.shape != (*shape, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(
+            f"out: {out.shape} {out.dtype}: must be a C-contiguous float32 array of {(*shape, 3)}"
+        )
+    return out
+
+
+class ProjectorTriangulator:
+    """Camera-projector triangulation for one camera; every table is built once, here.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The camera (any pose; output is in the world frame).
+    projector : CameraModel
+        The projector as an inverse camera.
+    axes : {'x', 'y', 'xy'}
+        Coded projector axes: ``'x'`` columns (ray / light-surface), ``'y'`` rows, ``'xy'`` ray-ray.
+    rays : RayTable, optional
+        The camera's ray table, when it is already computed.
+
+    Raises
+    ------
+    CalibrationError
+        When the geometry cannot triangulate the coded axis (e.g. rows coded with a horizontal baseline).
+    """
+
+    def __init__(
+        self, camera: CameraModel, projector: CameraModel, axes: str, rays: RayTable | None = None
+    ) -> None:
+        if axes not in ("x", "y", "xy"):
+            raise ValueError(f"axes = {axes!r}: must be 'x', 'y' or 'xy'")
+        self.camera = camera
+        self.projector = projector
+        self.axes = axes
+        self.rays = rays if rays is not None else RayTable(camera)
+        if self.rays.shape != (camera.height, camera.width):
+            raise ValueError(
+                f"rays: table is {self.rays.shape}, camera {camera.name} is {camera.height}x{camera.width}"
+            )
+        self._rcp, self._tcp = relative_pose(camera, projector)
+        self._rwc = np.ascontiguousarray(camera.R.T)
+        self._cwc = camera.center
+        self._to_world = not (
+            np.allclose(camera.R, np.eye(3), atol=1e-12) and np.allclose(camera.T, 0, atol=1e-9)
+        )
+        self._kp = np.ascontiguousarray(projector.K)
+        self._dp = distortion12(projector)
+        self.table_error = 0.0
+        """Largest interpolation error of the code table, normalised projector units (measured)."""
+        if axes == "xy":
+            self._build_undistort_table()
+        else:
+            self._build_line_table(0 if axes == "x" else 1)
+
+    # --- tables -----------------------------------------------------------------------------------------
+
+    def _build_undistort_table(self) -> None:
+        p, m = self.projector, CODE_MARGIN_PX
+        gx, gy = np.meshgrid(
+            np.arange(-m, p.width + m, dtype=np.float64), np.arange(-m, p.height + m, dtype=np.float64)
+        )
+        und = p.undistort_pixels(np.stack([gx.ravel(), gy.ravel()], axis=1))
+        self._und = np.ascontiguousarray(und.reshape(gx.shape[0], gx.shape[1], 2), dtype=np.float32)
+        self._origin = float(-m)
+
+    def _build_line_table(self, axis: int) -> None:
+        p = self.projector
+        raw = K.epipolar_intercepts(self.rays.normalized, self._rcp, self._tcp, 0.0, 1.0, axis, MIN_LINE_SIN)
+        finite = np.isfinite(raw)
+        if finite.mean() < 0.5:
+            raise CalibrationError(
+                f"{self.camera.name}/{p.name}: axis {self.axes!r}: the epipolar lines of "
+                f"{100 * (1 - finite.mean()):.0f}% of the pixels run along the coded projector "
+                f"{'columns' if axis == 0 else 'rows'}: the baseline has no component across them; "
+                f"code the other axis or both ('xy')"
+            )
+        f = p.K[1, 1] if axis == 0 else p.K[0, 0]
+        step = LINE_STEP_PX / f
+        lo = float(raw[finite].min()) - 2 * step
+        hi = float(raw[finite].max()) + 2 * step
+        n_lines = math.ceil((hi - lo) / step) + 1
+        if n_lines > 20000:
+            raise CalibrationError(
+                f"{self.camera.name}/{p.name}: epipolar lines span {hi - lo:.3g}: geometry is degenerate"
+            )
+        c_grid = lo + step * np.arange(n_lines)
+        n_codes = (p.width if axis == 0 else p.height) + 2 * CODE_MARGIN_PX
+        self._code0 = float(-CODE_MARGIN_PX)
+        code_grid = self._code0 + np.arange(n_codes, dtype=np.float64)
+        self._table = K.code_line_table(c_grid, code_grid, self._kp, self._dp, self._tcp, axis)
+        raw -= np.float32(lo)
+        raw *= np.float32(1.0 / step)
+        self._cidx = raw
+        # measure the bilinear interpolation error at cell centres (a sample of columns)
+        c_mid = c_grid[:-1] + step / 2
+        sel = np.arange(0, n_codes - 1, 7)
+        exact = K.code_line_table(c_mid, code_grid[sel] + 0.5, self._kp, self._dp, self._tcp, axis).astype(
+            np.float64
+        )
+        t = self._table.astype(np.float64)
+        interp = 0.25 * (t[:-1, sel] + t[:-1, sel + 1] + t[1:, sel] + t[1:, sel + 1])
+        err = np.abs(interp - exact)
+        self.table_error = float(np.nanmax(err)) if np.isfinite(err).any() else 0.0
+
+    # --- per scan ---------------------------------------------------------------------------------------
+
+    def triangulate(
+        self,
+        maps: DecodedMaps,
+        out: F32 | None = None,
+        min_depth_mm: float = 1e-6,
+        max_depth_mm: float = math.inf,
+    ) -> F32:
+        """Triangulate every decoded pixel.
+
+        Parameters
+        ----------
+        maps : DecodedMaps
+            Decoded projector coordinates of this camera, shape (H, W); NaN or ``mask`` False = no point.
+        out : ndarray, shape (H, W, 3), float32, optional
+            Preallocated output (C-contiguous); allocated when None.
+        min_depth_mm, max_depth_mm : float
+            Depth range (z in this camera's frame, mm); points outside are NaN.
+
+        Returns
+        -------
+        ndarray, shape (H, W, 3), float32
+            World-frame points (mm), organised by camera pixel; NaN where there is no point.
+        """
+        shape = self.rays.shape
+        u, v, mask = check_maps(maps, shape, self.camera.name)
+        xyz = check_out(out, shape)
+        zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
+        if self.axes == "xy":
+            K.tri_ray(
+                u,
+                v,
+                mask,
+                self.rays.normalized,
+                self._und,
+                self._origin,
+                self._kp,
+                self._dp,
+                self._rcp,
+                self._tcp,
+                self._rwc,
+                self._cwc,
+                self._to_world,
+                zmin,
+                zmax,
+                xyz,
+            )
+        else:
+            axis = 0 if self.axes == "x" else 1
+            K.tri_plane(
+                u if axis == 0 else v,
+                mask,
+                self.rays.normalized,
+                self._cidx,
+                self._table,
+                self._code0,
+                self._rcp,
+                self._tcp,
+                self._rwc,
+                self._cwc,
+                self._to_world,
+                zmin,
+                zmax,
+                axis,
+                xyz,
+            )
+        return xyz

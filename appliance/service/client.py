@@ -1,0 +1,126 @@
+"""``scan3d status`` and ``scan3d trigger``: clients of the control socket."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from appliance.config import load_config
+from appliance.config.schema import ServiceConfig
+from appliance.errors import ConfigError
+from appliance.service.control import request
+
+STATUS_TIMEOUT_S = 10.0
+TRIGGER_WAIT_TIMEOUT_S = 660.0
+
+
+def socket_for(config: Path | None, socket: Path | None) -> Path:
+    """The control socket: ``socket`` when given, else the config's ``service.control_socket``."""
+    if socket is not None:
+        return Path(socket)
+    if config is not None and Path(config).exists():
+        try:
+            return Path(load_config(config).service.control_socket)
+        except ConfigError:
+            pass  # a broken file being edited: the running service still uses its old socket path
+    return ServiceConfig().control_socket
+
+
+def _ms(v: Any) -> str:
+    return f"{float(v):.0f}" if isinstance(v, (int, float)) else "?"
+
+
+def _uptime(s: float) -> str:
+    s = int(s)
+    d, s = divmod(s, 86400)
+    h, s = divmod(s, 3600)
+    m, s = divmod(s, 60)
+    return f"{d}d {h}h {m:02d}m" if d else f"{h}h {m:02d}m {s:02d}s"
+
+
+def format_status(st: dict[str, Any]) -> str:
+    """One screen for a person: state, hardware, share, last scans with timings, the fault and what to do."""
+    lines = []
+    state = str(st.get("state", "?")).upper()
+    head = f"scan3d {st.get('serial', '')} (version {st.get('version', '?')}): {state}"
+    if st.get("state") in ("starting", "fault"):
+        head += f" [{st.get('phase')}]"
+    if st.get("detail"):
+        head += f" — {st['detail']}"
+    lines.append(f"{head}   (up {_uptime(float(st.get('uptime_s', 0)))})")
+    cfg = st.get("config", {})
+    lines.append(f"config    {cfg.get('path')} (loaded {cfg.get('loaded_utc')})")
+    if cfg.get("error"):
+        first = str(cfg["error"]).splitlines()
+        lines.append("          REJECTED edit (the last good configuration keeps running):")
+        lines.extend(f"            {x}" for x in first[:4])
+    if st.get("sequence"):
+        lines.append(f"sequence  {st['sequence']}")
+    lines.append("hardware")
+    for d in st.get("devices", []):
+        label = f"{d['role']} {d['name']}" if d["role"] == "camera" else d["role"]
+        ok = "ok   " if d["ok"] else "FAULT"
+        lines.append(f"  {label:<16} {d['backend']:<17} {ok}  {d['detail']}"[:160])
+    sh = st.get("share", {})
+    if sh:
+        avail = "available" if sh.get("available") else f"UNAVAILABLE: {sh.get('problem')}"
+        free = f", {sh['free_mb']:.0f} MB free" if "free_mb" in sh else ""
+        lines.append(f"share     {sh.get('directory')}: {avail}{free}")
+        lines.append(f"spool     {sh.get('spool_directory')}: {sh.get('spooled_scans', 0)} scan(s) waiting, "
+                     f"{sh.get('spool_mb', 0)} MB, {sh.get('spool_dropped', 0)} dropped by retention")
+    c = st.get("counters", {})
+    lines.append(f"counters  scans {c.get('scans_done', 0)} done, {c.get('scans_failed', 0)} failed, "
+                 f"{c.get('spooled', 0)} spooled; triggers {c.get('triggers', 0)} "
+                 f"({c.get('triggers_refused', 0)} refused, {c.get('triggers_queued', 0)} queued, "
+                 f"{st.get('queue_length', 0)} waiting); reloads {c.get('reloads', 0)} "
+                 f"({c.get('reloads_rejected', 0)} rejected)")
+    scans = st.get("last_scans", [])
+    lines.append("last scans" if scans else "last scans: none yet")
+    for r in list(reversed(scans))[:5]:
+        if r["ok"]:
+            t = r.get("timings_ms", {})
+            lines.append(f"  {r['scan_id']}  {r['location']:<5} {r['points']:>8} pts  "
+                         f"scan {_ms(t.get('scan_ms'))} ms (capture {_ms(t.get('capture_ms'))}, "
+                         f"reconstruct {_ms(t.get('reconstruct_ms'))}, write {_ms(t.get('write_ms'))}); "
+                         f"trigger to file {_ms(t.get('trigger_to_file_ms'))} ms")
+        else:
+            lines.append(f"  {r['scan_id'] or '(refused)'}  FAILED ({r['trigger']}): {r['error']}"[:200])
+    err = st.get("last_error")
+    if err:
+        lines.append(f"last error  {err['time_utc']} [{err['where']}]")
+        lines.append(f"  {err['message']}"[:400])
+        lines.append(f"  what to do: {err['advice']}")
+    return "\n".join(lines)
+
+
+def status_command(config: Path | None, socket: Path | None, *, as_json: bool = False) -> int:
+    """Print the service's status (one screen, or JSON); exit 0 when it answered, 1 when in fault."""
+    path = socket_for(config, socket)
+    reply = request(path, {"cmd": "status"}, STATUS_TIMEOUT_S)
+    st = reply.get("status", {})
+    print(json.dumps(st, indent=2) if as_json else format_status(st))
+    return 1 if st.get("state") == "fault" else 0
+
+
+def trigger_command(config: Path | None, socket: Path | None, *, wait: bool = False) -> int:
+    """Start a scan through the control socket; with ``wait``, print where its files went.
+
+    Exit status 1 when the trigger was refused or the scan failed.
+    """
+    path = socket_for(config, socket)
+    reply = request(path, {"cmd": "trigger", "wait": wait, "detail": "scan3d trigger"},
+                    TRIGGER_WAIT_TIMEOUT_S if wait else STATUS_TIMEOUT_S)
+    if not reply.get("ok"):
+        print(f"scan3d trigger: {reply.get('error', reply.get('result', 'refused'))}")
+        return 1
+    scan = reply.get("scan")
+    if scan is None:
+        print(f"trigger {reply.get('result')}")
+        return 0
+    t = scan.get("timings_ms", {})
+    print(f"scan {scan['scan_id']}: {scan['points']} points, {scan['location']}, "
+          f"trigger to file {_ms(t.get('trigger_to_file_ms'))} ms")
+    for f in scan.get("files", []):
+        print(f"  {f}")
+    return 0

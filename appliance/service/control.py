@@ -1,0 +1,179 @@
+"""The control socket: a unix stream socket speaking JSON lines.
+
+Each request is one JSON object on one line, ``{"cmd": "status"}``; each reply is one JSON object on one line
+with ``"ok": true|false``. Commands: ``status``, ``trigger`` (``"wait": true`` replies when the scan is done),
+``reload``, ``last_error``. A connection may send several requests; a malformed line gets an error reply.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import stat
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from appliance.errors import ApplianceError
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
+MAX_LINE = 64 * 1024
+SOCKET_MODE = 0o660
+
+
+class ControlServer:
+    """Serves the control socket at ``path`` with ``handler(request) -> reply``.
+
+    Parameters
+    ----------
+    path : Path
+        Socket path; a stale socket there is replaced, any other file is an error.
+    handler : callable
+        Coroutine function from a request dict to a reply dict (``ok`` is added when missing).
+    """
+
+    def __init__(self, path: Path, handler: Handler) -> None:
+        self.path = Path(path)
+        self.handler = handler
+        self._server: asyncio.Server | None = None
+        self._clients: set[asyncio.Task[Any]] = set()
+
+    async def start(self) -> None:
+        """Bind and listen.
+
+        Raises
+        ------
+        ApplianceError
+            When the path is taken by a non-socket file or by a live service.
+        """
+        p = self.path
+        p.parent.mkdir(parents=True, exist_ok=True)
+        if p.exists() or p.is_symlink():
+            if not stat.S_ISSOCK(p.lstat().st_mode):
+                raise ApplianceError(f"control socket {p}: a file that is not a socket is there; remove it "
+                                     "or set service.control_socket elsewhere")
+            if _socket_alive(p):
+                raise ApplianceError(f"control socket {p}: another scan3d service answers there; stop it "
+                                     "(systemctl stop scan3d) or use --control-socket")
+            p.unlink()
+        self._server = await asyncio.start_unix_server(self._client, path=str(p), limit=MAX_LINE)
+        os.chmod(p, SOCKET_MODE)
+        log.info("control socket at %s", p)
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._clients.add(task)
+        try:
+            while True:
+                try:
+                    line = await reader.readline()
+                except (ValueError, asyncio.LimitOverrunError):
+                    await _reply(writer, {"ok": False, "error": f"request longer than {MAX_LINE} bytes"})
+                    break
+                if not line:
+                    break
+                if not line.strip():
+                    continue
+                await _reply(writer, await self._dispatch(line))
+        except (ConnectionError, asyncio.IncompleteReadError):
+            pass
+        finally:
+            if task is not None:
+                self._clients.discard(task)
+            writer.close()
+            with contextlib.suppress(ConnectionError, OSError):
+                await writer.wait_closed()
+
+    async def _dispatch(self, line: bytes) -> dict[str, Any]:
+        try:
+            request = json.loads(line)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            return {"ok": False, "error": f"not a JSON line: {exc}"}
+        if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
+            return {"ok": False, "error": 'a request is a JSON object with a "cmd" string'}
+        try:
+            reply = await self.handler(request)
+        except ApplianceError as exc:
+            return {"ok": False, "error": str(exc)}
+        except Exception as exc:  # a handler bug must not kill the socket
+            log.exception("control request %r failed", request)
+            return {"ok": False, "error": f"internal error: {exc!r}"}
+        reply.setdefault("ok", True)
+        return reply
+
+    async def close(self) -> None:
+        """Stop listening, end the connections, remove the socket file."""
+        if self._server is not None:
+            self._server.close()
+            for t in list(self._clients):
+                t.cancel()
+            if self._clients:
+                await asyncio.gather(*self._clients, return_exceptions=True)
+            await self._server.wait_closed()
+            self._server = None
+            with contextlib.suppress(OSError):
+                if stat.S_ISSOCK(self.path.lstat().st_mode):
+                    self.path.unlink()
+
+
+async def _reply(writer: asyncio.StreamWriter, reply: dict[str, Any]) -> None:
+    writer.write(json.dumps(reply, default=str).encode() + b"\n")
+    await writer.drain()
+
+
+def _socket_alive(path: Path) -> bool:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(0.5)
+    try:
+        s.connect(str(path))
+        return True
+    except OSError:
+        return False
+    finally:
+        s.close()
+
+
+def request(path: Path, req: dict[str, Any], timeout_s: float = 10.0) -> dict[str, Any]:
+    """Send one request to the control socket at ``path`` and return the reply (blocking; for clients).
+
+    Raises
+    ------
+    ApplianceError
+        When nothing listens there or the reply is not JSON.
+    """
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout_s)
+    try:
+        try:
+            s.connect(str(path))
+        except OSError as exc:
+            raise ApplianceError(
+                f"control socket {path}: {exc.strerror or exc}; is the service running? "
+                "(systemctl status scan3d, or scan3d run)"
+            ) from exc
+        s.sendall(json.dumps(req).encode() + b"\n")
+        buf = b""
+        while not buf.endswith(b"\n"):
+            try:
+                chunk = s.recv(65536)
+            except TimeoutError as exc:
+                raise ApplianceError(f"control socket {path}: no reply within {timeout_s:g} s") from exc
+            if not chunk:
+                break
+            buf += chunk
+    finally:
+        s.close()
+    try:
+        reply = json.loads(buf)
+    except json.JSONDecodeError as exc:
+        raise ApplianceError(f"control socket {path}: the reply is not JSON ({buf[:80]!r})") from exc
+    if not isinstance(reply, dict):
+        raise ApplianceError(f"control socket {path}: unexpected reply {reply!r}")
+    return reply

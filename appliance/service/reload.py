@@ -1,0 +1,93 @@
+"""Live configuration: reload the YAML file on SIGHUP and when it changes (cheap mtime polling).
+
+A file that does not validate is rejected with its ``file:line: key = value: rule`` message; the last good
+configuration keeps running and the error is published (status, log).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+from appliance.config import AppConfig, load_config
+from appliance.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+# Module-level so tests can shorten it: wait this long after a change so an editor finishes writing.
+SETTLE_S = 0.1
+
+Stamp = tuple[int, int, int] | None
+
+
+def file_stamp(path: Path) -> Stamp:
+    """(mtime_ns, size, inode) of ``path``; None when it is missing."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+class ConfigWatcher:
+    """Polls ``path`` and reloads it on change or on :meth:`reload`.
+
+    Parameters
+    ----------
+    path : Path
+        The configuration file.
+    apply : callable
+        ``await apply(cfg)`` with each new valid configuration.
+    rejected : callable
+        ``rejected(message)`` when a changed file does not validate (message names file, line and key).
+    poll_s : float
+        Polling period (s); 0 polls never (SIGHUP only).
+    """
+
+    def __init__(self, path: Path, apply: Callable[[AppConfig], Awaitable[None]],
+                 rejected: Callable[[str], None], poll_s: float) -> None:
+        self.path = Path(path)
+        self.apply = apply
+        self.rejected = rejected
+        self.poll_s = poll_s
+        self.stamp = file_stamp(self.path)
+        self._lock = asyncio.Lock()
+
+    async def reload(self, why: str) -> tuple[bool, str]:
+        """Load the file now; apply it when valid.
+
+        Returns
+        -------
+        (bool, str)
+            Whether it was applied, and the error message when it was not.
+        """
+        async with self._lock:
+            self.stamp = file_stamp(self.path)
+            loop = asyncio.get_running_loop()
+            try:
+                cfg = await loop.run_in_executor(None, load_config, self.path)
+            except ConfigError as exc:
+                msg = str(exc)
+                log.error("configuration %s (%s) rejected; the last good one keeps running:\n%s",
+                          self.path, why, msg)
+                self.rejected(msg)
+                return False, msg
+            log.info("configuration %s reloaded (%s)", self.path, why)
+            await self.apply(cfg)
+            return True, ""
+
+    async def run(self) -> None:
+        """Poll until cancelled."""
+        if self.poll_s <= 0:
+            return
+        while True:
+            await asyncio.sleep(self.poll_s)
+            if file_stamp(self.path) == self.stamp:
+                continue
+            await asyncio.sleep(SETTLE_S)
+            if file_stamp(self.path) is None:
+                continue  # an editor's rename in progress, or removed: keep the running config
+            await self.reload("file changed")

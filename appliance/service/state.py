@@ -1,0 +1,229 @@
+"""The service's state machine and everything ``scan3d status`` shows.
+
+States: ``starting`` (phases load config → connect hardware → warm kernels), ``idle``, ``scanning``
+(projecting and capturing), ``processing`` (decode finish, triangulation), ``writing`` (files to the share or
+spool), ``fault`` (hardware absent or failed; retried with backoff), ``stopping``. Every change notifies the
+listeners (sd_notify STATUS, mDNS TXT, controller lamps), so the state is published, not just logged.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import enum
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from appliance import __version__
+
+log = logging.getLogger(__name__)
+
+LAST_SCANS_KEPT = 10
+
+
+class State(enum.StrEnum):
+    """What the service is doing."""
+
+    STARTING = "starting"
+    IDLE = "idle"
+    SCANNING = "scanning"
+    PROCESSING = "processing"
+    WRITING = "writing"
+    FAULT = "fault"
+    STOPPING = "stopping"
+
+
+class Phase(enum.StrEnum):
+    """Start-up phase (published while ``starting`` and ``fault``)."""
+
+    LOAD_CONFIG = "load config"
+    CONNECT = "connect hardware"
+    WARM = "warm kernels"
+    READY = "ready"
+    STOPPING = "stopping"
+
+
+BUSY_STATES = frozenset({State.SCANNING, State.PROCESSING, State.WRITING})
+
+
+@dataclass
+class DeviceStatus:
+    """One device as the service last saw it."""
+
+    role: str  # camera / projector / trigger
+    name: str
+    backend: str
+    ok: bool = False
+    detail: str = "not connected"
+
+
+@dataclass
+class ScanRecord:
+    """One finished (or failed) scan."""
+
+    scan_id: str
+    started_utc: str
+    trigger: str
+    ok: bool
+    points: int = 0
+    location: str = ""  # share / spool
+    files: list[str] = field(default_factory=list)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    error: str = ""
+
+
+@dataclass
+class ErrorRecord:
+    """The last error: when, where, what and what to do."""
+
+    time_utc: str
+    where: str
+    message: str
+    advice: str
+
+
+def advice_for(where: str, message: str) -> str:
+    """What a person should do about an error (one line)."""
+    m = message.lower()
+    if where == "config":
+        return ("fix the file (scan3d validate-config FILE shows the problem); the last good configuration "
+                "keeps running until then")
+    if where == "share":
+        return ("check that the share is mounted and writable (mount, df -h); scans are kept in the spool "
+                "and moved over automatically when it is back")
+    if where == "disk":
+        return "free space on the share / spool disk (df -h), or lower output.min_free_mb"
+    if "serial" in m or "tty" in m or "trigger" in m:
+        return ("check the trigger controller's USB cable (ls /dev/serial/by-id/); "
+                "the service retries by itself")
+    if "camera" in m:
+        return "check the camera's power and cable (scan3d devices); the service retries by itself"
+    if "projector" in m or "lightcrafter" in m:
+        return "check the projector's power and USB cable (scan3d devices); the service retries by itself"
+    if where == "scan":
+        return "look at the log (journalctl -u scan3d); the next trigger tries again"
+    return "look at the log (journalctl -u scan3d -e)"
+
+
+def _now_utc() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+Listener = Callable[["StatusBoard"], None]
+
+
+class StatusBoard:
+    """The published state of the service: state, phase, devices, counters, last scans, last error."""
+
+    def __init__(self, serial: str = "", config_path: str = "") -> None:
+        self.state = State.STARTING
+        self.phase = Phase.LOAD_CONFIG
+        self.detail = ""
+        self.serial = serial
+        self.config_path = config_path
+        self.config_error = ""
+        self.config_loaded_utc = ""
+        self.devices: dict[str, DeviceStatus] = {}
+        self.counters: dict[str, int] = {
+            "triggers": 0, "scans_done": 0, "scans_failed": 0, "triggers_refused": 0, "triggers_queued": 0,
+            "spooled": 0, "spool_dropped": 0, "reloads": 0, "reloads_rejected": 0,
+        }
+        self.last_scans: deque[ScanRecord] = deque(maxlen=LAST_SCANS_KEPT)
+        self.last_error: ErrorRecord | None = None
+        self.share: dict[str, Any] = {}
+        self.queue_length = 0
+        self.started_monotonic = time.monotonic()
+        self.started_utc = _now_utc()
+        self.sequence = ""
+        self._listeners: list[Listener] = []
+
+    def subscribe(self, listener: Listener) -> None:
+        """Call ``listener(board)`` after every change."""
+        self._listeners.append(listener)
+
+    def unsubscribe(self, listener: Listener) -> None:
+        """Stop calling ``listener``."""
+        if listener in self._listeners:
+            self._listeners.remove(listener)
+
+    def changed(self) -> None:
+        """Tell the listeners (a failing listener is logged, never raised)."""
+        for fn in list(self._listeners):
+            try:
+                fn(self)
+            except Exception:  # a broken listener must not stop the service
+                log.exception("status listener %r failed", fn)
+
+    def set_state(self, state: State, detail: str = "", phase: Phase | None = None) -> None:
+        """Move to ``state``; logged when it changes."""
+        if state != self.state or (phase is not None and phase != self.phase):
+            log.info("state %s -> %s%s", self.state, state, f" ({detail})" if detail else "")
+        self.state = state
+        self.detail = detail
+        if phase is not None:
+            self.phase = phase
+        self.changed()
+
+    def count(self, key: str, n: int = 1) -> None:
+        """Add ``n`` to counter ``key``."""
+        self.counters[key] = self.counters.get(key, 0) + n
+        self.changed()
+
+    def error(self, where: str, message: str) -> ErrorRecord:
+        """Record the last error (and the advice for it)."""
+        self.last_error = ErrorRecord(_now_utc(), where, message, advice_for(where, message))
+        self.changed()
+        return self.last_error
+
+    def add_scan(self, record: ScanRecord) -> None:
+        """Remember a finished or failed scan."""
+        self.last_scans.append(record)
+        self.changed()
+
+    @property
+    def busy(self) -> bool:
+        """True while a scan runs (scanning, processing or writing)."""
+        return self.state in BUSY_STATES
+
+    def last_scan_id(self) -> str:
+        """The id of the last successful scan ('' before the first)."""
+        for rec in reversed(self.last_scans):
+            if rec.ok:
+                return rec.scan_id
+        return ""
+
+    def one_line(self) -> str:
+        """A short line for systemd's STATUS and the log."""
+        text = f"{self.state}"
+        if self.state in (State.STARTING, State.FAULT):
+            text += f" ({self.phase})"
+        if self.detail:
+            text += f": {self.detail}"
+        text += f"; {self.counters['scans_done']} scans"
+        if self.last_scan_id():
+            text += f", last {self.last_scan_id()}"
+        return text
+
+    def snapshot(self) -> dict[str, Any]:
+        """Everything, as JSON-ready data (what ``scan3d status --json`` prints)."""
+        return {
+            "state": str(self.state),
+            "phase": str(self.phase),
+            "detail": self.detail,
+            "version": __version__,
+            "serial": self.serial,
+            "uptime_s": round(time.monotonic() - self.started_monotonic, 1),
+            "started_utc": self.started_utc,
+            "config": {"path": self.config_path, "loaded_utc": self.config_loaded_utc,
+                       "error": self.config_error},
+            "sequence": self.sequence,
+            "devices": [asdict(d) for d in self.devices.values()],
+            "counters": dict(self.counters),
+            "queue_length": self.queue_length,
+            "share": dict(self.share),
+            "last_scans": [asdict(r) for r in self.last_scans],
+            "last_error": asdict(self.last_error) if self.last_error is not None else None,
+        }

@@ -1,0 +1,384 @@
+"""The service end to end on a small virtual rig (320x256 camera): the serial controller's firmware on a pty,
+mDNS seen from another process, sd_notify, live reload, the share going away, SIGTERM mid-scan, 200 scans.
+
+In-process runs use :class:`appliance.service.daemon.Service`; subprocess runs use
+``python -m appliance run --config TMP.yaml --control-socket TMP/sock`` (what ``scan3d run`` does).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as dt
+import gc
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from appliance.output import share as S
+from appliance.output.atomic import TMP_PREFIX
+from appliance.output.ply import read_ply_vertices
+from appliance.service import daemon as D
+from appliance.service.control import request
+from appliance.service.state import Phase, State
+
+REPO = Path(__file__).resolve().parents[1]
+
+SMALL_RIG = {
+    "projector": {"width": 320, "height": 200, "focal_px": 400, "principal_px": [160, 190],
+                  "position_mm": [175, 0, 0], "look_at_mm": [0, 40, 580]},
+    "cameras": {"cam0": {"width": 320, "height": 256, "focal_px": 450, "position_mm": [0, 0, 0],
+                         "look_at_mm": [0, 0, 580]}},
+}
+
+
+def write_config(tmp: Path, *, mdns: str | None = None, trigger: dict[str, Any] | None = None,
+                 camera: dict[str, Any] | None = None, service: dict[str, Any] | None = None,
+                 **top: Any) -> Path:
+    """A small-virtual-rig configuration with everything under ``tmp``; returns its path."""
+    doc: dict[str, Any] = {
+        "serial": "E2E-1",
+        "cameras": {"cam0": {"type": "sim", **(camera or {})}},
+        "trigger": trigger or {"type": "sim"},
+        "virtual_rig": SMALL_RIG,
+        "reconstruction": {"min_depth_mm": 300, "max_depth_mm": 900},
+        "output": {"directory": str(tmp / "share"), "spool_directory": str(tmp / "spool"), "min_free_mb": 0},
+        "service": {"control_socket": str(tmp / "ctl.sock"), "state_directory": str(tmp / "state"),
+                    "config_poll_s": 0.1,
+                    "mdns": {"enabled": mdns is not None, "interfaces": ["127.0.0.1"],
+                             **({"instance_name": mdns} if mdns else {})},
+                    **(service or {})},
+        **top,
+    }
+    (tmp / "share").mkdir(exist_ok=True)
+    path = tmp / "appliance.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def day() -> str:
+    return f"{dt.datetime.now(dt.UTC):%Y-%m-%d}"
+
+
+def scan_files(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*") if p.is_file()) if root.exists() else []
+
+
+def no_partial_files(*roots: Path) -> None:
+    leftovers = [p for r in roots for p in scan_files(r) if p.name.startswith(TMP_PREFIX)]
+    assert leftovers == [], f"partial files left: {leftovers}"
+
+
+def complete_scan(folder: Path, scan_id: str) -> None:
+    """Cloud, preview and sidecar of ``scan_id`` are in ``folder`` and whole."""
+    side = json.loads((folder / f"{scan_id}.json").read_text())
+    v = read_ply_vertices(folder / side["files"]["cloud"])
+    assert len(v) == side["counts"]["points"] > 1000
+    assert (folder / side["files"]["preview"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def wait_for(pred: Callable[[], Any], timeout_s: float = 60.0, what: str = "condition") -> Any:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        value = pred()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"{what} not met within {timeout_s} s")
+
+
+async def await_for(pred: Callable[[], Any], timeout_s: float = 60.0) -> None:
+    end = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > end:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.02)
+
+
+class ServiceProcess:
+    """``scan3d run`` as a subprocess, with its log."""
+
+    def __init__(self, config: Path, tmp: Path, env: dict[str, str] | None = None, *args: str) -> None:
+        self.sock = tmp / "sock"
+        self.log = tmp / "service.log"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "appliance", "run", "--config", str(config), "--control-socket",
+             str(self.sock), *args],
+            cwd=REPO, stdout=self.log.open("w"), stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
+
+    def status(self) -> dict[str, Any]:
+        try:
+            return request(self.sock, {"cmd": "status"}, 5)["status"]  # type: ignore[no-any-return]
+        except Exception:
+            return {}
+
+    def wait_ready(self, timeout_s: float = 120.0) -> dict[str, Any]:
+        def ok() -> dict[str, Any] | None:
+            assert self.proc.poll() is None, f"service exited: {self.log.read_text()}"
+            st = self.status()
+            return st if st.get("state") == "idle" else None
+
+        return wait_for(ok, timeout_s, "service ready")  # type: ignore[no-any-return]
+
+    def stop(self, timeout_s: float = 60.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+            raise AssertionError(f"service did not stop on SIGTERM: {self.log.read_text()}") from None
+
+
+def run_in_process(config: Path, body: Callable[[D.Service], Any], **kw: Any) -> tuple[int, D.Service]:
+    svc = D.Service(config, **kw)
+
+    async def main() -> int:
+        task = asyncio.create_task(svc.run())
+        try:
+            await await_for(lambda: (svc.board.phase == Phase.READY and svc.board.state == State.IDLE)
+                            or task.done(), 120)
+            assert not task.done(), "service ended early"
+            await body(svc)
+        finally:
+            svc.request_stop()
+        return await asyncio.wait_for(task, 60)
+
+    return asyncio.run(main()), svc
+
+
+async def scan_once(svc: D.Service) -> dict[str, Any]:
+    reply = await asyncio.to_thread(request, svc.socket_path, {"cmd": "trigger", "wait": True}, 120)
+    assert reply["ok"], reply
+    return reply["scan"]  # type: ignore[no-any-return]
+
+
+@pytest.fixture(autouse=True)
+def fast(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(D, "RETRY_FIRST_S", 0.1)
+    monkeypatch.setattr(D, "SPOOL_RETRY_S", 0.1)
+
+
+# --- the button on the serial controller's firmware (pty), files on the share, mDNS from another process ---
+
+
+@pytest.mark.hil
+def test_serial_button_press_writes_files_and_updates_mdns(tmp_path: Path) -> None:
+    from appliance.firmware.simulate import SimulatedController
+    from test_mdns import TxtWatcher
+
+    name = f"scan3d-e2e-{uuid.uuid4().hex[:8]}"
+    with SimulatedController(tmp_path / "tty") as board:
+        port = board.start()
+        config = write_config(tmp_path, mdns=name, trigger={"type": "serial", "port": port})
+        watcher = TxtWatcher(name)
+        svc = ServiceProcess(config, tmp_path)
+        try:
+            svc.wait_ready()
+            txt = watcher.wait_for(lambda t: t.get("state") == "idle", 30)
+            assert txt["scans"] == "0" and txt["serial"] == "E2E-1" and txt["share"] == str(tmp_path / "share")
+            wait_for(lambda: board.pins.leds == (True, False, False), 10, "ready lamp")
+            board.press_button()
+            st = wait_for(lambda: (s := svc.status()).get("counters", {}).get("scans_done") == 1 and s, 60,
+                          "scan after the button press")
+            rec = st["last_scans"][-1]
+            assert rec["trigger"] == "trigger" and rec["location"] == "share"
+            complete_scan(tmp_path / "share" / day(), rec["scan_id"])
+            txt = watcher.wait_for(lambda t: t.get("scans") == "1", 30)
+            assert txt["last"] == rec["scan_id"] and txt["state"] == "idle"
+            assert svc.stop() == 0
+        finally:
+            if svc.proc.poll() is None:
+                svc.proc.kill()
+            watcher.close()
+    no_partial_files(tmp_path / "share", tmp_path / "spool")
+
+
+# --- sd_notify ----------------------------------------------------------------------------------------------
+
+
+def test_sd_notify_ready_watchdog_status_stopping(tmp_path: Path) -> None:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(tmp_path / "notify"))
+    msgs: list[dict[str, str]] = []
+
+    def receive() -> None:
+        sock.settimeout(0.2)
+        while not getattr(sock, "_closed", False):
+            try:
+                data = sock.recv(4096).decode()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            msgs.append(dict(line.split("=", 1) for line in data.splitlines()))
+
+    reader = threading.Thread(target=receive, daemon=True)
+    reader.start()
+    config = write_config(tmp_path)
+    svc = ServiceProcess(config, tmp_path, {"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "400000"})
+    try:
+        wait_for(lambda: any("READY" in m for m in msgs), 120, "READY=1")
+        ready_at = next(i for i, m in enumerate(msgs) if "READY" in m)
+        assert any("warm kernels" in m.get("STATUS", "") for m in msgs[:ready_at])  # warm-up came first
+        wait_for(lambda: sum("WATCHDOG" in m for m in msgs[ready_at:]) >= 2, 10, "watchdog pings")
+        reply = request(svc.sock, {"cmd": "trigger", "wait": True}, 120)
+        assert reply["ok"]
+        statuses = [m["STATUS"] for m in msgs if "STATUS" in m]
+        assert any(s.startswith("scanning") for s in statuses) and any(s.startswith("writing") for s in statuses)
+        assert svc.stop() == 0
+        wait_for(lambda: any("STOPPING" in m for m in msgs), 5, "STOPPING=1")
+    finally:
+        if svc.proc.poll() is None:
+            svc.proc.kill()
+        sock.close()
+
+
+# --- SIGTERM in the middle of a scan -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("grace_s", [0.0, 30.0], ids=["abort", "finish"])
+def test_sigterm_mid_scan_leaves_no_partial_file(tmp_path: Path, grace_s: float) -> None:
+    config = write_config(tmp_path, camera={"frame_delay_ms": 60}, service={"stop_grace_s": grace_s})
+    svc = ServiceProcess(config, tmp_path)
+    try:
+        svc.wait_ready()
+        assert request(svc.sock, {"cmd": "trigger"})["ok"]
+        wait_for(lambda: svc.status().get("state") == "scanning", 30, "scanning")
+        time.sleep(0.3)  # a few frames in
+        assert svc.stop() == 0
+    finally:
+        if svc.proc.poll() is None:
+            svc.proc.kill()
+    no_partial_files(tmp_path / "share", tmp_path / "spool", tmp_path / "state")
+    files = scan_files(tmp_path / "share")
+    if grace_s:
+        assert len(files) == 3
+        complete_scan(files[0].parent, files[0].stem)
+    else:
+        assert files == []
+    assert "stopped after" in svc.log.read_text()
+
+
+# --- live configuration ------------------------------------------------------------------------------------
+
+
+def test_broken_config_keeps_scanning_and_fixed_config_is_picked_up(tmp_path: Path) -> None:
+    config = write_config(tmp_path)
+    good = yaml.safe_load(config.read_text())
+
+    async def body(svc: D.Service) -> None:
+        bad = dict(good, reconstruction={**good["reconstruction"], "min_neighbours": 12})
+        config.write_text(yaml.safe_dump(bad, sort_keys=False))
+        await await_for(lambda: svc.board.config_error != "", 10)
+        assert "reconstruction.min_neighbours" in svc.board.config_error
+        assert svc.board.config_error.startswith(f"{config}:")  # file:line: key = value: rule
+        rec = await scan_once(svc)  # the last good configuration keeps scanning
+        assert rec["ok"] and "E2E-1" in rec["scan_id"] and len(rec["files"]) == 3
+        fixed = dict(good, serial="E2E-2", output={**good["output"], "preview": False},
+                     reconstruction={**good["reconstruction"], "max_depth_mm": 800})
+        config.write_text(yaml.safe_dump(fixed, sort_keys=False))
+        await await_for(lambda: svc.cfg.serial == "E2E-2" and svc.board.state == State.IDLE
+                        and svc.board.phase == Phase.READY and svc.scanner is not None, 60)
+        assert svc.board.config_error == "" and svc.scanner.cfg.reconstruction.max_depth_mm == 800
+        rec = await scan_once(svc)
+        assert "E2E-2" in rec["scan_id"] and len(rec["files"]) == 2  # no preview any more
+
+    rc, svc = run_in_process(config, body)
+    assert rc == 0 and svc.board.counters["reloads_rejected"] >= 1
+
+
+# --- the share goes away (removed, then full) and comes back ------------------------------------------------
+
+
+def test_share_away_spools_and_delivers_everything_in_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config = write_config(tmp_path)
+    share, away = tmp_path / "share", tmp_path / "share-unmounted"
+    full = {"on": False}
+    real = S.STATVFS
+    monkeypatch.setattr(S, "STATVFS", lambda p: type("F", (), {"f_bavail": 1, "f_frsize": 4096})()
+                        if full["on"] and p.startswith(str(share)) else real(p))
+    ids: list[str] = []
+
+    async def body(svc: D.Service) -> None:
+        ids.append((await scan_once(svc))["scan_id"])
+        share.rename(away)  # the share disappears during the run
+        for _ in range(3):
+            rec = await scan_once(svc)
+            assert rec["location"] == "spool"
+            ids.append(rec["scan_id"])
+        st = (await asyncio.to_thread(request, svc.socket_path, {"cmd": "status"}))["status"]
+        assert not st["share"]["available"] and st["share"]["spooled_scans"] == 3
+        assert st["last_error"]["where"] == "share" and "mounted" in st["last_error"]["advice"]
+        away.rename(share)
+        full["on"] = True  # back, but full: still spooled
+        rec = await scan_once(svc)
+        assert rec["location"] == "spool"
+        ids.append(rec["scan_id"])
+        full["on"] = False
+        await await_for(lambda: not svc.writer.spool_entries(), 30)
+        ids.append((await scan_once(svc))["scan_id"])
+
+    rc, svc = run_in_process(config, body)
+    assert rc == 0
+    folder = share / day()
+    sidecars = sorted(folder.glob("*.json"), key=lambda p: p.stat().st_mtime_ns)
+    assert [p.stem for p in sidecars] == ids  # every scan, in order
+    for scan_id in ids:
+        complete_scan(folder, scan_id)
+    assert svc.board.counters["spooled"] == 4 and svc.board.counters["scans_done"] == 6
+    no_partial_files(share, tmp_path / "spool")
+    assert svc.writer.spool_entries() == []
+
+
+# --- 200 scans: memory, threads, file descriptors ----------------------------------------------------------
+
+
+def _rss_kb() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+@pytest.mark.slow
+def test_200_scans_memory_threads_and_fds_stay_flat(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = write_config(tmp_path, output={"directory": str(tmp_path / "share"), "min_free_mb": 0,
+                                            "spool_directory": str(tmp_path / "spool"), "preview": True})
+    samples: dict[int, tuple[int, int, int]] = {}
+
+    async def body(svc: D.Service) -> None:
+        for i in range(1, 201):
+            outcome, job = svc.request_scan(D.TriggerEvent("bench", time.monotonic_ns()))
+            assert job is not None, outcome
+            rec = await job.done
+            assert rec.ok, rec.error
+            if i in (20, 200):
+                gc.collect()
+                samples[i] = (_rss_kb(), threading.active_count(), len(os.listdir("/proc/self/fd")))
+
+    threads_before = threading.active_count()
+    rc, svc = run_in_process(config, body)
+    assert rc == 0 and svc.board.counters["scans_done"] == 200
+    (rss20, thr20, fd20), (rss200, thr200, fd200) = samples[20], samples[200]
+    growth_mb = (rss200 - rss20) / 1024
+    with capsys.disabled():
+        print(f"\n200 scans: RSS {rss20 / 1024:.1f} MB after 20, {rss200 / 1024:.1f} MB after 200 "
+              f"(growth {growth_mb:+.1f} MB); threads {thr20} -> {thr200}; fds {fd20} -> {fd200}")
+    assert growth_mb < 16, f"resident memory grew {growth_mb:.1f} MB over 180 scans"
+    assert thr200 == thr20 and fd200 == fd20
+    assert len(list((tmp_path / "share" / day()).glob("*.json"))) == 200
+    time.sleep(0.2)
+    assert threading.active_count() <= threads_before + 1, [t.name for t in threading.enumerate()]

@@ -1,0 +1,185 @@
+"""The share writer: atomic files under YYYY-MM-DD/, the spool while the share is away, order, retention."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from appliance.config.schema import OutputConfig
+from appliance.errors import OutputError
+from appliance.output import share as S
+from appliance.output.atomic import TMP_PREFIX
+from appliance.output.ply import read_ply_vertices
+from appliance.output.sidecar import ScanMetadata
+from appliance.reconstruct.types import PointCloud
+
+SHAPES = [(24, 32)]
+
+
+def cloud(n: int = 50, seed: int = 0) -> PointCloud:
+    rng = np.random.default_rng(seed)
+    rows, cols = rng.integers(0, 24, n).astype(np.int32), rng.integers(0, 32, n).astype(np.int32)
+    return PointCloud(rng.uniform(-50, 50, (n, 3)).astype(np.float32) + np.float32([0, 0, 600]), rows, cols,
+                      np.zeros(n, np.uint8), rng.integers(0, 255, n).astype(np.uint8),
+                      rng.uniform(0, 50, n).astype(np.float32))
+
+
+def xyz(path: Path) -> np.ndarray:
+    v = read_ply_vertices(path)
+    return np.stack([v["x"], v["y"], v["z"]], axis=1)
+
+
+def meta(i: int) -> ScanMetadata:
+    return ScanMetadata(scan_id=f"20260101-000000-T-{i:06d}", time_utc="2026-01-01T00:00:00+00:00",
+                        sequence={}, calibration_hash="x", counts={"points": 50}, timings_ms={})
+
+
+@pytest.fixture
+def dirs(tmp_path: Path) -> SimpleNamespace:
+    share = tmp_path / "share"
+    share.mkdir()
+    return SimpleNamespace(share=share, spool=tmp_path / "spool", away=tmp_path / "share-away")
+
+
+def writer(d: SimpleNamespace, **kw: object) -> S.ShareWriter:
+    kw.setdefault("min_free_mb", 0)
+    cfg = OutputConfig(directory=d.share, spool_directory=d.spool, **kw)  # type: ignore[arg-type]
+    return S.ShareWriter(cfg)
+
+
+@pytest.fixture
+def full_disk(monkeypatch: pytest.MonkeyPatch) -> Iterator[set[str]]:
+    """Paths (prefixes) in this set report 1 MB free through the statvfs hook."""
+    full: set[str] = set()
+    real = S.STATVFS
+
+    def fake(path: str) -> object:
+        if any(path.startswith(p) for p in full):
+            return SimpleNamespace(f_bavail=256, f_frsize=4096)
+        return real(path)
+
+    monkeypatch.setattr(S, "STATVFS", fake)
+    yield full
+
+
+def no_temp_files(*roots: Path) -> bool:
+    return not any(p.name.startswith(TMP_PREFIX) for r in roots if r.exists() for p in r.rglob("*"))
+
+
+def test_scan_goes_to_the_dated_share_folder_complete(dirs: SimpleNamespace) -> None:
+    w = writer(dirs)
+    c = cloud()
+    out = w.write_scan("2026-01-01", meta(1), c, SHAPES)
+    assert out.location == "share"
+    folder = dirs.share / "2026-01-01"
+    assert sorted(p.name for p in folder.iterdir()) == [f"{meta(1).scan_id}{s}" for s in (".json", ".ply", ".png")]
+    np.testing.assert_array_equal(xyz(folder / f"{meta(1).scan_id}.ply"), c.xyz)
+    side = json.loads((folder / f"{meta(1).scan_id}.json").read_text())
+    assert side["files"]["cloud"] == f"{meta(1).scan_id}.ply"
+    assert no_temp_files(dirs.share) and w.spool_entries() == []
+
+
+def test_share_away_spools_then_moves_over_in_order(dirs: SimpleNamespace) -> None:
+    w = writer(dirs)
+    w.write_scan("2026-01-01", meta(1), cloud(seed=1), SHAPES)
+    dirs.share.rename(dirs.away)  # unmounted / removed
+    outs = [w.write_scan("2026-01-01", meta(i), cloud(seed=i), SHAPES) for i in (2, 3, 4)]
+    assert [o.location for o in outs] == ["spool"] * 3
+    assert "not there" in outs[0].reason
+    assert not dirs.share.exists(), "the writer must never create the share root (it would fill the local disk)"
+    assert [e.name.split("-", 1)[1] for e in w.spool_entries()] == [meta(i).scan_id for i in (2, 3, 4)]
+    assert w.flush_spool() == []  # still away: nothing moves
+    dirs.away.rename(dirs.share)
+    moved = w.flush_spool()
+    assert [m.scan_id for m in moved] == [meta(i).scan_id for i in (2, 3, 4)]
+    folder = dirs.share / "2026-01-01"
+    for i in (1, 2, 3, 4):
+        np.testing.assert_array_equal(xyz(folder / f"{meta(i).scan_id}.ply"), cloud(seed=i).xyz)
+        assert (folder / f"{meta(i).scan_id}.json").is_file() and (folder / f"{meta(i).scan_id}.png").is_file()
+    # the sidecars arrived in scan order (each moved after its cloud, scans oldest first)
+    mtimes = [(folder / f"{meta(i).scan_id}.json").stat().st_mtime_ns for i in (2, 3, 4)]
+    assert mtimes == sorted(mtimes)
+    assert w.spool_entries() == [] and no_temp_files(dirs.share, dirs.spool)
+
+
+def test_new_scan_waits_behind_spooled_ones(dirs: SimpleNamespace, full_disk: set[str]) -> None:
+    w = writer(dirs, min_free_mb=1)
+    full_disk.add(str(dirs.share))
+    assert w.write_scan("2026-01-01", meta(1), cloud(), SHAPES).location == "spool"
+    assert "full" in w.last_reason
+    full_disk.clear()
+    out = w.write_scan("2026-01-01", meta(2), cloud(), SHAPES)  # flushes scan 1 first, then writes scan 2
+    assert out.location == "share"
+    assert sorted(p.stem for p in (dirs.share / "2026-01-01").glob("*.json")) == [meta(1).scan_id, meta(2).scan_id]
+
+
+def test_storage_guard_refuses_when_share_and_spool_are_full(dirs: SimpleNamespace, full_disk: set[str]) -> None:
+    w = writer(dirs, min_free_mb=2)
+    need = S.estimate_scan_bytes(SHAPES, normals=False, preview=True)
+    assert w.storage_problem(need) == ""
+    full_disk.add(str(dirs.share))
+    assert w.storage_problem(need) == ""  # the spool still takes it
+    full_disk.add(str(dirs.spool))
+    problem = w.storage_problem(need)
+    assert "full" in problem and "spool" in problem
+    with pytest.raises(OutputError, match="cannot be stored"):
+        w.write_scan("2026-01-01", meta(1), cloud(), SHAPES)
+    assert no_temp_files(dirs.share, dirs.spool)
+
+
+def test_spool_size_limit_is_part_of_the_guard(dirs: SimpleNamespace) -> None:
+    w = writer(dirs, spool_max_mb=0.5)
+    dirs.share.rename(dirs.away)
+    w.write_scan("2026-01-01", meta(1), cloud(), SHAPES)
+    held = w.spool_bytes()
+    assert 0 < held < 0.5 * S.MB
+    assert w.storage_problem(int(0.5 * S.MB) - held - 1) == ""
+    assert "spool_max_mb" in w.storage_problem(int(0.5 * S.MB) - held + 1)
+
+
+def test_retention_drops_old_and_oversize_entries(dirs: SimpleNamespace) -> None:
+    w = writer(dirs, spool_max_age_days=1)
+    dirs.share.rename(dirs.away)
+    for i in (1, 2, 3):
+        w.write_scan("2026-01-01", meta(i), cloud(), SHAPES)
+    entries = w.spool_entries()
+    old = time.time() - 3 * 86400
+    os.utime(entries[0], (old, old))
+    assert w.enforce_retention() == [entries[0].name]
+    assert [e.name for e in w.spool_entries()] == [e.name for e in entries[1:]]
+    small = S.ShareWriter(OutputConfig(directory=dirs.share, spool_directory=dirs.spool,
+                                       spool_max_mb=S._dir_bytes(entries[2]) * 1.5 / S.MB))
+    assert small.enforce_retention() == [entries[1].name]  # oldest first until under the limit
+    assert w.spool_entries()[0].name == entries[2].name
+
+
+def test_crash_leftovers_are_cleaned(dirs: SimpleNamespace) -> None:
+    w = writer(dirs)
+    dirs.spool.mkdir()
+    (dirs.spool / f"{TMP_PREFIX}00000001-x").mkdir()
+    (dirs.spool / f"{TMP_PREFIX}00000001-x" / "a.ply").write_bytes(b"partial")
+    assert w.cleanup_incomplete() == 1
+    assert w.spool_entries() == [] and no_temp_files(dirs.spool)
+
+
+def test_status_reports_share_and_spool(dirs: SimpleNamespace) -> None:
+    w = writer(dirs)
+    st = w.status()
+    assert st["available"] and st["spooled_scans"] == 0 and st["free_mb"] > 0
+    dirs.share.rename(dirs.away)
+    w.write_scan("2026-01-01", meta(1), cloud(), SHAPES)
+    st = w.status()
+    assert not st["available"] and "not there" in st["problem"] and st["spooled_scans"] == 1
+
+
+def test_require_mount(dirs: SimpleNamespace) -> None:
+    w = writer(dirs, require_mount=True)
+    assert "mount point" in w.share_problem()
+    assert w.write_scan("2026-01-01", meta(1), cloud(), SHAPES).location == "spool"
