@@ -21,31 +21,24 @@ from appliance.config.schema import MdnsConfig
 from appliance.errors import ConfigError
 from appliance.output import mdns as M
 
-# A second process: browses _scan3d._tcp on loopback and prints one JSON line per TXT record it sees.
+# A second process: browses _scan3d._tcp on loopback and prints each new TXT record as a JSON line.
 WATCH_SCRIPT = r"""
-import json, sys, time
-from zeroconf import IPVersion, ServiceBrowser, ServiceStateChange, Zeroconf
-want = sys.argv[1]
+import json, select, sys
+from zeroconf import IPVersion, ServiceBrowser, ServiceInfo, Zeroconf
+name = sys.argv[1] + "._scan3d._tcp.local."
 zc = Zeroconf(interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only)
-last = None
-def seen(zeroconf, service_type, name, state_change):
-    global last
-    if not name.startswith(want + ".") or state_change is ServiceStateChange.Removed:
-        return
-    info = zeroconf.get_service_info(service_type, name, timeout=2000)
-    if info is None:
-        return
-    txt = {k.decode(): (v or b"").decode() for k, v in info.properties.items()}
-    if txt != last:
-        last = txt
-        print(json.dumps(txt), flush=True)
-browser = ServiceBrowser(zc, "_scan3d._tcp.local.", handlers=[seen])
+browser = ServiceBrowser(zc, "_scan3d._tcp.local.", handlers=[lambda **kw: None])  # keeps the cache fresh
 print("{}", flush=True)
-try:
-    sys.stdin.read()
-finally:
-    browser.cancel()
-    zc.close()
+last = None
+while not select.select([sys.stdin], [], [], 0.2)[0]:  # until stdin closes
+    info = ServiceInfo("_scan3d._tcp.local.", name)
+    if info.request(zc, 500):  # answered from the cache, which the announcements update
+        txt = {k.decode(): (v or b"").decode() for k, v in info.properties.items()}
+        if txt != last:
+            last = txt
+            print(json.dumps(txt), flush=True)
+browser.cancel()
+zc.close()
 """
 
 

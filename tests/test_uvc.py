@@ -94,7 +94,7 @@ def test_each_frame_shows_its_pattern(bgr: bool) -> None:
     cap = FakeCapture(world, bgr=bgr)
     cam = UvcCamera(
         "web",
-        UvcCameraConfig(settle_ms=50, flush_frames=4, exposure=120),
+        UvcCameraConfig(settle_ms=50, flush_frames=4, exposure=120, frame_timeout_ms=30000),
         capture_factory=lambda _dev: cap,
         sleep=world.sleep,
     )
@@ -117,7 +117,7 @@ def test_without_flushing_the_driver_queue_frames_are_stale() -> None:
     world = VirtualWorld()
     cam = UvcCamera(
         "web",
-        UvcCameraConfig(settle_ms=50, flush_frames=0),
+        UvcCameraConfig(settle_ms=50, flush_frames=0, frame_timeout_ms=30000),
         capture_factory=lambda _dev: FakeCapture(world),
         sleep=world.sleep,
     )
@@ -137,7 +137,7 @@ def test_a_missing_trigger_names_the_frame() -> None:
     world = VirtualWorld()
     cam = UvcCamera(
         "web",
-        UvcCameraConfig(settle_ms=0),
+        UvcCameraConfig(settle_ms=0, frame_timeout_ms=30000),
         capture_factory=lambda _dev: FakeCapture(world),
         sleep=world.sleep,
     )

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
+import sys
+import threading
 from pathlib import Path
+from typing import Any, TextIO
 
 from appliance.calibration.boards import BoardSpec, detect
 from appliance.calibration.boards import board_from_args as _board_from_values
@@ -134,18 +138,124 @@ def calibrate_projector_cli(manifests: list[Path], board: BoardSpec, out: Path) 
     return 0
 
 
-def calibrate_live_cli(config: Path | None) -> int:
-    """``scan3d calibrate --live``: capture board poses on the configured rig and calibrate.
+def calibrate_live_cli(
+    config: Path | None,
+    poses: int | None = None,
+    out: Path | None = None,
+    stdin: TextIO | None = None,
+) -> int:
+    """``scan3d calibrate --live``: capture board poses on the configured rig, calibrate, write the file.
 
-    Raises
-    ------
-    CalibrationError
-        Always, for now: live capture is not implemented yet.
+    Interactive (``poses`` None): each button press or Enter captures a pose and prints what was detected
+    and how the coverage of every device grows, until there are enough poses; ``c`` + Enter calibrates,
+    ``q`` + Enter quits. With ``poses`` N it captures N poses without asking (tests, scripted runs). On a
+    virtual rig the board moves to the next preset pose before each capture.
+
+    Parameters
+    ----------
+    config : Path or None
+        Configuration file (None: the built-in virtual-rig defaults).
+    poses : int, optional
+        Non-interactive: number of poses to capture.
+    out : Path, optional
+        Calibration file to write (default: ``calibration_file`` of the configuration, else
+        ``calibration.yaml``); the report goes beside it.
+    stdin : text stream, optional
+        Where Enter presses are read (default ``sys.stdin``).
+
+    Returns
+    -------
+    int
+        0 when a calibration was written, 1 when the operator quit.
     """
-    raise CalibrationError(
-        "calibrate --live: live capture is not implemented yet; capture one manifest per board pose "
-        "(scan3d grab) and run 'scan3d calibrate projector MANIFEST...'"
+    from appliance.config.loader import load_config
+    from appliance.config.schema import AppConfig
+
+    cfg = load_config(config) if config is not None else AppConfig()
+    target = out or cfg.calibration_file or Path("calibration.yaml")
+    if poses is not None and poses < 3:
+        raise CalibrationError(f"calibrate --live --poses {poses}: need >= 3 poses (better >= 10)")
+    return asyncio.run(_live(cfg, poses, target, stdin if stdin is not None else sys.stdin))
+
+
+def _stdin_lines(stream: TextIO, loop: asyncio.AbstractEventLoop) -> asyncio.Queue[str | None]:
+    """Lines of ``stream`` as an asyncio queue (a daemon thread reads; None at end of input)."""
+    queue: asyncio.Queue[str | None] = asyncio.Queue()
+
+    def pump() -> None:
+        for line in stream:
+            loop.call_soon_threadsafe(queue.put_nowait, line.strip())
+        loop.call_soon_threadsafe(queue.put_nowait, None)
+
+    threading.Thread(target=pump, name="calibrate-stdin", daemon=True).start()
+    return queue
+
+
+async def _next_command(lines: asyncio.Queue[str | None], trigger: Any) -> str | None:
+    """The next Enter line (``''`` for a plain Enter) or ``''`` for a button press; None at end of input."""
+    get_line = asyncio.ensure_future(lines.get())
+    get_press = asyncio.ensure_future(trigger.next_event())
+    done, pending = await asyncio.wait({get_line, get_press}, return_when=asyncio.FIRST_COMPLETED)
+    for task in pending:
+        task.cancel()
+    if get_line in done:
+        return get_line.result()
+    return ""
+
+
+async def _live(cfg: Any, poses: int | None, out: Path, stdin: TextIO) -> int:
+    from appliance.calibration.live import LiveCalibration, write_rig_calibration
+    from appliance.hardware.registry import build_rig
+
+    rig = build_rig(cfg)
+    session = LiveCalibration(cfg, rig, poses_hint=poses or cfg.calibration.poses_wanted)
+    loop = asyncio.get_running_loop()
+    await session.open()
+    n_points = session.board.n_points
+    print(f"calibrate --live: board {session.board.describe()}; {len(rig.cameras)} camera(s), projector "
+          f"{session.projector_size[0]}x{session.projector_size[1]}, {len(session.sequence or ())} frames per pose")
+    try:
+        if poses is not None:
+            for _ in range(poses):
+                cap = await session.capture()
+                print(cap.line(n_points))
+                print(session.progress())
+        else:
+            print("move the board, then press the button or Enter to capture a pose; "
+                  "'c' + Enter calibrates, 'q' + Enter quits")  # fmt: skip
+            lines = _stdin_lines(stdin, loop)
+            while True:
+                cmd = await _next_command(lines, rig.trigger)
+                if cmd is None or cmd.lower() in ("c", "calibrate", "done"):
+                    if session.good_poses() >= 3:
+                        break
+                    if cmd is None:
+                        print("end of input with fewer than 3 usable poses: nothing calibrated")
+                        return 1
+                    print(f"only {session.good_poses()} usable poses: capture at least 3 (better "
+                          f"{cfg.calibration.poses_wanted})")  # fmt: skip
+                    continue
+                if cmd.lower() in ("q", "quit"):
+                    print("quit: nothing calibrated")
+                    return 1
+                cap = await session.capture()
+                print(cap.line(n_points))
+                print(session.progress())
+        if session.good_poses() < 3:
+            raise CalibrationError(
+                f"calibrate --live: the board was found with projector coordinates in only "
+                f"{session.good_poses()} of {len(session.captures)} poses; need >= 3 (check the board settings "
+                "in calibration.board, focus and exposure)"
+            )
+        result = await loop.run_in_executor(None, session.calibrate)
+    finally:
+        await session.close()
+    print(result.summary())
+    page = await loop.run_in_executor(
+        None, write_rig_calibration, out, result, session.board, "Live calibration"
     )
+    print(f"wrote {out} and report {page}")
+    return 0
 
 
 __all__ = [

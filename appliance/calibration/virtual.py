@@ -32,13 +32,19 @@ MAX_TILT_DEG = 28.0
 VISIBLE_MARGIN_PX = 12.0
 """A preset pose keeps every board point this far inside every device's image (px)."""
 
-# (x, y) offset of the board centre in units of the free travel, and tilt signs (about x, about y)
+# (x, y) offset of the board centre in units of the free travel, tilt signs (about x, about y), roll sign
+# (about the normal) and depth step (in units of DEPTH_STEP): corners and edges first, mixed tilts
 _LAYOUT = (
-    (0.0, 0.0, 0, 0), (-1.0, -1.0, 1, -1), (1.0, -1.0, 1, 1), (1.0, 1.0, -1, 1), (-1.0, 1.0, -1, -1),
-    (0.0, -1.0, 1, 0), (1.0, 0.0, 0, 1), (0.0, 1.0, -1, 0), (-1.0, 0.0, 0, -1), (-0.5, -0.5, -1, 1),
-    (0.5, -0.5, 1, -1), (0.5, 0.5, 1, 1), (-0.5, 0.5, -1, -1), (0.0, 0.0, 1, 1), (0.0, 0.0, -1, -1),
-    (1.0, -1.0, -1, -1), (-1.0, 1.0, 1, 1), (-1.0, -1.0, -1, 1), (1.0, 1.0, 1, -1), (0.0, 0.0, 1, -1),
+    (0.0, 0.0, 0, 0, 0, 0), (-1.0, -1.0, 1, -1, 1, 0), (1.0, -1.0, 1, 1, -1, 0), (1.0, 1.0, -1, 1, 1, 0),
+    (-1.0, 1.0, -1, -1, -1, 0), (0.0, -1.0, 1, 0, 0, 1), (1.0, 0.0, 0, 1, 1, -1), (0.0, 1.0, -1, 0, 0, 1),
+    (-1.0, 0.0, 0, -1, -1, -1), (-1.0, -1.0, -1, 1, 0, -1), (1.0, -1.0, -1, -1, 0, 1), (1.0, 1.0, 1, -1, 0, -1),
+    (-1.0, 1.0, 1, 1, 0, 1), (0.0, 0.0, 1, 1, 1, -1), (0.0, 0.0, -1, -1, -1, 1), (0.5, -0.5, 1, 0, -1, 0),
+    (-0.5, 0.5, 0, 1, 1, 0), (-0.5, -0.5, -1, 0, 1, 0), (0.5, 0.5, 0, -1, -1, 0), (0.0, 0.0, 1, -1, 0, 0),
 )  # fmt: skip
+MAX_ROLL_DEG = 15.0
+"""Rotation of the preset poses about the board normal (degrees)."""
+DEPTH_STEP = 0.12
+"""Depth change of the preset poses, as a share of the working distance."""
 
 
 @dataclass(frozen=True)
@@ -135,12 +141,13 @@ def preset_board_poses(
     travel = np.array([max(half_w - 0.5 * ext[0], 0.0), max(half_h - 0.5 * ext[1], 0.0)])
     poses: list[BoardPose] = []
     for k in range(n):
-        ox, oy, tx, ty = _LAYOUT[k % len(_LAYOUT)]
+        ox, oy, tx, ty, roll, dz = _LAYOUT[k % len(_LAYOUT)]
         tilt = max_tilt_deg * (1.0 if k < len(_LAYOUT) else 0.7)
-        R = base @ _rot(0, tx * tilt) @ _rot(1, ty * tilt)
+        R = base @ _rot(0, tx * tilt) @ _rot(1, ty * tilt) @ _rot(2, roll * MAX_ROLL_DEG)
+        depth = target + dz * DEPTH_STEP * dist * look
         pose = None
         for shrink in np.linspace(1.0, 0.0, 11):
-            c = target + shrink * (ox * travel[0] * right + oy * travel[1] * down)
+            c = depth + shrink * (ox * travel[0] * right + oy * travel[1] * down)
             cand = BoardPose(R, c - R @ centre_board)
             if _visible(cand, board, devs, VISIBLE_MARGIN_PX):
                 pose = cand
@@ -148,7 +155,7 @@ def preset_board_poses(
         if pose is None:
             for scale in (0.6, 0.3, 0.0):  # less tilt
                 R2 = base @ _rot(0, tx * tilt * scale) @ _rot(1, ty * tilt * scale)
-                cand = BoardPose(R2, target - R2 @ centre_board)
+                cand = BoardPose(R2, depth - R2 @ centre_board)
                 if _visible(cand, board, devs, VISIBLE_MARGIN_PX):
                     pose = cand
                     break

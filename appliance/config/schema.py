@@ -70,7 +70,7 @@ class ReconstructionConfig(_Strict):
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
     min_neighbours: int = Field(
-        3, ge=0, le=8, description="Drop points with fewer valid 8-neighbours (isolated points)."
+        8, ge=0, le=8, description="Keep a point only when this many of its 8 neighbours are valid and near (8 also drops mixed pixels on depth edges)."
     )
     max_neighbour_jump_mm: float = Field(
         2.0, gt=0, description="A neighbour counts only when its depth differs by less than this (mm)."
@@ -272,9 +272,9 @@ class BoardConfig(_Strict):
     type: Literal["chessboard", "circles", "acircles", "charuco"] = Field(
         "chessboard", description="Board kind: chessboard, circles, acircles or charuco."
     )
-    cols: int = Field(9, ge=2, le=200, description="Inner corners (chessboard), dots per row, or squares (ChArUco).")
-    rows: int = Field(7, ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco).")
-    square_mm: float | None = Field(20.0, gt=0, description="Square side (chessboard, ChArUco), mm.")
+    cols: int = Field(15, ge=2, le=200, description="Inner corners (chessboard), dots per row, or squares (ChArUco).")
+    rows: int = Field(11, ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco).")
+    square_mm: float | None = Field(15.0, gt=0, description="Square side (chessboard, ChArUco), mm.")
     pitch_mm: float | None = Field(None, gt=0, description="Dot spacing (circle grids), mm.")
     marker_mm: float | None = Field(None, gt=0, description="ArUco marker side (ChArUco), mm.")
     dictionary: str = Field("DICT_6X6_250", description="ArUco dictionary (ChArUco).")

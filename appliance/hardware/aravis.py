@@ -28,14 +28,16 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.backends import AravisCameraConfig
 from appliance.errors import BackendUnavailableError, CameraError
 from appliance.hardware.base import CameraInfo, FrameArray, FrameCallback
+
+if TYPE_CHECKING:  # the fake camera's process imports this module: keep pydantic out of it
+    from appliance.config.backends import AravisCameraConfig
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +66,7 @@ _STATUS_HINTS = {
     "TIMEOUT": "the frame started but did not complete in time; check the link bandwidth and packet_delay_ns",
     "MISSING_PACKETS": (
         "packets were lost on the network; check the cable and switch, use a dedicated NIC with "
-        "jumbo frames, "
-        "or raise packet_delay_ns"
+        "jumbo frames, or raise packet_delay_ns"
     ),
     "WRONG_PACKET_ID": "the stream was corrupted; check that no other application streams from this camera",
     "SIZE_MISMATCH": "the image was larger than the buffer; check pixel_format and the camera's region",
@@ -386,8 +387,7 @@ class AravisCamera:
             raise CameraError(
                 self._msg(
                     f"cannot capture {n_frames} frames into a buffer of shape {out.shape}; pass a "
-                    "C-contiguous "
-                    "(n_frames, height, width) array"
+                    "C-contiguous (n_frames, height, width) array"
                 )
             )
         self._abort.clear()
@@ -398,28 +398,29 @@ class AravisCamera:
         self._executor.submit(self._acquire, job)
 
     def _prepare(self, job: _Job) -> None:
-        if self.connected:
-            self._alive()  # one register read: notices a camera that restarted behind our back
-        info = self._ensure_open()
-        expected = (info.height, info.width)
-        dtype = _PIXEL_DTYPES[info.pixel_format]
-        if job.out.shape[1:] != expected or job.out.dtype != dtype:
-            raise CameraError(
-                self._msg(
-                    f"buffer of shape {job.out.shape[1:]} {job.out.dtype} does not fit "
-                    f"{info.width}x{info.height} "
-                    f"{info.pixel_format} frames; allocate (n, {info.height}, {info.width}) "
-                    f"{np.dtype(dtype).name}"
-                )
-            )
-        try:
-            self._set_trigger(self._trigger_now)
-            self._fill_pool(job.n_frames + SPARE_BUFFERS)
-        except self._glib.Error as exc:
-            self._mark_lost(f"configuring the acquisition failed ({exc.message})")
+        for attempt in range(2):
+            if self.connected:
+                self._alive()  # one register read: notices a camera that restarted behind our back
             info = self._ensure_open()
-            self._set_trigger(self._trigger_now)
-            self._fill_pool(job.n_frames + SPARE_BUFFERS)
+            dtype = _PIXEL_DTYPES[info.pixel_format]
+            if job.out.shape[1:] != (info.height, info.width) or job.out.dtype != dtype:
+                raise CameraError(
+                    self._msg(
+                        f"buffer of shape {job.out.shape[1:]} {job.out.dtype} does not fit {info.width}x"
+                        f"{info.height} {info.pixel_format} frames; allocate (n, {info.height}, "
+                        f"{info.width}) {np.dtype(dtype).name}"
+                    )
+                )
+            try:
+                self._set_trigger(self._trigger_now)
+                self._fill_pool(job.n_frames + SPARE_BUFFERS)
+                return
+            except self._glib.Error as exc:
+                self._mark_lost(f"configuring the acquisition failed ({exc.message})")
+                if attempt:
+                    raise CameraError(
+                        self._msg(f"cannot configure the acquisition ({exc.message}); check the camera")
+                    ) from exc
 
     # --- blocking helpers (worker thread) ---------------------------------------------------------------
 
@@ -452,8 +453,7 @@ class AravisCamera:
             raise CameraError(
                 self._msg(
                     f"cannot connect ({exc.message}); check power, the cable and that the camera's "
-                    "IP address is "
-                    "in this host's subnet"
+                    "IP address is in this host's subnet"
                 )
             ) from exc
         self._camera = camera
@@ -722,8 +722,8 @@ class AravisCamera:
             raise FrameLostError(
                 self._msg(
                     f"frame {i} of {job.n_frames} (counting from 0, camera frame id {frame_id}) "
-                    "arrived with status "
-                    f"{name}{detail}; {_STATUS_HINTS.get(name, _STATUS_HINTS['UNKNOWN'])}"
+                    f"arrived with status {name}{detail}; "
+                    f"{_STATUS_HINTS.get(name, _STATUS_HINTS['UNKNOWN'])}"
                 ),
                 i,
                 name,
@@ -736,8 +736,7 @@ class AravisCamera:
             raise FrameLostError(
                 self._msg(
                     f"frame {i} of {job.n_frames} (counting from 0) is missing: the camera's frame "
-                    "id jumped from "
-                    f"{previous} to {frame_id} ({lost} frame(s) lost whole); "
+                    f"id jumped from {previous} to {frame_id} ({lost} frame(s) lost whole); "
                     f"{_STATUS_HINTS['MISSING_PACKETS']}"
                 ),
                 i,

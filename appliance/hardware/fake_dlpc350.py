@@ -349,12 +349,16 @@ class FakeUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
         )  # fmt: skip
 
     def get_configuration_descriptor(self, dev: FakeDLPC350, config: int) -> Any:
+        if config != 0:
+            raise IndexError(f"fake DLPC350: no configuration {config}")
         return SimpleNamespace(
             bLength=9, bDescriptorType=2, wTotalLength=41, bNumInterfaces=1, bConfigurationValue=1,
             iConfiguration=0, bmAttributes=0xC0, bMaxPower=50, extra_descriptors=[],
         )  # fmt: skip
 
     def get_interface_descriptor(self, dev: FakeDLPC350, intf: int, alt: int, config: int) -> Any:
+        if (intf, alt, config) != (0, 0, 0):
+            raise IndexError(f"fake DLPC350: no interface {intf} alternate {alt}")
         return SimpleNamespace(
             bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0, bNumEndpoints=2,
             bInterfaceClass=_HID_CLASS, bInterfaceSubClass=0, bInterfaceProtocol=0, iInterface=0,
@@ -362,6 +366,8 @@ class FakeUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
         )  # fmt: skip
 
     def get_endpoint_descriptor(self, dev: FakeDLPC350, ep: int, intf: int, alt: int, config: int) -> Any:
+        if (intf, alt, config) != (0, 0, 0) or ep not in (0, 1):
+            raise IndexError(f"fake DLPC350: no endpoint {ep}")
         address = (proto.EP_IN, proto.EP_OUT)[ep]
         return SimpleNamespace(
             bLength=7, bDescriptorType=5, bEndpointAddress=address, bmAttributes=0x03,

@@ -528,7 +528,8 @@ def capture_via_fake_gige(
     Starts one fake per camera (addresses from ``base_address`` upwards, in a :class:`LoopbackLab` private
     network namespace when possible; otherwise one camera after the other on 127.0.0.1), arms an
     :class:`~appliance.hardware.aravis.AravisCamera` in software-trigger mode for all frames and returns
-    what arrived.
+    what arrived. The fakes are started with multiprocessing's ``spawn``: a calling script needs the
+    ``if __name__ == "__main__":`` guard (pytest needs nothing).
 
     Parameters
     ----------

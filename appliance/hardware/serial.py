@@ -522,7 +522,7 @@ class SerialTrigger:
         elif state is LinkState.READY:
             level = logging.INFO
             log.log(level, "trigger %r on %s: %s%s", self.name, self.port,
-                    "recovered, " if self._in_fault_episode else "", self.status_after_connect())
+                    "recovered, " if self._in_fault_episode else "", self._connected_text())
             self._in_fault_episode = False
         if state is self.state and reason == self.reason:
             return
@@ -536,7 +536,7 @@ class SerialTrigger:
             except Exception:
                 log.exception("trigger %r: on_state callback failed", self.name)
 
-    def status_after_connect(self) -> str:
+    def _connected_text(self) -> str:
         i = self.info
         if i is None:
             return "connected"

@@ -130,6 +130,8 @@ class UvcCamera:
             raise CameraError(
                 self._msg("opened but delivers no frames; check the cable and the USB bandwidth")
             )
+        if np.asarray(frame).ndim == 3:
+            import cv2  # noqa: F401  (imported here, not on the first grab: the import can take seconds)
         self._cap = cap
         height, width = np.asarray(frame).shape[:2]
         self.info = CameraInfo(self.name, "uvc", "V4L2 webcam", cfg.device, width, height, "Mono8")

@@ -164,7 +164,7 @@ class Service:
         await loop.run_in_executor(self._write_ex, self.writer.cleanup_incomplete)
         self.control = ControlServer(self.socket_path, self._handle)
         await self.control.start()
-        await self._start_mdns()
+        self._spawn(self._start_mdns(), "mdns")  # probing takes ~2 s: never delays the start
         self.watcher = ConfigWatcher(self.config_path, self._apply_config, self._config_rejected,
                                      self.cfg.service.config_poll_s)
         self._spawn(self._watchdog_loop(), "watchdog")
@@ -310,6 +310,7 @@ class Service:
             log.error("mDNS disabled: %s", exc)
             return
         self.announcer = ann
+        ann.set_txt(self.txt_record())  # what changed while it was probing
 
     # --- watchdog, spool -------------------------------------------------------------------------
 

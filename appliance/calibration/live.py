@@ -1,0 +1,223 @@
+"""Live calibration on the configured rig: capture board poses, show progress, calibrate, write the file.
+
+Each capture projects a white frame and a Gray + phase sequence on both projector axes and grabs every
+camera through the hardware protocols (as a scan does). The board is found in the white frame and its
+corners' projector coordinates come from the decoding (:func:`~appliance.calibration.projector.procam_view`).
+On a virtual rig the board is moved to the next of the preset poses before each capture
+(:class:`~appliance.calibration.virtual.VirtualBoard`); on real hardware the operator moves it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from appliance.calibration.boards import BoardSpec
+from appliance.calibration.intrinsics import coverage_map
+from appliance.calibration.projector import ProcamView, procam_view
+from appliance.calibration.rig import RigCalibration, calibrate_rig
+from appliance.config.schema import AppConfig, SequenceConfig
+from appliance.errors import CalibrationError, CameraError, HardwareError
+from appliance.geometry.calibration_file import PROJECTOR_NAME, Calibration, write_calibration
+from appliance.hardware.base import FrameArray
+from appliance.hardware.registry import Rig
+from appliance.patterns.sequence import Sequence, gray_phase_sequence
+
+CAPTURE_TIMEOUT_S = 10.0
+"""Extra time allowed for one capture on top of 0.25 s per frame (module level so tests can change it)."""
+
+
+def calibration_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
+    """White, black, then Gray + phase on both projector axes (the configured periods and steps)."""
+    return gray_phase_sequence(width, height, "xy", periods=cfg.periods_px, steps=cfg.steps, inverses=cfg.inverses)
+
+
+@dataclass
+class PoseCapture:
+    """What one capture found.
+
+    Attributes
+    ----------
+    index : int
+        Capture number (0-based).
+    views : dict of str to ProcamView
+        Per camera: the board and its projector coordinates.
+    """
+
+    index: int
+    views: dict[str, ProcamView]
+
+    def line(self, n_points: int) -> str:
+        """One line: board points per camera and projector points."""
+        parts = []
+        for name, v in self.views.items():
+            nc = len(v.camera) if v.camera is not None else 0
+            npj = len(v.projector) if v.projector is not None else 0
+            parts.append(f"{name} {nc}/{n_points} board points, {npj} with a projector coordinate")
+        return f"pose {self.index + 1}: " + "; ".join(parts)
+
+
+@dataclass
+class LiveCalibration:
+    """A live calibration session on an opened rig.
+
+    Parameters
+    ----------
+    cfg : AppConfig
+        Configuration (``calibration`` section: board, poses wanted, coverage target, models).
+    rig : Rig
+        The devices (see :func:`appliance.hardware.registry.build_rig`).
+    poses_hint : int
+        On a virtual rig: number of preset board poses to cycle through.
+    """
+
+    cfg: AppConfig
+    rig: Rig
+    poses_hint: int = 15
+    captures: list[PoseCapture] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.board = BoardSpec.from_config(self.cfg.calibration.board)
+        self._virtual_board = None
+        self._buffers: dict[str, FrameArray] = {}
+        self._sizes: dict[str, tuple[int, int]] = {}
+        self.sequence: Sequence | None = None
+
+    async def open(self) -> None:
+        """Open the devices, load the calibration sequence, allocate the frame buffers."""
+        if self.rig.virtual is not None:
+            from appliance.calibration.virtual import VirtualBoard
+
+            self._virtual_board = VirtualBoard(self.rig.virtual, self.board, max(self.poses_hint, 1))
+        proj_size = await self._projector_size()
+        self.sequence = calibration_sequence(self.cfg.sequence, *proj_size)
+        n = len(self.sequence)
+        for name, cam in self.rig.cameras.items():
+            info = await cam.open()
+            self._sizes[name] = (info.width, info.height)
+            dtype = np.uint8 if info.pixel_format == "Mono8" else np.uint16
+            self._buffers[name] = np.zeros((n, info.height, info.width), dtype)
+        await self.rig.projector.open()
+        await self.rig.projector.load(self.sequence)
+        await self.rig.trigger.open()
+
+    async def _projector_size(self) -> tuple[int, int]:
+        if self.rig.virtual is not None:
+            p = self.rig.virtual.projector
+            return int(p.width), int(p.height)
+        w, h = getattr(self.rig.projector, "width", None), getattr(self.rig.projector, "height", None)
+        if isinstance(w, int) and isinstance(h, int):
+            return w, h
+        if self.cfg.calibration_file is not None and self.cfg.calibration_file.exists():
+            from appliance.geometry.calibration_file import read_calibration
+
+            proj = read_calibration(self.cfg.calibration_file).projector
+            if proj is not None:
+                return proj.width, proj.height
+        raise CalibrationError(
+            f"calibrate --live: the projector ({self.cfg.projector.type}) does not report its resolution and "
+            "calibration_file holds no projector; write a first calibration with 'scan3d calibrate projector'"
+        )
+
+    @property
+    def projector_size(self) -> tuple[int, int]:
+        """(width, height) of the projector (px)."""
+        assert self.sequence is not None
+        return (self.sequence.width, self.sequence.height)
+
+    async def capture(self) -> PoseCapture:
+        """Capture one board pose on every camera and find the board and its projector coordinates.
+
+        Raises
+        ------
+        CalibrationError
+            When a camera delivers too few frames.
+        """
+        if self.sequence is None:
+            await self.open()
+        seq = self.sequence
+        assert seq is not None
+        loop = asyncio.get_running_loop()
+        if self._virtual_board is not None:
+            vb = self._virtual_board
+            await loop.run_in_executor(None, lambda: (vb.next(), vb.rig.prepare()))
+        n = len(seq)
+        try:
+            for name, cam in self.rig.cameras.items():
+                await cam.arm(n, self._buffers[name])
+            await self.rig.projector.start()
+            await asyncio.gather(*(c.wait_frames(CAPTURE_TIMEOUT_S + 0.25 * n) for c in self.rig.cameras.values()))
+        except (CameraError, HardwareError) as exc:
+            await self.rig.projector.stop()
+            raise CalibrationError(f"calibrate --live: capture of pose {len(self.captures) + 1} failed: {exc}") from exc
+        board = self.board
+        views = {}
+        for name, buf in self._buffers.items():
+            views[name] = await loop.run_in_executor(None, procam_view, buf, seq, board)
+        cap = PoseCapture(len(self.captures), views)
+        self.captures.append(cap)
+        return cap
+
+    def coverage(self) -> dict[str, float]:
+        """Share of each device's image the board has covered so far (cameras and the projector)."""
+        out: dict[str, float] = {}
+        proj_pts = []
+        for name, size in self._sizes.items():
+            pts = [c.views[name].camera.image_points for c in self.captures if c.views[name].camera is not None]
+            out[name] = float(np.mean(coverage_map(pts, size) > 0)) if pts else 0.0
+            proj_pts += [c.views[name].projector.image_points for c in self.captures
+                         if c.views[name].projector is not None]  # fmt: skip
+        out[PROJECTOR_NAME] = float(np.mean(coverage_map(proj_pts, self.projector_size) > 0)) if proj_pts else 0.0
+        return out
+
+    def good_poses(self) -> int:
+        """Poses in which the reference camera found the board with projector coordinates."""
+        ref = next(iter(self._sizes))
+        return sum(1 for c in self.captures if c.views[ref].camera is not None and c.views[ref].projector is not None)
+
+    def enough(self) -> bool:
+        """True when the wanted number of poses is reached and every device's coverage is on target."""
+        cc = self.cfg.calibration
+        return self.good_poses() >= cc.poses_wanted and min(self.coverage().values()) >= cc.coverage_target
+
+    def progress(self) -> str:
+        """Coverage per device and what is still missing."""
+        cc = self.cfg.calibration
+        cov = ", ".join(f"{n} {100 * f:.0f} %" for n, f in self.coverage().items())
+        line = f"  coverage: {cov} (target {100 * cc.coverage_target:.0f} %); {self.good_poses()} of " \
+               f"{cc.poses_wanted} poses wanted"  # fmt: skip
+        if self.enough():
+            line += "\n  enough poses and coverage: calibrate now (or add poses where coverage is thin)"
+        return line
+
+    def calibrate(self) -> RigCalibration:
+        """Calibrate every device from the captured poses (pairwise start + joint refinement)."""
+        names = list(self._sizes)
+        views = {n: [c.views[n] for c in self.captures] for n in names}
+        cc = self.cfg.calibration
+        return calibrate_rig(views, self._sizes, self.projector_size, camera_model=cc.camera_model,
+                             projector_model=cc.projector_model)  # fmt: skip
+
+    async def close(self) -> None:
+        """Stop the projector and close the devices."""
+        for cam in self.rig.cameras.values():
+            await cam.close()
+        await self.rig.projector.stop()
+        await self.rig.projector.close()
+        await self.rig.trigger.close()
+
+
+def write_rig_calibration(out: Path, result: RigCalibration, board: BoardSpec, title: str) -> Path:
+    """Write the calibration file and its report beside it; returns the report page."""
+    from appliance.calibration.report import write_report
+
+    write_calibration(out, Calibration(devices=dict(result.devices)))
+    notes = [f"board: {board.describe()}"]
+    if result.bundle is not None:
+        b = result.bundle
+        notes.append(f"joint refinement: RMS {b.rms:.4f} px over {len(b.board_poses)} poses, "
+                     f"{b.iterations} iterations, {b.dropped_points} outlier points dropped")  # fmt: skip
+    return write_report(out, result.results, result.stereo, title=title, notes=notes)
