@@ -132,6 +132,7 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
     try:
         t = time.perf_counter()
         await scanner.open()
+        await scanner.warm_up()
         print(f"rig ready in {time.perf_counter() - t:.1f} s: {len(cfg.cameras)} camera(s), "
               f"{scanner.sequence.describe()}")
         for i in range(count):

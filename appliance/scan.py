@@ -26,7 +26,8 @@ from appliance.reconstruct.pipeline import Reconstructor
 from appliance.reconstruct.types import DecodedMaps, PointCloud
 
 # Module-level so tests can shorten it: extra time allowed per frame on top of the projector timing.
-FRAME_TIMEOUT_S = 2.0
+FRAME_TIMEOUT_S = 5.0
+FRAME_TIMEOUT_PER_FRAME_S = 0.5
 
 
 def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
@@ -119,6 +120,41 @@ class Scanner:
         await self.rig.projector.load(self.sequence)
         self._opened = True
 
+    async def warm_up(self) -> None:
+        """Compile (or load from cache) every numba kernel a scan uses, before the first real scan.
+
+        Runs the streaming decoders and the reconstruction once on the (blank) frame buffers, and on a
+        virtual rig precomputes its geometry and renders one frame per camera.
+        """
+        if not self._opened:
+            await self.open()
+        loop = asyncio.get_running_loop()
+        virtual = self.rig.virtual
+        if virtual is not None:
+            def warm_sim() -> None:
+                virtual.prepare()
+                for name in self.rig.cameras:
+                    if name in virtual.cameras:
+                        virtual.render_frame(self.sequence.frames[0], name)
+
+            await loop.run_in_executor(None, warm_sim)
+
+        def warm_decode(name: str) -> DecodedMaps:
+            dec, buf = self._decoders[name], self._buffers[name]
+            dec.reset()
+            for i in range(buf.shape[0]):
+                dec.push(i, buf[i])
+            maps = dec.finish()
+            dec.reset()
+            return maps
+
+        names = list(self._decoders)
+        finished = await asyncio.gather(
+            *(loop.run_in_executor(self._executors[n], warm_decode, n) for n in names)
+        )
+        white = {n: self._white_u8(self._buffers[n]) for n in names}
+        await loop.run_in_executor(None, self.reconstructor.run, dict(zip(names, finished, strict=True)), white)
+
     async def scan(self) -> ScanResult:
         """Run one scan and reconstruct it.
 
@@ -150,7 +186,7 @@ class Scanner:
             for name, cam in self.rig.cameras.items():
                 await cam.arm(n, self._buffers[name], on_frame_factory(name))
             await self.rig.projector.start()
-            timeout = FRAME_TIMEOUT_S + n * 0.25
+            timeout = FRAME_TIMEOUT_S + n * FRAME_TIMEOUT_PER_FRAME_S
             results = await asyncio.gather(
                 *(cam.wait_frames(timeout) for cam in self.rig.cameras.values()), return_exceptions=True
             )

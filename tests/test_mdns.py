@@ -43,11 +43,15 @@ zc.close()
 
 
 class TxtWatcher:
-    """The browsing process: ``wait_for(pred)`` returns the first TXT record (dict) that satisfies ``pred``."""
+    """The browsing process; ``wait_for(pred)`` returns the first TXT record (dict) matching ``pred``."""
 
     def __init__(self, instance: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-c", WATCH_SCRIPT, instance], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", WATCH_SCRIPT, instance],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         self.seen: list[dict[str, str]] = []
         assert self._line(20.0) == {}  # started
 
@@ -106,9 +110,11 @@ def test_announce_update_and_smb_seen_by_another_process(monkeypatch: pytest.Mon
     name = unique_name()
     watcher = TxtWatcher(name)
     try:
+
         async def main() -> None:
-            ann = M.MdnsAnnouncer(MdnsConfig(interfaces=("127.0.0.1",), instance_name=name,
-                                             announce_smb_share=f"{name}-scans"))
+            ann = M.MdnsAnnouncer(
+                MdnsConfig(interfaces=("127.0.0.1",), instance_name=name, announce_smb_share=f"{name}-scans")
+            )
             await ann.start({"state": "idle", "scans": "0", "serial": "T-1"})
             try:
                 first = await asyncio.to_thread(watcher.wait_for, lambda t: t.get("state") == "idle")
@@ -116,8 +122,9 @@ def test_announce_update_and_smb_seen_by_another_process(monkeypatch: pytest.Mon
                 for i in range(1, 4):  # coalesced: only the latest must arrive
                     ann.set_txt({"state": "scanning", "scans": str(i), "serial": "T-1"})
                 ann.set_txt({"state": "idle", "scans": "3", "serial": "T-1", "last": "scan-3"})
-                txt = await asyncio.to_thread(watcher.wait_for, lambda t: t.get("scans") == "3"
-                                              and t.get("state") == "idle")
+                txt = await asyncio.to_thread(
+                    watcher.wait_for, lambda t: t.get("scans") == "3" and t.get("state") == "idle"
+                )
                 assert txt["last"] == "scan-3"
                 assert ann.updates_sent <= 2
                 # the share is announced too (same loopback, a separate browser instance)

@@ -69,6 +69,8 @@ def test_watchdog_interval() -> None:
     me = str(os.getpid())
     assert watchdog_interval_s({"WATCHDOG_USEC": "4000000", "WATCHDOG_PID": me}) == 2.0
     assert watchdog_interval_s({"WATCHDOG_USEC": "4000000"}) == 2.0
-    assert watchdog_interval_s({"WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"}) is None  # for another process
+    assert (
+        watchdog_interval_s({"WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"}) is None
+    )  # for another process
     assert watchdog_interval_s({}) is None
     assert watchdog_interval_s({"WATCHDOG_USEC": "junk"}) is None

@@ -64,6 +64,7 @@ def test_dead_camera_fails_one_scan_and_the_next_succeeds() -> None:
         import appliance.scan as scan_mod
 
         scan_mod.FRAME_TIMEOUT_S = 0.5
+        scan_mod.FRAME_TIMEOUT_PER_FRAME_S = 0.05
         rig = build_rig(cfg)
         scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
         cam = rig.cameras["cam0"]

@@ -63,8 +63,9 @@ class FakeScanner:
     def __init__(self, plan: SimpleNamespace) -> None:
         self.plan = plan
         self.sequence = gray_code_sequence(64, 32, "x")
-        self.calibration = SimpleNamespace(devices={"cam0": SimpleNamespace(width=32, height=24)},
-                                           hash=lambda: "fakecal")
+        self.calibration = SimpleNamespace(
+            devices={"cam0": SimpleNamespace(width=32, height=24)}, hash=lambda: "fakecal"
+        )
         self.scans = 0
 
     async def open(self) -> None:
@@ -80,12 +81,20 @@ class FakeScanner:
         self.scans += 1
         rng = np.random.default_rng(self.scans)
         n = 40
-        cloud = PointCloud(rng.uniform(0, 100, (n, 3)).astype(np.float32), rng.integers(0, 24, n).astype(np.int32),
-                           rng.integers(0, 32, n).astype(np.int32), np.zeros(n, np.uint8),
-                           np.full(n, 128, np.uint8), np.ones(n, np.float32))
-        return SimpleNamespace(cloud=cloud, maps={"cam0": SimpleNamespace(mask=np.ones((24, 32), bool))},
-                               timings_ms={"scan_ms": 1e3 * self.plan.scan_s, "capture_ms": 1.0,
-                                           "reconstruct_ms": 1.0}, shapes={"cam0": (24, 32)})
+        cloud = PointCloud(
+            rng.uniform(0, 100, (n, 3)).astype(np.float32),
+            rng.integers(0, 24, n).astype(np.int32),
+            rng.integers(0, 32, n).astype(np.int32),
+            np.zeros(n, np.uint8),
+            np.full(n, 128, np.uint8),
+            np.ones(n, np.float32),
+        )
+        return SimpleNamespace(
+            cloud=cloud,
+            maps={"cam0": SimpleNamespace(mask=np.ones((24, 32), bool))},
+            timings_ms={"scan_ms": 1e3 * self.plan.scan_s, "capture_ms": 1.0, "reconstruct_ms": 1.0},
+            shapes={"cam0": (24, 32)},
+        )
 
     async def close(self) -> None:
         self.plan.closed += 1
@@ -122,8 +131,13 @@ def write_config(tmp: Path, **service: Any) -> Path:
     doc = {
         "serial": "TEST-1",
         "output": {"directory": str(tmp / "share"), "spool_directory": str(tmp / "spool"), "min_free_mb": 0},
-        "service": {"control_socket": str(tmp / "ctl.sock"), "state_directory": str(tmp / "state"),
-                    "config_poll_s": 0.05, "mdns": {"enabled": False}, **service},
+        "service": {
+            "control_socket": str(tmp / "ctl.sock"),
+            "state_directory": str(tmp / "state"),
+            "config_poll_s": 0.05,
+            "mdns": {"enabled": False},
+            **service,
+        },
     }
     (tmp / "share").mkdir(exist_ok=True)
     path = tmp / "appliance.yaml"
@@ -195,7 +209,9 @@ def test_button_press_writes_files_and_publishes(tmp_path: Path) -> None:
         assert rec["timings_ms"]["trigger_to_file_ms"] >= rec["timings_ms"]["write_ms"] > 0
         day = f"{dt.datetime.now(dt.UTC):%Y-%m-%d}"
         sidecar = json.loads((tmp_path / "share" / day / f"{rec['scan_id']}.json").read_text())
-        assert sidecar["appliance_serial"] == "TEST-1" and sidecar["extra"]["trigger"]["source"] == "fake-button"
+        assert (
+            sidecar["appliance_serial"] == "TEST-1" and sidecar["extra"]["trigger"]["source"] == "fake-button"
+        )
         assert svc.txt_record()["last"] == rec["scan_id"] and svc.txt_record()["scans"] == "1"
 
     assert run(svc, body) == 0
@@ -251,7 +267,7 @@ def test_trigger_wait_returns_the_scan(tmp_path: Path, capsys: pytest.CaptureFix
     async def body() -> None:
         reply = await ctl(svc, cmd="trigger", wait=True)
         assert reply["ok"] and reply["scan"]["points"] == 40
-        assert all(Path(f).is_file() for f in reply["scan"]["files"])
+        assert await asyncio.to_thread(lambda: all(Path(f).is_file() for f in reply["scan"]["files"]))
         assert await asyncio.to_thread(status_command, None, svc.socket_path) == 0
 
     assert run(svc, body) == 0
@@ -271,7 +287,9 @@ def test_absent_hardware_is_retried_and_reported(tmp_path: Path) -> None:
         assert "camera" in err["advice"]
 
     assert run(svc, body) == 0
-    assert "fault/connect hardware" in seen and seen.index("fault/connect hardware") < seen.index("idle/ready")
+    assert "fault/connect hardware" in seen and seen.index("fault/connect hardware") < seen.index(
+        "idle/ready"
+    )
     n = svc.notifier
     assert isinstance(n, RecordingNotifier)
     assert sum("READY" in m for m in n.sent) == 1  # up (in fault) before the hardware came
@@ -323,7 +341,9 @@ def test_sighup_reloads(tmp_path: Path) -> None:
     assert run(svc, body) == 0
 
 
-def test_disk_guard_refuses_a_scan_that_cannot_be_stored(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_disk_guard_refuses_a_scan_that_cannot_be_stored(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(S, "STATVFS", lambda p: SimpleNamespace(f_bavail=10, f_frsize=4096))
     svc = make(tmp_path)
 

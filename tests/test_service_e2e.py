@@ -36,16 +36,35 @@ from appliance.service.state import Phase, State
 REPO = Path(__file__).resolve().parents[1]
 
 SMALL_RIG = {
-    "projector": {"width": 320, "height": 200, "focal_px": 400, "principal_px": [160, 190],
-                  "position_mm": [175, 0, 0], "look_at_mm": [0, 40, 580]},
-    "cameras": {"cam0": {"width": 320, "height": 256, "focal_px": 450, "position_mm": [0, 0, 0],
-                         "look_at_mm": [0, 0, 580]}},
+    "projector": {
+        "width": 320,
+        "height": 200,
+        "focal_px": 400,
+        "principal_px": [160, 190],
+        "position_mm": [175, 0, 0],
+        "look_at_mm": [0, 40, 580],
+    },
+    "cameras": {
+        "cam0": {
+            "width": 320,
+            "height": 256,
+            "focal_px": 450,
+            "position_mm": [0, 0, 0],
+            "look_at_mm": [0, 0, 580],
+        }
+    },
 }
 
 
-def write_config(tmp: Path, *, mdns: str | None = None, trigger: dict[str, Any] | None = None,
-                 camera: dict[str, Any] | None = None, service: dict[str, Any] | None = None,
-                 **top: Any) -> Path:
+def write_config(
+    tmp: Path,
+    *,
+    mdns: str | None = None,
+    trigger: dict[str, Any] | None = None,
+    camera: dict[str, Any] | None = None,
+    service: dict[str, Any] | None = None,
+    **top: Any,
+) -> Path:
     """A small-virtual-rig configuration with everything under ``tmp``; returns its path."""
     doc: dict[str, Any] = {
         "serial": "E2E-1",
@@ -54,11 +73,17 @@ def write_config(tmp: Path, *, mdns: str | None = None, trigger: dict[str, Any] 
         "virtual_rig": SMALL_RIG,
         "reconstruction": {"min_depth_mm": 300, "max_depth_mm": 900},
         "output": {"directory": str(tmp / "share"), "spool_directory": str(tmp / "spool"), "min_free_mb": 0},
-        "service": {"control_socket": str(tmp / "ctl.sock"), "state_directory": str(tmp / "state"),
-                    "config_poll_s": 0.1,
-                    "mdns": {"enabled": mdns is not None, "interfaces": ["127.0.0.1"],
-                             **({"instance_name": mdns} if mdns else {})},
-                    **(service or {})},
+        "service": {
+            "control_socket": str(tmp / "ctl.sock"),
+            "state_directory": str(tmp / "state"),
+            "config_poll_s": 0.1,
+            "mdns": {
+                "enabled": mdns is not None,
+                "interfaces": ["127.0.0.1"],
+                **({"instance_name": mdns} if mdns else {}),
+            },
+            **(service or {}),
+        },
         **top,
     }
     (tmp / "share").mkdir(exist_ok=True)
@@ -113,9 +138,22 @@ class ServiceProcess:
         self.sock = tmp / "sock"
         self.log = tmp / "service.log"
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "appliance", "run", "--config", str(config), "--control-socket",
-             str(self.sock), *args],
-            cwd=REPO, stdout=self.log.open("w"), stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
+            [
+                sys.executable,
+                "-m",
+                "appliance",
+                "run",
+                "--config",
+                str(config),
+                "--control-socket",
+                str(self.sock),
+                *args,
+            ],
+            cwd=REPO,
+            stdout=self.log.open("w"),
+            stderr=subprocess.STDOUT,
+            env={**os.environ, **(env or {})},
+        )
 
     def status(self) -> dict[str, Any]:
         try:
@@ -148,8 +186,9 @@ def run_in_process(config: Path, body: Callable[[D.Service], Any], **kw: Any) ->
     async def main() -> int:
         task = asyncio.create_task(svc.run())
         try:
-            await await_for(lambda: (svc.board.phase == Phase.READY and svc.board.state == State.IDLE)
-                            or task.done(), 120)
+            await await_for(
+                lambda: (svc.board.phase == Phase.READY and svc.board.state == State.IDLE) or task.done(), 120
+            )
             assert not task.done(), "service ended early"
             await body(svc)
         finally:
@@ -176,8 +215,9 @@ def fast(monkeypatch: pytest.MonkeyPatch) -> None:
 
 @pytest.mark.hil
 def test_serial_button_press_writes_files_and_updates_mdns(tmp_path: Path) -> None:
-    from appliance.firmware.simulate import SimulatedController
     from test_mdns import TxtWatcher
+
+    from appliance.firmware.simulate import SimulatedController
 
     name = f"scan3d-e2e-{uuid.uuid4().hex[:8]}"
     with SimulatedController(tmp_path / "tty") as board:
@@ -188,11 +228,16 @@ def test_serial_button_press_writes_files_and_updates_mdns(tmp_path: Path) -> No
         try:
             svc.wait_ready()
             txt = watcher.wait_for(lambda t: t.get("state") == "idle", 30)
-            assert txt["scans"] == "0" and txt["serial"] == "E2E-1" and txt["share"] == str(tmp_path / "share")
+            assert (
+                txt["scans"] == "0" and txt["serial"] == "E2E-1" and txt["share"] == str(tmp_path / "share")
+            )
             wait_for(lambda: board.pins.leds == (True, False, False), 10, "ready lamp")
             board.press_button()
-            st = wait_for(lambda: (s := svc.status()).get("counters", {}).get("scans_done") == 1 and s, 60,
-                          "scan after the button press")
+            st = wait_for(
+                lambda: (s := svc.status()).get("counters", {}).get("scans_done") == 1 and s,
+                60,
+                "scan after the button press",
+            )
             rec = st["last_scans"][-1]
             assert rec["trigger"] == "trigger" and rec["location"] == "share"
             complete_scan(tmp_path / "share" / day(), rec["scan_id"])
@@ -228,7 +273,9 @@ def test_sd_notify_ready_watchdog_status_stopping(tmp_path: Path) -> None:
     reader = threading.Thread(target=receive, daemon=True)
     reader.start()
     config = write_config(tmp_path)
-    svc = ServiceProcess(config, tmp_path, {"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "400000"})
+    svc = ServiceProcess(
+        config, tmp_path, {"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "400000"}
+    )
     try:
         wait_for(lambda: any("READY" in m for m in msgs), 120, "READY=1")
         ready_at = next(i for i, m in enumerate(msgs) if "READY" in m)
@@ -237,7 +284,9 @@ def test_sd_notify_ready_watchdog_status_stopping(tmp_path: Path) -> None:
         reply = request(svc.sock, {"cmd": "trigger", "wait": True}, 120)
         assert reply["ok"]
         statuses = [m["STATUS"] for m in msgs if "STATUS" in m]
-        assert any(s.startswith("scanning") for s in statuses) and any(s.startswith("writing") for s in statuses)
+        assert any(s.startswith("scanning") for s in statuses) and any(
+            s.startswith("writing") for s in statuses
+        )
         assert svc.stop() == 0
         wait_for(lambda: any("STOPPING" in m for m in msgs), 5, "STOPPING=1")
     finally:
@@ -287,11 +336,22 @@ def test_broken_config_keeps_scanning_and_fixed_config_is_picked_up(tmp_path: Pa
         assert svc.board.config_error.startswith(f"{config}:")  # file:line: key = value: rule
         rec = await scan_once(svc)  # the last good configuration keeps scanning
         assert rec["ok"] and "E2E-1" in rec["scan_id"] and len(rec["files"]) == 3
-        fixed = dict(good, serial="E2E-2", output={**good["output"], "preview": False},
-                     reconstruction={**good["reconstruction"], "max_depth_mm": 800})
+        fixed = dict(
+            good,
+            serial="E2E-2",
+            output={**good["output"], "preview": False},
+            reconstruction={**good["reconstruction"], "max_depth_mm": 800},
+        )
         config.write_text(yaml.safe_dump(fixed, sort_keys=False))
-        await await_for(lambda: svc.cfg.serial == "E2E-2" and svc.board.state == State.IDLE
-                        and svc.board.phase == Phase.READY and svc.scanner is not None, 60)
+        await await_for(
+            lambda: (
+                svc.cfg.serial == "E2E-2"
+                and svc.board.state == State.IDLE
+                and svc.board.phase == Phase.READY
+                and svc.scanner is not None
+            ),
+            60,
+        )
         assert svc.board.config_error == "" and svc.scanner.cfg.reconstruction.max_depth_mm == 800
         rec = await scan_once(svc)
         assert "E2E-2" in rec["scan_id"] and len(rec["files"]) == 2  # no preview any more
@@ -303,13 +363,22 @@ def test_broken_config_keeps_scanning_and_fixed_config_is_picked_up(tmp_path: Pa
 # --- the share goes away (removed, then full) and comes back ------------------------------------------------
 
 
-def test_share_away_spools_and_delivers_everything_in_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_share_away_spools_and_delivers_everything_in_order(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     config = write_config(tmp_path)
     share, away = tmp_path / "share", tmp_path / "share-unmounted"
     full = {"on": False}
     real = S.STATVFS
-    monkeypatch.setattr(S, "STATVFS", lambda p: type("F", (), {"f_bavail": 1, "f_frsize": 4096})()
-                        if full["on"] and p.startswith(str(share)) else real(p))
+    monkeypatch.setattr(
+        S,
+        "STATVFS",
+        lambda p: (
+            type("F", (), {"f_bavail": 1, "f_frsize": 4096})()
+            if full["on"] and p.startswith(str(share))
+            else real(p)
+        ),
+    )
     ids: list[str] = []
 
     async def body(svc: D.Service) -> None:
@@ -354,9 +423,18 @@ def _rss_kb() -> int:
 
 
 @pytest.mark.slow
-def test_200_scans_memory_threads_and_fds_stay_flat(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    config = write_config(tmp_path, output={"directory": str(tmp_path / "share"), "min_free_mb": 0,
-                                            "spool_directory": str(tmp_path / "spool"), "preview": True})
+def test_200_scans_memory_threads_and_fds_stay_flat(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = write_config(
+        tmp_path,
+        output={
+            "directory": str(tmp_path / "share"),
+            "min_free_mb": 0,
+            "spool_directory": str(tmp_path / "spool"),
+            "preview": True,
+        },
+    )
     samples: dict[int, tuple[int, int, int]] = {}
 
     async def body(svc: D.Service) -> None:
@@ -375,10 +453,63 @@ def test_200_scans_memory_threads_and_fds_stay_flat(tmp_path: Path, capsys: pyte
     (rss20, thr20, fd20), (rss200, thr200, fd200) = samples[20], samples[200]
     growth_mb = (rss200 - rss20) / 1024
     with capsys.disabled():
-        print(f"\n200 scans: RSS {rss20 / 1024:.1f} MB after 20, {rss200 / 1024:.1f} MB after 200 "
-              f"(growth {growth_mb:+.1f} MB); threads {thr20} -> {thr200}; fds {fd20} -> {fd200}")
+        print(
+            f"\n200 scans: RSS {rss20 / 1024:.1f} MB after 20, {rss200 / 1024:.1f} MB after 200 "
+            f"(growth {growth_mb:+.1f} MB); threads {thr20} -> {thr200}; fds {fd20} -> {fd200}"
+        )
     assert growth_mb < 16, f"resident memory grew {growth_mb:.1f} MB over 180 scans"
     assert thr200 == thr20 and fd200 == fd20
     assert len(list((tmp_path / "share" / day()).glob("*.json"))) == 200
     time.sleep(0.2)
     assert threading.active_count() <= threads_before + 1, [t.name for t in threading.enumerate()]
+
+
+# --- scripts/run --service: Enter presses the simulated button ----------------------------------------------
+
+
+def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
+    config = write_config(tmp_path)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "appliance",
+            "run",
+            "--config",
+            str(config),
+            "--control-socket",
+            str(tmp_path / "sock"),
+            "--stdin-button",
+            "--scans",
+            "2",
+        ],
+        cwd=REPO,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert proc.stdin is not None
+    try:
+        wait_for(
+            lambda: (
+                request(tmp_path / "sock", {"cmd": "status"})["status"]["state"] == "idle"
+                if (tmp_path / "sock").exists()
+                else False
+            ),
+            120,
+            "ready",
+        )
+        for n in (1, 2):
+            proc.stdin.write("\n")
+            proc.stdin.flush()
+            wait_for(
+                lambda n=n: len(list((tmp_path / "share").rglob("*.json"))) == n or proc.poll() is not None,
+                60,
+                f"scan {n}",
+            )
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert len(list((tmp_path / "share").rglob("*.json"))) == 2

@@ -26,9 +26,14 @@ SHAPES = [(24, 32)]
 def cloud(n: int = 50, seed: int = 0) -> PointCloud:
     rng = np.random.default_rng(seed)
     rows, cols = rng.integers(0, 24, n).astype(np.int32), rng.integers(0, 32, n).astype(np.int32)
-    return PointCloud(rng.uniform(-50, 50, (n, 3)).astype(np.float32) + np.float32([0, 0, 600]), rows, cols,
-                      np.zeros(n, np.uint8), rng.integers(0, 255, n).astype(np.uint8),
-                      rng.uniform(0, 50, n).astype(np.float32))
+    return PointCloud(
+        rng.uniform(-50, 50, (n, 3)).astype(np.float32) + np.float32([0, 0, 600]),
+        rows,
+        cols,
+        np.zeros(n, np.uint8),
+        rng.integers(0, 255, n).astype(np.uint8),
+        rng.uniform(0, 50, n).astype(np.float32),
+    )
 
 
 def xyz(path: Path) -> np.ndarray:
@@ -37,8 +42,14 @@ def xyz(path: Path) -> np.ndarray:
 
 
 def meta(i: int) -> ScanMetadata:
-    return ScanMetadata(scan_id=f"20260101-000000-T-{i:06d}", time_utc="2026-01-01T00:00:00+00:00",
-                        sequence={}, calibration_hash="x", counts={"points": 50}, timings_ms={})
+    return ScanMetadata(
+        scan_id=f"20260101-000000-T-{i:06d}",
+        time_utc="2026-01-01T00:00:00+00:00",
+        sequence={},
+        calibration_hash="x",
+        counts={"points": 50},
+        timings_ms={},
+    )
 
 
 @pytest.fixture
@@ -79,7 +90,9 @@ def test_scan_goes_to_the_dated_share_folder_complete(dirs: SimpleNamespace) -> 
     out = w.write_scan("2026-01-01", meta(1), c, SHAPES)
     assert out.location == "share"
     folder = dirs.share / "2026-01-01"
-    assert sorted(p.name for p in folder.iterdir()) == [f"{meta(1).scan_id}{s}" for s in (".json", ".ply", ".png")]
+    assert sorted(p.name for p in folder.iterdir()) == [
+        f"{meta(1).scan_id}{s}" for s in (".json", ".ply", ".png")
+    ]
     np.testing.assert_array_equal(xyz(folder / f"{meta(1).scan_id}.ply"), c.xyz)
     side = json.loads((folder / f"{meta(1).scan_id}.json").read_text())
     assert side["files"]["cloud"] == f"{meta(1).scan_id}.ply"
@@ -93,7 +106,9 @@ def test_share_away_spools_then_moves_over_in_order(dirs: SimpleNamespace) -> No
     outs = [w.write_scan("2026-01-01", meta(i), cloud(seed=i), SHAPES) for i in (2, 3, 4)]
     assert [o.location for o in outs] == ["spool"] * 3
     assert "not there" in outs[0].reason
-    assert not dirs.share.exists(), "the writer must never create the share root (it would fill the local disk)"
+    assert not dirs.share.exists(), (
+        "the writer must never create the share root (it would fill the local disk)"
+    )
     assert [e.name.split("-", 1)[1] for e in w.spool_entries()] == [meta(i).scan_id for i in (2, 3, 4)]
     assert w.flush_spool() == []  # still away: nothing moves
     dirs.away.rename(dirs.share)
@@ -102,7 +117,9 @@ def test_share_away_spools_then_moves_over_in_order(dirs: SimpleNamespace) -> No
     folder = dirs.share / "2026-01-01"
     for i in (1, 2, 3, 4):
         np.testing.assert_array_equal(xyz(folder / f"{meta(i).scan_id}.ply"), cloud(seed=i).xyz)
-        assert (folder / f"{meta(i).scan_id}.json").is_file() and (folder / f"{meta(i).scan_id}.png").is_file()
+        assert (folder / f"{meta(i).scan_id}.json").is_file() and (
+            folder / f"{meta(i).scan_id}.png"
+        ).is_file()
     # the sidecars arrived in scan order (each moved after its cloud, scans oldest first)
     mtimes = [(folder / f"{meta(i).scan_id}.json").stat().st_mtime_ns for i in (2, 3, 4)]
     assert mtimes == sorted(mtimes)
@@ -117,10 +134,15 @@ def test_new_scan_waits_behind_spooled_ones(dirs: SimpleNamespace, full_disk: se
     full_disk.clear()
     out = w.write_scan("2026-01-01", meta(2), cloud(), SHAPES)  # flushes scan 1 first, then writes scan 2
     assert out.location == "share"
-    assert sorted(p.stem for p in (dirs.share / "2026-01-01").glob("*.json")) == [meta(1).scan_id, meta(2).scan_id]
+    assert sorted(p.stem for p in (dirs.share / "2026-01-01").glob("*.json")) == [
+        meta(1).scan_id,
+        meta(2).scan_id,
+    ]
 
 
-def test_storage_guard_refuses_when_share_and_spool_are_full(dirs: SimpleNamespace, full_disk: set[str]) -> None:
+def test_storage_guard_refuses_when_share_and_spool_are_full(
+    dirs: SimpleNamespace, full_disk: set[str]
+) -> None:
     w = writer(dirs, min_free_mb=2)
     need = S.estimate_scan_bytes(SHAPES, normals=False, preview=True)
     assert w.storage_problem(need) == ""
@@ -154,8 +176,13 @@ def test_retention_drops_old_and_oversize_entries(dirs: SimpleNamespace) -> None
     os.utime(entries[0], (old, old))
     assert w.enforce_retention() == [entries[0].name]
     assert [e.name for e in w.spool_entries()] == [e.name for e in entries[1:]]
-    small = S.ShareWriter(OutputConfig(directory=dirs.share, spool_directory=dirs.spool,
-                                       spool_max_mb=S._dir_bytes(entries[2]) * 1.5 / S.MB))
+    small = S.ShareWriter(
+        OutputConfig(
+            directory=dirs.share,
+            spool_directory=dirs.spool,
+            spool_max_mb=S._dir_bytes(entries[2]) * 1.5 / S.MB,
+        )
+    )
     assert small.enforce_retention() == [entries[1].name]  # oldest first until under the limit
     assert w.spool_entries()[0].name == entries[2].name
 

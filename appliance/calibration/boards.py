@@ -27,7 +27,15 @@ from appliance.errors import CalibrationError
 
 F64 = npt.NDArray[np.float64]
 BoardType = Literal["chessboard", "circles", "acircles", "charuco"]
-__all__ = ["ARUCO_DICTIONARIES", "BoardSpec", "Detection", "board_from_args", "detect", "render_board", "to_gray8"]
+__all__ = [
+    "ARUCO_DICTIONARIES",
+    "BoardSpec",
+    "Detection",
+    "board_from_args",
+    "detect",
+    "render_board",
+    "to_gray8",
+]
 
 
 class BoardSpec(BoardConfig):

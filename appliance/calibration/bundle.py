@@ -169,7 +169,7 @@ def _evaluate(
         else:
             pi = lay.pose[o.device]
             comp = cv2.composeRT(rv, tv, x[pi : pi + 3], x[pi + 3 : pi + 6])
-            r3, t3 = comp[0].ravel(), comp[1].ravel()
+            r3, t3 = np.asarray(comp[0], np.float64).ravel(), np.asarray(comp[1], np.float64).ravel()
         px, jp = cv2.projectPoints(o.object_points[k].reshape(-1, 1, 3), r3, t3, K, d)
         sl = slice(at, at + 2 * m)
         r[sl] = (px.reshape(-1, 2) - o.image_points[k]).ravel()
@@ -203,7 +203,8 @@ def _levenberg_marquardt(
     assert J is not None
     cost = float(r @ r)
     it = 0
-    for it in range(1, MAX_ITERATIONS + 1):
+    while it < MAX_ITERATIONS:
+        it += 1
         A = J.T @ J
         g = J.T @ r
         diag = np.maximum(np.diag(A).copy(), 1e-12)
@@ -273,7 +274,9 @@ def bundle_adjust(
         raise CalibrationError("joint refinement: no observation with an initial board pose")
     missing = [n for n in devices if not any(o.device == n for o in obs)]
     if missing:
-        raise CalibrationError(f"joint refinement: device(s) {missing} have no observation; capture more poses")
+        raise CalibrationError(
+            f"joint refinement: device(s) {missing} have no observation; capture more poses"
+        )
     views = sorted({o.view for o in obs})
     lay = _Layout(devices, models, views)
     x = np.zeros(lay.size)
@@ -343,7 +346,10 @@ def bundle_adjust(
         e = np.concatenate(per_dev[n]) if per_dev[n] else np.zeros((0, 2))
         rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("nan")
         out_devices[n] = CameraModel(n, K, d, dev.width, dev.height, R, T, rms=rms)
-    poses = {v: (x[lay.view[v] : lay.view[v] + 3].copy(), x[lay.view[v] + 3 : lay.view[v] + 6].copy()) for v in views}
+    poses = {
+        v: (x[lay.view[v] : lay.view[v] + 3].copy(), x[lay.view[v] + 3 : lay.view[v] + 6].copy())
+        for v in views
+    }
     total = float(np.sqrt(np.mean(r[0::2] ** 2 + r[1::2] ** 2)))
     # residuals align with the filtered observation list; map back to the input order
     full: list[F64] = []

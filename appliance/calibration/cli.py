@@ -12,9 +12,8 @@ from typing import Any, TextIO
 from appliance.calibration.boards import BoardSpec, detect
 from appliance.calibration.boards import board_from_args as _board_from_values
 from appliance.calibration.intrinsics import calibrate_camera
-from appliance.calibration.projector import ProcamView, calibrate_procam, procam_view
-from appliance.calibration.report import StereoEntry, write_report
-from appliance.calibration.stereo import stereo_calibrate
+from appliance.calibration.projector import ProcamView, procam_view
+from appliance.calibration.report import write_report
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 
@@ -111,29 +110,12 @@ def calibrate_projector_cli(manifests: list[Path], board: BoardSpec, out: Path) 
             n_proj = len(v.projector) if v.projector is not None else 0
             print(f"{m.path} {c}: {n_cam} board points, {n_proj} with a projector coordinate")
             views[c].append(v)
-    ref = cameras[0]
-    result = calibrate_procam(views[ref], sizes[ref], proj_size, camera_name=ref)
+    from appliance.calibration.live import write_rig_calibration
+    from appliance.calibration.rig import calibrate_rig
+
+    result = calibrate_rig(views, sizes, proj_size)
     print(result.summary())
-    devices = result.devices()
-    reports = [result.camera, result.projector]
-    stereo = [StereoEntry(ref, "projector", result.stereo)]
-    for c in cameras[1:]:
-        other = calibrate_procam(views[c], sizes[c], proj_size, camera_name=c)
-        pairs = [(a.camera, b.camera) for a, b in zip(views[ref], views[c], strict=True)]
-        st = stereo_calibrate(result.camera.camera, other.camera.camera, pairs)
-        print(other.camera.summary())
-        print(f"stereo {ref} -> {c}: RMS {st.rms:.3f} px, baseline {st.baseline_mm:.2f} mm")
-        devices[c] = other.camera.camera.with_pose(st.R, st.T)
-        reports.append(other.camera)
-        stereo.append(StereoEntry(ref, c, st))
-    _write(out, devices)
-    page = write_report(
-        out,
-        reports,
-        stereo,
-        title="Camera-projector calibration",
-        notes=[f"board: {board.describe()}", f"poses: {len(mans)}"],
-    )
+    page = write_rig_calibration(out, result, board, "Camera-projector calibration")
     print(f"wrote {out} and report {page}")
     return 0
 
@@ -212,8 +194,11 @@ async def _live(cfg: Any, poses: int | None, out: Path, stdin: TextIO) -> int:
     loop = asyncio.get_running_loop()
     await session.open()
     n_points = session.board.n_points
-    print(f"calibrate --live: board {session.board.describe()}; {len(rig.cameras)} camera(s), projector "
-          f"{session.projector_size[0]}x{session.projector_size[1]}, {len(session.sequence or ())} frames per pose")
+    print(
+        f"calibrate --live: board {session.board.describe()}; {len(rig.cameras)} camera(s), projector "
+        f"{session.projector_size[0]}x{session.projector_size[1]}, "
+        f"{len(session.sequence or ())} frames per pose"
+    )
     try:
         if poses is not None:
             for _ in range(poses):
@@ -244,7 +229,8 @@ async def _live(cfg: Any, poses: int | None, out: Path, stdin: TextIO) -> int:
         if session.good_poses() < 3:
             raise CalibrationError(
                 f"calibrate --live: the board was found with projector coordinates in only "
-                f"{session.good_poses()} of {len(session.captures)} poses; need >= 3 (check the board settings "
+                f"{session.good_poses()} of {len(session.captures)} poses; need >= 3 (check the board "
+                "settings "
                 "in calibration.board, focus and exposure)"
             )
         result = await loop.run_in_executor(None, session.calibrate)

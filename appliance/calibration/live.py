@@ -12,8 +12,10 @@ from __future__ import annotations
 import asyncio
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from appliance.calibration.boards import BoardSpec
 from appliance.calibration.intrinsics import coverage_map
@@ -26,13 +28,20 @@ from appliance.hardware.base import FrameArray
 from appliance.hardware.registry import Rig
 from appliance.patterns.sequence import Sequence, gray_phase_sequence
 
+if TYPE_CHECKING:
+    from appliance.calibration.virtual import VirtualBoard
+
+F64 = npt.NDArray[np.float64]
+
 CAPTURE_TIMEOUT_S = 10.0
 """Extra time allowed for one capture on top of 0.25 s per frame (module level so tests can change it)."""
 
 
 def calibration_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
     """White, black, then Gray + phase on both projector axes (the configured periods and steps)."""
-    return gray_phase_sequence(width, height, "xy", periods=cfg.periods_px, steps=cfg.steps, inverses=cfg.inverses)
+    return gray_phase_sequence(
+        width, height, "xy", periods=cfg.periods_px, steps=cfg.steps, inverses=cfg.inverses
+    )
 
 
 @dataclass
@@ -81,7 +90,7 @@ class LiveCalibration:
 
     def __post_init__(self) -> None:
         self.board = BoardSpec.from_config(self.cfg.calibration.board)
-        self._virtual_board = None
+        self._virtual_board: VirtualBoard | None = None
         self._buffers: dict[str, FrameArray] = {}
         self._sizes: dict[str, tuple[int, int]] = {}
         self.sequence: Sequence | None = None
@@ -99,7 +108,7 @@ class LiveCalibration:
             info = await cam.open()
             self._sizes[name] = (info.width, info.height)
             dtype = np.uint8 if info.pixel_format == "Mono8" else np.uint16
-            self._buffers[name] = np.zeros((n, info.height, info.width), dtype)
+            self._buffers[name] = np.zeros((n, info.height, info.width), dtype)  # type: ignore[assignment]
         await self.rig.projector.open()
         await self.rig.projector.load(self.sequence)
         await self.rig.trigger.open()
@@ -142,17 +151,20 @@ class LiveCalibration:
         assert seq is not None
         loop = asyncio.get_running_loop()
         if self._virtual_board is not None:
-            vb = self._virtual_board
-            await loop.run_in_executor(None, lambda: (vb.next(), vb.rig.prepare()))
+            await loop.run_in_executor(None, self._virtual_board.advance)
         n = len(seq)
         try:
             for name, cam in self.rig.cameras.items():
                 await cam.arm(n, self._buffers[name])
             await self.rig.projector.start()
-            await asyncio.gather(*(c.wait_frames(CAPTURE_TIMEOUT_S + 0.25 * n) for c in self.rig.cameras.values()))
+            await asyncio.gather(
+                *(c.wait_frames(CAPTURE_TIMEOUT_S + 0.25 * n) for c in self.rig.cameras.values())
+            )
         except (CameraError, HardwareError) as exc:
             await self.rig.projector.stop()
-            raise CalibrationError(f"calibrate --live: capture of pose {len(self.captures) + 1} failed: {exc}") from exc
+            raise CalibrationError(
+                f"calibrate --live: capture of pose {len(self.captures) + 1} failed: {exc}"
+            ) from exc
         board = self.board
         views = {}
         for name, buf in self._buffers.items():
@@ -164,30 +176,44 @@ class LiveCalibration:
     def coverage(self) -> dict[str, float]:
         """Share of each device's image the board has covered so far (cameras and the projector)."""
         out: dict[str, float] = {}
-        proj_pts = []
+        proj_pts: list[F64] = []
         for name, size in self._sizes.items():
-            pts = [c.views[name].camera.image_points for c in self.captures if c.views[name].camera is not None]
+            pts: list[F64] = []
+            for c in self.captures:
+                cam, proj = c.views[name].camera, c.views[name].projector
+                if cam is not None:
+                    pts.append(cam.image_points)
+                if proj is not None:
+                    proj_pts.append(proj.image_points)
             out[name] = float(np.mean(coverage_map(pts, size) > 0)) if pts else 0.0
-            proj_pts += [c.views[name].projector.image_points for c in self.captures
-                         if c.views[name].projector is not None]  # fmt: skip
-        out[PROJECTOR_NAME] = float(np.mean(coverage_map(proj_pts, self.projector_size) > 0)) if proj_pts else 0.0
+        out[PROJECTOR_NAME] = (
+            float(np.mean(coverage_map(proj_pts, self.projector_size) > 0)) if proj_pts else 0.0
+        )
         return out
 
     def good_poses(self) -> int:
         """Poses in which the reference camera found the board with projector coordinates."""
         ref = next(iter(self._sizes))
-        return sum(1 for c in self.captures if c.views[ref].camera is not None and c.views[ref].projector is not None)
+        return sum(
+            1 for c in self.captures if c.views[ref].camera is not None and c.views[ref].projector is not None
+        )
 
     def enough(self) -> bool:
-        """True when the wanted number of poses is reached and every device's coverage is on target."""
+        """True when the wanted number of poses is reached and every camera's coverage is on target.
+
+        The projector's coverage is shown but not required: its field is usually wider than the cameras'
+        view, so the board cannot reach its corners.
+        """
         cc = self.cfg.calibration
-        return self.good_poses() >= cc.poses_wanted and min(self.coverage().values()) >= cc.coverage_target
+        cams = [f for n, f in self.coverage().items() if n != PROJECTOR_NAME]
+        return self.good_poses() >= cc.poses_wanted and min(cams) >= cc.coverage_target
 
     def progress(self) -> str:
         """Coverage per device and what is still missing."""
         cc = self.cfg.calibration
         cov = ", ".join(f"{n} {100 * f:.0f} %" for n, f in self.coverage().items())
-        line = f"  coverage: {cov} (target {100 * cc.coverage_target:.0f} %); {self.good_poses()} of " \
+        line = f"  coverage: {cov} (camera target {100 * cc.coverage_target:.0f} %); " \
+               f"{self.good_poses()} of " \
                f"{cc.poses_wanted} poses wanted"  # fmt: skip
         if self.enough():
             line += "\n  enough poses and coverage: calibrate now (or add poses where coverage is thin)"

@@ -171,12 +171,15 @@ def calibrate_rig(
     base = {**cam_results, PROJECTOR_NAME: procam.projector}
     results = [_refined_result(base[n], bundle, observations, n) for n in [*names, PROJECTOR_NAME]]
     entries = [
-        StereoEntry(ref, n, _refined_stereo(bundle, observations, ref, n)) for n in [*names[1:], PROJECTOR_NAME]
+        StereoEntry(ref, n, _refined_stereo(bundle, observations, ref, n))
+        for n in [*names[1:], PROJECTOR_NAME]
     ]
     return RigCalibration(dict(bundle.devices), results, entries, initial, bundle)
 
 
-def _refined_result(base: CameraResult, bundle: BundleResult, obs: list[Observation], name: str) -> CameraResult:
+def _refined_result(
+    base: CameraResult, bundle: BundleResult, obs: list[Observation], name: str
+) -> CameraResult:
     """``base`` with the refined device, residuals, per-view errors and standard deviations."""
     pts: list[F64] = []
     res: list[F64] = []
@@ -191,8 +194,8 @@ def _refined_result(base: CameraResult, bundle: BundleResult, obs: list[Observat
     per_view = np.array([np.sqrt(np.mean(np.sum(r * r, axis=1))) if len(r) else np.nan for r in res])
     cam = bundle.devices[name]
     cam_at_origin = CameraModel(cam.name, cam.K, cam.dist, cam.width, cam.height, rms=cam.rms)
-    sd = {k: v for k, v in bundle.std_devs[name].items() if k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2",
-                                                                  "k3", "k4", "k5", "k6")}  # fmt: skip
+    intrinsic = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+    sd = {k: v for k, v in bundle.std_devs[name].items() if k in intrinsic}
     coverage = coverage_map(pts, (cam.width, cam.height))
     return dataclasses.replace(
         base, camera=cam_at_origin, rms=cam.rms, per_view_errors=per_view, std_devs=sd, views=views,

@@ -1,6 +1,7 @@
 """A calibration board on the virtual rig: preset board poses and the board as a scene object.
 
-The board is a plane whose albedo is the printed board image (:func:`~appliance.calibration.boards.render_board`),
+The board is a plane whose albedo is the printed board image
+(:func:`~appliance.calibration.boards.render_board`),
 pre-filtered at the reference camera's pixel footprint: the renderer samples the albedo at the pixel
 centre's ray, so the pre-filter stands in for the pixel's area integration (no aliased, biased edges).
 Preset poses spread the board over the reference camera's image at the working distance (the projector's
@@ -37,7 +38,8 @@ VISIBLE_MARGIN_PX = 12.0
 _LAYOUT = (
     (0.0, 0.0, 0, 0, 0, 0), (-1.0, -1.0, 1, -1, 1, 0), (1.0, -1.0, 1, 1, -1, 0), (1.0, 1.0, -1, 1, 1, 0),
     (-1.0, 1.0, -1, -1, -1, 0), (0.0, -1.0, 1, 0, 0, 1), (1.0, 0.0, 0, 1, 1, -1), (0.0, 1.0, -1, 0, 0, 1),
-    (-1.0, 0.0, 0, -1, -1, -1), (-1.0, -1.0, -1, 1, 0, -1), (1.0, -1.0, -1, -1, 0, 1), (1.0, 1.0, 1, -1, 0, -1),
+    (-1.0, 0.0, 0, -1, -1, -1), (-1.0, -1.0, -1, 1, 0, -1), (1.0, -1.0, -1, -1, 0, 1),
+    (1.0, 1.0, 1, -1, 0, -1),
     (-1.0, 1.0, 1, 1, 0, 1), (0.0, 0.0, 1, 1, 1, -1), (0.0, 0.0, -1, -1, -1, 1), (0.5, -0.5, 1, 0, -1, 0),
     (-0.5, 0.5, 0, 1, 1, 0), (-0.5, -0.5, -1, 0, 1, 0), (0.5, 0.5, 0, -1, -1, 0), (0.0, 0.0, 1, -1, 0, 0),
 )  # fmt: skip
@@ -215,7 +217,7 @@ def board_texture(board: BoardSpec, footprint_mm: float, px_per_mm: float = BOAR
     refl = INK_ALBEDO + (PAPER_ALBEDO - INK_ALBEDO) * img.astype(np.float64) / 255.0
     sigma = 0.5 * footprint_mm * px_per_mm
     if sigma > 0.3:
-        refl = cv2.GaussianBlur(refl, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        refl = np.asarray(cv2.GaussianBlur(refl, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), np.float64)
     return BoardTexture(np.ascontiguousarray(refl), np.asarray(origin, np.float64), 1.0 / px_per_mm)
 
 
@@ -226,11 +228,19 @@ def board_scene(pose: BoardPose, texture: BoardTexture) -> object:
 
     normal = pose.R[:, 2]
     scene = Scene([PlaneObject(point_mm=tuple(pose.t), normal=tuple(-normal), albedo=BACKGROUND_ALBEDO)])
-    origin = pose.t - texture.mm_per_px * (texture.origin_px[0] * pose.R[:, 0] + texture.origin_px[1] * pose.R[:, 1])
+    origin = pose.t - texture.mm_per_px * (
+        texture.origin_px[0] * pose.R[:, 0] + texture.origin_px[1] * pose.R[:, 1]
+    )
     scene.set_albedo(
         0,
-        PlaneImageAlbedo(origin, pose.R[:, 0].copy(), pose.R[:, 1].copy(), texture.image, texture.mm_per_px,
-                         outside=BACKGROUND_ALBEDO),
+        PlaneImageAlbedo(
+            origin,
+            pose.R[:, 0].copy(),
+            pose.R[:, 1].copy(),
+            texture.image,
+            texture.mm_per_px,
+            outside=BACKGROUND_ALBEDO,
+        ),
     )
     return scene
 
@@ -277,3 +287,8 @@ class VirtualBoard:
     def next(self) -> BoardPose:
         """Move the board to the next preset pose."""
         return self.place(self.index + 1)
+
+    def advance(self) -> None:
+        """Move to the next pose and compute the rig's per-camera geometry for it (blocking, seconds)."""
+        self.next()
+        self.rig.prepare()

@@ -73,7 +73,7 @@ class ReconstructionConfig(_Strict):
         8, ge=0, le=8, description="Keep a point only when this many of its 8 neighbours are valid and near (8 also drops mixed pixels on depth edges)."
     )
     max_neighbour_jump_mm: float = Field(
-        2.0, gt=0, description="A neighbour counts only when its depth differs by less than this (mm)."
+        2.0, gt=0, description="A neighbour counts when nearer than this plus two pixel footprints at mid range (mm)."
     )
     stereo_max_epipolar_px: float = Field(
         1.5, gt=0, description="Stereo: reject matches this far from the epipolar line (px)."
@@ -344,7 +344,7 @@ class VerifyTolerances(_Strict):
 
     flatness_mm: float = Field(0.1, gt=0, description="Plane form error: peak-to-valley of the cell means (mm).")
     flatness_cell_mm: float = Field(
-        5.0, ge=0, le=100, description="Cell size over which plane residuals are averaged before the "
+        10.0, ge=0, le=100, description="Cell size over which plane residuals are averaged before the "
         "peak-to-valley (mm); 0: raw points (noise included).",
     )
     sphere_diameter_mm: float = Field(0.05, gt=0, description="|fitted - calibrated| sphere diameter (mm).")

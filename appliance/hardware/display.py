@@ -115,8 +115,9 @@ class DisplayTiming:
         if k < 1 or abs(exposure_us - k * t) > EXPOSURE_TOLERANCE_US:
             lo, hi = max(1, int(exposure_us // t)), max(1, int(exposure_us // t)) + 1
             raise ProjectorError(
-                f"display: exposure_us = {exposure_us:g} at {self.refresh_hz:g} Hz: must be a whole multiple of "
-                f"the frame period {t:.1f} µs (DLP projectors band otherwise); use {lo * t:.0f} or {hi * t:.0f}"
+                f"display: exposure_us = {exposure_us:g} at {self.refresh_hz:g} Hz: must be a whole "
+                f"multiple of the frame period {t:.1f} µs (DLP projectors band otherwise); "
+                f"use {lo * t:.0f} or {hi * t:.0f}"
             )
         if k > self.frames_per_pattern:
             raise ProjectorError(
@@ -137,7 +138,7 @@ class DisplayTiming:
         return (self.frames_per_pattern - k) * self.frame_period_us / 2
 
     def schedule(self, n_patterns: int, exposure_us: float) -> list[PatternSlot]:
-        """Flip frame, light window and trigger time of each of ``n_patterns`` patterns (from the first flip)."""
+        """Flip frame, light window and trigger time of each pattern (µs from the first flip)."""
         t, f, lat = self.frame_period_us, self.frames_per_pattern, self.latency_frames
         offset = self.trigger_offset_us(exposure_us)
         return [
@@ -204,7 +205,8 @@ class _PygameScreen:
                     f"display: display_index = {cfg.display_index}: only {len(sizes)} display(s) found "
                     f"with SDL driver {os.environ.get('SDL_VIDEODRIVER')!r}; check the projector's cable"
                 )
-            self.size: tuple[int, int] = tuple(sizes[cfg.display_index])  # type: ignore[assignment]
+            width, height = sizes[cfg.display_index]
+            self.size = (int(width), int(height))
             flags = pygame.FULLSCREEN | pygame.SCALED | pygame.NOFRAME
             self._screen = pygame.display.set_mode(self.size, flags, display=cfg.display_index, vsync=1)
             pygame.mouse.set_visible(False)
@@ -323,13 +325,13 @@ class DisplayProjector:
             for frame in range(self.timing.total_frames(self._n_patterns) + 1):
                 if self._stop.is_set():
                     break
-                pattern, first_frame = divmod(frame, per)
-                if first_frame == 0:
+                pattern, within = divmod(frame, per)
+                if within == 0:
                     screen.show(pattern if pattern < self._n_patterns else -1)
                 screen.flip()
                 now = time.monotonic_ns()
                 self.flip_times_ns.append(now)
-                if first_frame == 0 and pattern < self._n_patterns:
+                if within == 0 and pattern < self._n_patterns:
                     triggers.add(now + offset_ns, pattern)
         finally:
             self.trigger_times_ns = triggers.finish()
@@ -340,7 +342,7 @@ class DisplayProjector:
         async with self._lock:
             if self._screen is not None:
                 screen = self._screen
-                await asyncio.to_thread(lambda: (screen.show(-1), screen.flip()))
+                await asyncio.to_thread(_show_black, screen)
 
     async def close(self) -> None:
         """Release the display; idempotent."""
@@ -353,6 +355,11 @@ class DisplayProjector:
         if self._screen is None:
             raise ProjectorError(f"projector {self.name!r} (display): not open; call open() first")
         return self._screen
+
+
+def _show_black(screen: Screen) -> None:
+    screen.show(-1)
+    screen.flip()
 
 
 class _TriggerThread:

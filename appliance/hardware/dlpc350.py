@@ -105,18 +105,23 @@ COMMANDS: dict[int, CommandSpec] = {
         CommandSpec(Cmd.TRIGGER_MODE, "trigger mode", 1, 1, "0 VSYNC, 1 internal/external"),
         CommandSpec(Cmd.SEQUENCE_CONTROL, "sequence start/stop", 1, 1, "0 stop, 1 pause, 2 start"),
         CommandSpec(Cmd.EXPOSURE_PERIOD, "exposure and period", 8, 8, "exposure µs, period µs (u32 LE)"),
-        CommandSpec(Cmd.LUT_CONTROL, "LUT control", 4, 4, "entries-1, repeat, patterns/TRIG_OUT2-1, images-1"),
+        CommandSpec(
+            Cmd.LUT_CONTROL, "LUT control", 4, 4, "entries-1, repeat, patterns/TRIG_OUT2-1, images-1"
+        ),
         CommandSpec(Cmd.MAILBOX_ADDRESS, "LUT mailbox address", 1, 1, "entry offset"),
-        CommandSpec(Cmd.MAILBOX_CONTROL, "LUT mailbox open/close", 1, 1, "1 image LUT, 2 pattern LUT, 0 close"),
+        CommandSpec(
+            Cmd.MAILBOX_CONTROL, "LUT mailbox open/close", 1, 1, "1 image LUT, 2 pattern LUT, 0 close"
+        ),
         CommandSpec(Cmd.MAILBOX_DATA, "LUT mailbox data", -1, None, "3 bytes per pattern entry, 1 per image"),
         CommandSpec(Cmd.TRIG_IN1_DELAY, "TRIG_IN1 delay", 4, 4, "delay"),
     )
 }
 
-# The DLPC350 flash / boot-loader command group: program mode (0x0030), sector erase (0x0028), sector
-# address (0x0029), download size (0x002C), download data (0x0025), checksum (0x0026, 0x0015), flash
-# type and ids (0x002F, 0x000C, 0x000D): everything with a high byte of 0x00. Also refused, as the
-# appliance never needs them: 0x0B00 and 0x0F00..0x0FFF (programming / flash-operation ranges).
+# The DLPC350 flash / boot-loader command group, as read from the programmer's guide: program mode
+# (0x0030), sector erase (0x0028), sector address (0x0029), download size (0x002C), download data
+# (0x0025), checksums (0x0026, 0x0015), flash type and ids (0x002F, 0x000C, 0x000D): we refuse every
+# command with a high byte of 0x00. Also refused, as the appliance never needs them: 0x0B00 and
+# 0x0F00..0x0FFF. Besides, the backend's own set-up sends only commands of :data:`COMMANDS`.
 _FLASH_RANGES: tuple[tuple[int, int], ...] = ((0x0000, 0x00FF), (0x0B00, 0x0B00), (0x0F00, 0x0FFF))
 
 
@@ -130,7 +135,8 @@ def check_not_flash(code: int) -> None:
     if is_flash_command(code):
         raise ProjectorError(
             f"DLPC350 command 0x{code:04X} belongs to the flash-programming group: the appliance never sends "
-            "it (an interrupted flash write can brick the projector); program flash with TI's tools on a bench"
+            "it (an interrupted flash write can brick the projector); program flash with TI's tools on a "
+            "bench"
         )
 
 
@@ -164,7 +170,9 @@ def encode_request(code: int, data: bytes = b"", *, read: bool = False, seq: int
     """
     length = 2 + len(data)
     if length > 0xFFFF:
-        raise ProjectorError(f"DLPC350 {command_name(code)}: {len(data)} data bytes: too long for one message")
+        raise ProjectorError(
+            f"DLPC350 {command_name(code)}: {len(data)} data bytes: too long for one message"
+        )
     flags = FLAG_READ | FLAG_REPLY if read else FLAG_REPLY
     message = bytes([flags, seq & 0xFF]) + struct.pack("<HH", length, code) + bytes(data)
     return [
@@ -194,7 +202,7 @@ class Request:
 
 def message_length(first_report: bytes) -> int:
     """Total message size in bytes (header + payload) announced by a first report."""
-    return HEADER_SIZE + struct.unpack_from("<H", first_report, 2)[0]
+    return HEADER_SIZE + int(struct.unpack_from("<H", first_report, 2)[0])
 
 
 def reports_needed(total_bytes: int) -> int:
@@ -243,7 +251,9 @@ def decode_reply(reports: list[bytes]) -> Reply:
         raise ValueError(f"reply of {len(blob)} bytes: shorter than its 4-byte header")
     length = struct.unpack_from("<H", blob, 2)[0]
     if HEADER_SIZE + length > len(blob):
-        raise ValueError(f"reply length field {length}: more than the {len(blob) - HEADER_SIZE} bytes received")
+        raise ValueError(
+            f"reply length field {length}: more than the {len(blob) - HEADER_SIZE} bytes received"
+        )
     return Reply(blob[0], blob[1], blob[HEADER_SIZE : HEADER_SIZE + length])
 
 
@@ -266,7 +276,9 @@ def lut_control_data(n_entries: int, repeat: bool, patterns_per_trig_out2: int, 
     return bytes([n_entries - 1, int(repeat), patterns_per_trig_out2 - 1, n_images - 1])
 
 
-def check_exposure_period(exposure_us: int, period_us: int, bit_depths: set[int] | frozenset[int]) -> list[str]:
+def check_exposure_period(
+    exposure_us: int, period_us: int, bit_depths: set[int] | frozenset[int]
+) -> list[str]:
     """The device's timing rules, checked on the host; returns the broken rules as messages (empty = ok).
 
     Rules: exposure == period, or exposure <= period - 230 µs; exposure >= the minimum of each bit depth
@@ -285,7 +297,9 @@ def check_exposure_period(exposure_us: int, period_us: int, bit_depths: set[int]
         if minimum is None:
             problems.append(f"bit depth {depth}: must be 1..8")
         elif exposure_us < minimum:
-            problems.append(f"exposure {exposure_us} µs is below the {minimum} µs minimum of {depth}-bit patterns")
+            problems.append(
+                f"exposure {exposure_us} µs is below the {minimum} µs minimum of {depth}-bit patterns"
+            )
     return problems
 
 

@@ -244,7 +244,9 @@ class FakeDLPC350:
             self._mailbox_data(data)
         elif code in (Cmd.TRIG_OUT1, Cmd.TRIG_OUT2):
             if any(d > _MAX_TRIGGER_DELAY for d in data[1:]) or data[0] > 1:
-                raise _Nack(f"trigger output {data.hex(' ')}: invert 0/1, delays <= 0x{_MAX_TRIGGER_DELAY:02X}")
+                raise _Nack(
+                    f"trigger output {data.hex(' ')}: invert 0/1, delays <= 0x{_MAX_TRIGGER_DELAY:02X}"
+                )
             if code == Cmd.TRIG_OUT1:
                 self.trig_out1 = bytes(data)
             else:
@@ -306,7 +308,9 @@ class FakeDLPC350:
                 depths.add(depth)
         if self.exposure_us > self.period_us:
             bits |= 1 << 0
-        elif self.exposure_us != self.period_us and self.period_us - self.exposure_us < proto.MIN_PERIOD_GAP_US:
+        elif (
+            self.exposure_us != self.period_us and self.period_us - self.exposure_us < proto.MIN_PERIOD_GAP_US
+        ):
             bits |= 1 << 4
         if any(self.exposure_us < proto.MIN_EXPOSURE_US[d] for d in depths):
             bits |= 1 << 0
@@ -407,7 +411,9 @@ class FakeUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
 
     def intr_write(self, dev_handle: FakeDLPC350, ep: int, intf: int, data: Any, timeout: int) -> int:
         if ep != proto.EP_OUT or len(data) != proto.REPORT_SIZE:
-            raise usb.core.USBError(f"fake DLPC350: write of {len(data)} bytes to endpoint 0x{ep:02X}", errno.EIO)
+            raise usb.core.USBError(
+                f"fake DLPC350: write of {len(data)} bytes to endpoint 0x{ep:02X}", errno.EIO
+            )
         dev_handle.receive(bytes(data))
         return len(data)
 

@@ -21,6 +21,10 @@ How a scan3d :class:`~appliance.patterns.sequence.Sequence` maps onto the DLPC35
 - So frame ``i`` of the sequence is LUT entry ``i`` and TRIG_OUT1 pulse ``i``: the cameras capture the
   sequence in order.
 
+TRIG_OUT1/TRIG_OUT2 delays (``trigger_out1_delay_steps``) are written as raw register values, 107.2 ns per
+step; on the DLPC350 the register's zero-delay point is not 0 (check the programmer's guide for your
+firmware; 0xBB is documented as 0 µs) and the fake accepts 0..0xD5.
+
 Video source: after :meth:`LightCrafter4500.load`, :attr:`LightCrafter4500.video_frames` holds the images
 that must be shown, one per VSYNC, on the projector's HDMI input (e.g. with the ``display`` backend).
 Flash source: the same packed images must already be in flash at indices ``flash_first_image`` onwards
@@ -31,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import functools
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -145,7 +150,7 @@ def pack_video_frames(
         depth = _frame_bit_depth(frame)
         channel = _free_slot(fill, depth) if count < patterns_per_image else None
         new_image = channel is None
-        if new_image:
+        if channel is None:
             if out.entries and video_source:
                 out.entries[-1] = _with_insert_black(out.entries[-1])
             out.images.append(np.zeros((sequence.height, sequence.width, 3), np.uint8))
@@ -191,7 +196,9 @@ def find_devices(usb_backend: Any = None) -> list[Any]:
     _require_pyusb()
     try:
         return list(
-            usb.core.find(find_all=True, idVendor=proto.VENDOR_ID, idProduct=proto.PRODUCT_ID, backend=usb_backend)
+            usb.core.find(
+                find_all=True, idVendor=proto.VENDOR_ID, idProduct=proto.PRODUCT_ID, backend=usb_backend
+            )
         )
     except usb.core.NoBackendError as exc:
         raise BackendUnavailableError(
@@ -248,10 +255,19 @@ class _Link:
             for intf in self._interfaces():
                 if self.dev.is_kernel_driver_active(intf):
                     self.dev.detach_kernel_driver(intf)
-            self.dev.set_configuration()
+            if not self._configured():
+                self.dev.set_configuration()
         except usb.core.USBError as exc:
             hint = _UDEV_HINT if exc.errno == errno.EACCES else "unplug and replug the projector's USB cable"
             raise ProjectorError(f"{self.where}: cannot claim the USB device: {exc}; {hint}") from exc
+
+    def _configured(self) -> bool:
+        # Setting the configuration again would reset a device another process is using.
+        try:
+            self.dev.get_active_configuration()
+        except (usb.core.USBError, AttributeError):
+            return False
+        return True
 
     def _interfaces(self) -> Iterator[int]:
         try:
@@ -288,7 +304,9 @@ class _Link:
         except ValueError as exc:
             raise ProjectorError(f"{self.where}: malformed reply to {name}: {exc}") from exc
         if reply.seq != self.seq:
-            raise ProjectorError(f"{self.where}: reply to {name} has sequence {reply.seq}, expected {self.seq}")
+            raise ProjectorError(
+                f"{self.where}: reply to {name} has sequence {reply.seq}, expected {self.seq}"
+            )
         if reply.nack:
             raise ProjectorError(
                 f"{self.where}: the DLPC350 refused {name} (NACK) with data {data.hex(' ') or 'none'}; "
@@ -331,7 +349,7 @@ class LightCrafter4500:
         A pyusb ``usb.core.Device`` (or an object with its ``write``/``read``/``set_configuration``/
         kernel-driver methods) to use instead of searching the bus.
     usb_backend : object, optional
-        A pyusb backend for the search (tests pass a :class:`~appliance.hardware.fake_dlpc350.FakeUsbBackend`).
+        A pyusb backend for the search (tests: :class:`~appliance.hardware.fake_dlpc350.FakeUsbBackend`).
     """
 
     def __init__(
@@ -378,23 +396,32 @@ class LightCrafter4500:
         try:
             await self._run(self._open_sync)
         except BaseException:
-            self._executor.shutdown(wait=False)
-            self._executor, self._link = None, None
+            await self._shutdown_executor()
             raise
 
     def _open_sync(self) -> None:
-        dev = self._device if self._device is not None else find_device(self.config.usb_serial, self._usb_backend)
+        dev = (
+            self._device
+            if self._device is not None
+            else find_device(self.config.usb_serial, self._usb_backend)
+        )
         link = _Link(dev, f"projector {self.name!r} (lightcrafter4500, {_describe(dev)})")
         link.setup()
         self._link = link
-        if link.read1(Cmd.POWER_CONTROL):
-            _log.info("%s: waking from standby", link.where)
-            link.transact(Cmd.POWER_CONTROL, b"\x00")
-            time.sleep(WAKE_S)
-        status = self._status_sync()
-        if status.problems:
-            raise ProjectorError(f"{link.where}: unhealthy after open: {status.describe()}; power-cycle it")
-        link.transact(Cmd.SEQUENCE_CONTROL, b"\x00")
+        try:
+            if link.read1(Cmd.POWER_CONTROL):
+                _log.info("%s: waking from standby", link.where)
+                link.transact(Cmd.POWER_CONTROL, b"\x00")
+                time.sleep(WAKE_S)
+            status = self._status_sync()
+            if status.problems:
+                raise ProjectorError(
+                    f"{link.where}: unhealthy after open: {status.describe()}; power-cycle it"
+                )
+            link.transact(Cmd.SEQUENCE_CONTROL, b"\x00")
+        except BaseException:
+            link.release()
+            raise
 
     async def load(self, sequence: Sequence) -> None:
         """Configure the pattern sequence (documented DLPC350 order) and validate it on the device."""
@@ -434,7 +461,9 @@ class LightCrafter4500:
             )
         for value in (*cfg.led_current, *cfg.trigger_out1_delay_steps):
             if not 0 <= value <= 255:
-                raise ProjectorError(f"{self.where}: LED current / trigger delay value {value}: must be 0..255")
+                raise ProjectorError(
+                    f"{self.where}: LED current / trigger delay value {value}: must be 0..255"
+                )
         return packing
 
     def _load_sync(self, packing: VideoPacking) -> None:
@@ -471,7 +500,9 @@ class LightCrafter4500:
         deadline = time.monotonic() + VALIDATE_TIMEOUT_S
         while (status := link.read1(Cmd.LUT_VALIDATE)) & proto.VALIDATION_BUSY:
             if time.monotonic() > deadline:
-                raise ProjectorError(f"{link.where}: sequence validation still busy after {VALIDATE_TIMEOUT_S} s")
+                raise ProjectorError(
+                    f"{link.where}: sequence validation still busy after {VALIDATE_TIMEOUT_S} s"
+                )
             time.sleep(VALIDATE_POLL_S)
         errors = proto.decode_validation(status)
         if errors:
@@ -504,8 +535,12 @@ class LightCrafter4500:
         try:
             await self._run(self._close_sync)
         finally:
-            self._executor.shutdown(wait=False)
-            self._executor, self._link = None, None
+            await self._shutdown_executor()
+
+    async def _shutdown_executor(self) -> None:
+        executor, self._executor, self._link = self._executor, None, None
+        if executor is not None:
+            await asyncio.to_thread(executor.shutdown, True)  # joins the idle USB thread off the loop
 
     def _close_sync(self) -> None:
         link = self._require_link()
@@ -531,7 +566,7 @@ class LightCrafter4500:
     async def command(self, code: int, data: bytes = b"", *, read: bool = False) -> bytes:
         """Send one raw command (maintenance); flash commands are refused before reaching the wire."""
         proto.check_not_flash(code)
-        return await self._run(self._require_link().transact, code, data, read)
+        return await self._run(functools.partial(self._require_link().transact, code, data, read=read))
 
     def _require_link(self) -> _Link:
         if self._link is None:
@@ -558,7 +593,9 @@ def probe_lightcrafter(usb_backend: Any = None) -> str:
         try:
             link.setup()
             hw, main = link.read1(Cmd.HW_STATUS), link.read1(Cmd.MAIN_STATUS)
-            st = LightCrafterStatus(hw, main, proto.decode_hardware_status(hw), proto.decode_main_status(main))
+            st = LightCrafterStatus(
+                hw, main, proto.decode_hardware_status(hw), proto.decode_main_status(main)
+            )
             parts.append(f"{_describe(dev)} serial {_serial_of(dev)}: {st.describe()}")
         except ProjectorError as exc:
             parts.append(f"{_describe(dev)}: {exc}")

@@ -59,7 +59,7 @@ def render_preview(
     canvas = np.full((img.shape[0], img.shape[1] + margin, 3), 255, np.uint8)
     canvas[:, : img.shape[1]] = img
     ramp = np.linspace(255, 0, bar_h).astype(np.uint8)[:, None].repeat(bar_w, axis=1)
-    bar = cv2.applyColorMap(255 - ramp, cv2.COLORMAP_TURBO)
+    bar = cv2.applyColorMap(ramp, cv2.COLORMAP_TURBO)  # same mapping as the tiles: near = warm
     y0 = (img.shape[0] - bar_h) // 2
     x0 = img.shape[1] + 8
     canvas[y0 : y0 + bar_h, x0 : x0 + bar_w] = bar

@@ -85,8 +85,12 @@ class Reconstructor:
         self._xyz: dict[str, F32] = {}
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
         self._normals: dict[str, F32] = {}
+        self._jump_mm: dict[str, float] = {}
         for n in self.outputs:
             cam = calibration.devices[n]
+            # neighbours are a pixel apart: allow the diagonal footprint of a pixel at mid range on top
+            footprint_mm = 0.5 * (cfg.min_depth_mm + cfg.max_depth_mm) / float(cam.K[0, 0])
+            self._jump_mm[n] = cfg.max_neighbour_jump_mm + 2.0 * footprint_mm
             self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
             self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
@@ -131,7 +135,7 @@ class Reconstructor:
                 tri.triangulate(maps[n], self._xyz[n], cfg.min_depth_mm, cfg.max_depth_mm)
         t1 = time.perf_counter()
         for n in self.outputs:
-            filter_isolated(self._xyz[n], cfg.min_neighbours, cfg.max_neighbour_jump_mm, self._scratch[n])
+            filter_isolated(self._xyz[n], cfg.min_neighbours, self._jump_mm[n], self._scratch[n])
             if cfg.normals:
                 estimate_normals(self._xyz[n], self.calibration.devices[n].center, self._normals[n])
         t2 = time.perf_counter()

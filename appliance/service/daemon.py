@@ -425,13 +425,7 @@ class Service:
     async def _warm(self, scanner: Any) -> None:
         """Compile or load every numba kernel before ready: a discarded scan on the virtual rig, else a
         decode of blank frames (no light is projected)."""
-        warm = getattr(scanner, "warm_up", None)
-        if warm is not None:
-            await warm()
-        elif self.rig.virtual is not None:
-            await scanner.scan()
-        else:
-            await asyncio.get_running_loop().run_in_executor(None, _warm_blank, scanner)
+        await scanner.warm_up()
         self._on_camera_captured_count = 0
 
     _on_camera_captured_count = 0
@@ -766,20 +760,6 @@ class Service:
 
         threading.Thread(target=read, name="scan3d-stdin", daemon=True).start()
         print("press Enter to scan; Ctrl-C stops", file=sys.stderr, flush=True)
-
-
-def _warm_blank(scanner: Any) -> None:
-    """Run the streaming decoders and the reconstruction once on blank frames (compiles/loads kernels)."""
-    maps = {}
-    for name, dec in scanner._decoders.items():
-        buf = scanner._buffers[name]
-        dec.reset()
-        for i in range(buf.shape[0]):
-            dec.push(i, buf[i])
-        maps[name] = dec.finish()
-        dec.reset()
-    white = {name: scanner._white_u8(buf) for name, buf in scanner._buffers.items()}
-    scanner.reconstructor.run(maps, white)
 
 
 def run_service(config: Path, *, control_socket: Path | None = None, scans: int | None = None,

@@ -1,0 +1,409 @@
+"""The LightCrafter 4500 backend against a fake DLPC350 behind the real pyusb ``usb.core`` code paths."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from appliance.config.backends import LightCrafter4500Config
+from appliance.errors import PatternError, ProjectorError
+from appliance.hardware import dlpc350 as proto
+from appliance.hardware import lightcrafter4500 as lcm
+from appliance.hardware.dlpc350 import Cmd, Led, LutEntry, Trigger
+from appliance.hardware.fake_dlpc350 import FakeDLPC350, FakeUsbBackend, FlashCommandError
+from appliance.patterns import (
+    BlackFrame,
+    GrayFrame,
+    OtherFrame,
+    PhaseFrame,
+    Sequence,
+    WhiteFrame,
+    gray_phase_sequence,
+    render_frame,
+)
+
+pytestmark = pytest.mark.hil
+
+
+@pytest.fixture(autouse=True)
+def _fast(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(lcm, "WAKE_S", 0.0)
+    monkeypatch.setattr(lcm, "VALIDATE_POLL_S", 0.0)
+
+
+@pytest.fixture
+def fake() -> Iterator[FakeDLPC350]:
+    dev = FakeDLPC350(serial="LCR0001")
+    yield dev
+    # Whatever a test did, nothing may ever have sent a flash command.
+    assert dev.flash_violations == []
+    assert not any(proto.is_flash_command(e.code) for e in dev.log)
+
+
+def _lc(fake: FakeDLPC350, **cfg: object) -> lcm.LightCrafter4500:
+    return lcm.LightCrafter4500(LightCrafter4500Config(**cfg), usb_backend=FakeUsbBackend(fake))  # type: ignore[arg-type]
+
+
+def _pad(hexstr: str) -> bytes:
+    return bytes.fromhex(hexstr).ljust(64, b"\x00")
+
+
+# --- framing (the documented examples) ------------------------------------------------------------------
+
+
+def test_request_frames_match_the_documented_examples() -> None:
+    assert proto.encode_request(0x1A1B, b"\x01", seq=1) == [_pad("40 01 03 00 1B 1A 01")]
+    assert proto.encode_request(0x1A0A, read=True, seq=0) == [_pad("C0 00 02 00 0A 1A")]
+    # A message longer than one report continues raw in the next reports.
+    data = bytes(range(256)) + bytes(range(128))
+    reports = proto.encode_request(0x1A34, data, seq=9)
+    assert [len(r) for r in reports] == [64] * 7
+    assert reports[0][:6] == bytes.fromhex("40 09 82 01 34 1A") and reports[0][6:] == data[:58]
+    assert reports[1] == data[58:122]
+    request = proto.decode_request(reports)
+    assert (request.code, request.data, request.seq) == (0x1A34, data, 9)
+
+
+def test_lut_word_bit_layout() -> None:
+    e = LutEntry(5, 1, Led.GREEN, Trigger.EXTERNAL_NEGATIVE, invert=True, buffer_swap=True)
+    assert e.word() == 2 | 5 << 2 | 1 << 8 | 2 << 12 | 1 << 16 | 1 << 18
+    assert LutEntry.from_word(e.word()) == e
+    assert (
+        LutEntry(2, 8, trig_out_prev=True, insert_black=True).word()
+        == 3 | 2 << 2 | 8 << 8 | 7 << 12 | 1 << 17 | 1 << 19
+    )
+    with pytest.raises(ProjectorError, match="pattern = 3 at bit depth 8"):
+        LutEntry(3, 8)
+
+
+def test_status_bytes_decode_into_messages() -> None:
+    assert proto.decode_hardware_status(0x01) == []
+    assert proto.decode_hardware_status(0xC4) == [
+        "internal initialisation failed",
+        "DMD reset controller (DRC) error",
+        "sequencer abort",
+        "sequencer error",
+    ]
+    assert proto.decode_main_status(0x0A) == ["sequencer running", "external video locked"]
+    assert proto.decode_validation(0x00) == []
+    assert len(proto.decode_validation(0x1F)) == 5
+
+
+# --- golden packets -------------------------------------------------------------------------------------
+
+
+def test_small_sequence_produces_exactly_the_expected_packets(fake: FakeDLPC350) -> None:
+    seq = Sequence(16, 4, (WhiteFrame(), BlackFrame(), GrayFrame("x", 0), PhaseFrame("x", 4.0, 0, 3)))
+    lc = _lc(fake, exposure_us=8333, period_us=8333)  # two patterns per 16667 µs video frame
+
+    async def go() -> None:
+        await lc.open()
+        n_open = len(fake.log)
+        await lc.load(seq)
+        loaded = fake.log[n_open:]
+        writes = [(e.code, e.request.data.hex(" ")) for e in loaded if not e.request.is_read]
+        assert writes == [
+            (0x1A24, "00"),  # stop
+            (0x1A1B, "01"),  # pattern mode
+            (0x1A22, "00"),  # video port source
+            (0x1A31, "03 00 03 01"),  # 4 entries, no repeat, 4 patterns per TRIG_OUT2, 2 images
+            (0x1A29, "8d 20 00 00 8d 20 00 00"),  # 8333 µs exposure and period
+            (0x1A23, "00"),  # VSYNC trigger
+            (0x1A33, "02"),  # open the pattern LUT mailbox
+            (0x1A32, "00"),
+            # G0 white (VSYNC, swap), G1 black (insert black); G0 gray (VSYNC, swap), R 8-bit phase (black)
+            (0x1A34, "01 71 04 07 71 02 01 71 04 07 78 02"),
+            (0x1A33, "00"),
+            (0x1A1D, "00 00 00"),
+            (0x1A1E, "00 00"),
+            (0x1A07, "08"),
+            (0x0B01, "97 78 7d"),  # 255 - (104, 135, 130)
+            (0x1A1A, "00"),
+        ]
+        reads = [e.code for e in loaded if e.request.is_read]
+        assert reads == [0x1A1A, 0x1A1A]  # busy once, then the result
+        # The exact bytes of one packet, and the sequence numbers run on.
+        lut = next(e for e in loaded if e.code == Cmd.MAILBOX_DATA)
+        seqs = [e.request.seq for e in loaded]
+        assert lut.reports == [
+            _pad(f"40 {lut.request.seq:02x} 0e 00 34 1a 01 71 04 07 71 02 01 71 04 07 78 02")
+        ]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        await lc.close()
+
+    asyncio.run(go())
+    img0, img1 = lc.video_frames
+    assert np.all(img0[:, :, 1] == 0b01) and not img0[:, :, [0, 2]].any()  # G0 white, G1 black
+    gray = render_frame(GrayFrame("x", 0), 16, 4) > 127
+    np.testing.assert_array_equal(img1[:, :, 1], gray.astype(np.uint8))
+    np.testing.assert_array_equal(img1[:, :, 0], render_frame(PhaseFrame("x", 4.0, 0, 3), 16, 4))
+
+
+def _unpack(image: np.ndarray, e: LutEntry) -> np.ndarray:
+    rgb = {0: 1, 1: 0, 2: 2}
+    if e.bit_depth == 8:
+        return image[:, :, rgb[e.pattern]]
+    plane = (image[:, :, rgb[e.pattern // 8]] >> (e.pattern % 8)) & 1
+    return (plane * 255).astype(np.uint8)
+
+
+def test_full_gray_phase_sequence_loads_validates_and_runs(fake: FakeDLPC350) -> None:
+    seq = gray_phase_sequence(912, 1140, "xy", period=16, steps=4)
+    lc = _lc(fake, exposure_us=8333, period_us=8333)
+    loop_thread = threading.current_thread()
+    usb_threads: set[threading.Thread] = set()
+    receive = fake.receive
+
+    def spy(report: bytes) -> None:
+        usb_threads.add(threading.current_thread())
+        receive(report)
+
+    fake.receive = spy  # type: ignore[method-assign]
+
+    async def go() -> lcm.LightCrafterStatus:
+        await lc.open()
+        await lc.load(seq)
+        await lc.start()
+        status = await lc.status()
+        await lc.close()
+        return status
+
+    status = asyncio.run(go())
+    assert loop_thread not in usb_threads and usb_threads  # USB I/O never on the event loop's thread
+    assert fake.validation == 0 and fake.validated
+    assert status.problems == [] and "sequencer running" in status.states
+    packing = lc.packing
+    assert packing is not None and len(packing.entries) == len(seq) == fake.lut_control[0] + 1
+    assert fake.lut_entries() == [e.word() for e in packing.entries]
+    # Every frame comes back out of its image's bit plane exactly as the renderer draws it.
+    for i, frame in enumerate(seq):
+        e = packing.entries[i]
+        got = _unpack(packing.images[packing.image_of_frame[i]], e)
+        want = render_frame(frame, seq.width, seq.height)
+        np.testing.assert_array_equal(got, want if e.bit_depth == 8 else np.where(want > 127, 255, 0))
+    # At 8333 µs per pattern and 16667 µs per video frame, two patterns share each image.
+    assert max(np.bincount(packing.image_of_frame)) == 2
+
+
+def test_flash_source_programs_the_image_lut(fake: FakeDLPC350) -> None:
+    seq = gray_phase_sequence(64, 32, "x", period=8, steps=3)
+    lc = _lc(fake, source="flash", exposure_us=8333, period_us=8333, flash_first_image=5)
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        await lc.start()
+        await lc.close()
+
+    asyncio.run(go())
+    assert lc.packing is not None
+    n_images = len(lc.packing.images)
+    assert fake.source == 3 and fake.trigger_mode == 1 and fake.validation == 0
+    assert fake.image_lut[:n_images] == list(range(5, 5 + n_images))
+    assert all(LutEntry.from_word(w).trigger == Trigger.INTERNAL for w in fake.lut_entries())
+
+
+# --- errors ---------------------------------------------------------------------------------------------
+
+
+def test_invalid_exposure_is_refused_before_anything_is_sent(fake: FakeDLPC350) -> None:
+    lc = _lc(fake, exposure_us=16500, period_us=16667)
+
+    async def go() -> None:
+        await lc.open()
+        n = len(fake.log)
+        with pytest.raises(ProjectorError, match=r"exposure_us = 16500.*period - 230 µs = 16437 µs") as err:
+            await lc.load(Sequence(8, 8, (WhiteFrame(),)))
+        assert "nothing was sent" in str(err.value)
+        assert len(fake.log) == n
+        await lc.close()
+
+    asyncio.run(go())
+
+
+@pytest.mark.parametrize(
+    ("exposure", "period", "frames", "bit", "text"),
+    [
+        (16500, 16667, (WhiteFrame(),), 4, "under 230 µs"),
+        (4000, 4000, (PhaseFrame("x", 4.0, 0, 3),), 0, "exposure or frame period is invalid"),
+    ],
+)
+def test_forced_invalid_timing_is_rejected_by_the_device_with_decoded_bits(
+    fake: FakeDLPC350,
+    monkeypatch: pytest.MonkeyPatch,
+    exposure: int,
+    period: int,
+    frames: tuple[WhiteFrame | PhaseFrame, ...],
+    bit: int,
+    text: str,
+) -> None:
+    monkeypatch.setattr(proto, "check_exposure_period", lambda *a: [])  # force it past the host check
+    lc = _lc(fake, exposure_us=exposure, period_us=period)
+
+    async def go() -> None:
+        await lc.open()
+        with pytest.raises(
+            ProjectorError, match=f"rejected the sequence \\(validation 0x{1 << bit:02X}\\).*{text}"
+        ):
+            await lc.load(Sequence(8, 8, frames))
+        with pytest.raises(ProjectorError, match=r"0x1A24 \(sequence start/stop\).*NACK"):
+            await lc.start()  # the device will not start an invalid sequence
+        await lc.close()
+
+    asyncio.run(go())
+    assert fake.validation == 1 << bit and not fake.validated
+
+
+def test_nacks_surface_as_errors_naming_the_command(fake: FakeDLPC350) -> None:
+    lc = _lc(fake, exposure_us=8333, period_us=8333)
+
+    async def go() -> None:
+        await lc.open()
+        with pytest.raises(ProjectorError, match=r"refused 0x1A7F \(unknown\) \(NACK\)"):
+            await lc.command(0x1A7F, b"\x00")
+        with pytest.raises(ProjectorError, match=r"refused 0x1A1B \(display mode\) \(NACK\) with data 01 02"):
+            await lc.command(0x1A1B, b"\x01\x02")  # wrong length
+        await lc.load(Sequence(8, 8, (WhiteFrame(), BlackFrame())))
+        await lc.start()
+        with pytest.raises(ProjectorError, match=r"0x1A29 \(exposure and period\) \(NACK\)"):
+            await lc.command(0x1A29, proto.exposure_period_data(8333, 8333))  # while running
+        await lc.stop()
+        await lc.command(0x1A29, proto.exposure_period_data(8333, 8333))  # accepted once stopped
+        await lc.close()
+
+    asyncio.run(go())
+    assert [e.nack is not None for e in fake.log if e.code == 0x1A7F] == [True]
+
+
+def test_flash_commands_never_reach_the_wire(fake: FakeDLPC350) -> None:
+    lc = _lc(fake)
+
+    async def go() -> None:
+        await lc.open()
+        n = len(fake.log)
+        for code in (0x0030, 0x0028, 0x0025, 0x0B00, 0x0F10):
+            with pytest.raises(ProjectorError, match=f"0x{code:04X} belongs to the flash-programming group"):
+                await lc.command(code, b"\x01")
+        assert len(fake.log) == n
+        await lc.close()
+
+    asyncio.run(go())
+    for code in proto.COMMANDS:  # nothing in the command table is a flash command
+        assert not proto.is_flash_command(code)
+
+
+def test_the_fake_flags_a_flash_command_as_a_failure() -> None:
+    dev = FakeDLPC350()
+    with pytest.raises(FlashCommandError, match="0x0030"):
+        dev.receive(proto.encode_request(0x0030, b"\x01")[0])
+    assert dev.flash_violations == [0x0030]
+
+
+def test_open_detaches_the_kernel_driver_wakes_and_close_goes_to_standby(fake: FakeDLPC350) -> None:
+    fake.standby = True
+    lc = _lc(fake)
+
+    async def go() -> None:
+        await lc.open()
+        assert not fake.kernel_driver[0] and fake.configuration == 1 and not fake.standby
+        await lc.open()  # idempotent
+        await lc.close()
+        await lc.close()
+
+    asyncio.run(go())
+    assert fake.standby and fake.sequencer == 0
+    assert fake.writes()[-2:] == [(0x1A24, b"\x00"), (0x0200, b"\x01")]
+    assert fake.writes()[0] == (0x0200, b"\x00")
+    assert not [t for t in threading.enumerate() if t.name.startswith("lcr4500")]
+
+
+def test_unhealthy_device_is_reported_on_open(fake: FakeDLPC350) -> None:
+    fake.hw_status_faults = 0x04
+    with pytest.raises(ProjectorError, match="DMD reset controller \\(DRC\\) error"):
+        asyncio.run(_lc(fake).open())
+
+
+def test_units_are_picked_by_serial() -> None:
+    a, b = FakeDLPC350(serial="A1", address=3), FakeDLPC350(serial="B2", address=4)
+    backend = FakeUsbBackend(a, b)
+    assert lcm.find_device("B2", backend).address == 4
+    with pytest.raises(ProjectorError, match="2 LightCrafter 4500 units found \\(serials A1, B2\\)"):
+        lcm.find_device(None, backend)
+    with pytest.raises(ProjectorError, match="usb_serial = 'C3': no such unit"):
+        lcm.find_device("C3", backend)
+    with pytest.raises(ProjectorError, match="no LightCrafter 4500 \\(USB 0451:6401\\) found"):
+        lcm.find_device(None, FakeUsbBackend())
+
+
+def test_probe_reports_one_line(fake: FakeDLPC350) -> None:
+    assert (
+        lcm.probe_lightcrafter(FakeUsbBackend())
+        == "lightcrafter4500: no LightCrafter 4500 (USB 0451:6401) found"
+    )
+    line = lcm.probe_lightcrafter(FakeUsbBackend(fake))
+    assert "\n" not in line and "serial LCR0001" in line and "healthy" in line
+    assert all(e.request.is_read for e in fake.log)  # the probe changes nothing
+
+
+def test_sequences_the_device_cannot_show_are_refused(fake: FakeDLPC350) -> None:
+    lc = _lc(fake, exposure_us=20000, period_us=20000)
+    with pytest.raises(ProjectorError, match="period_us = 20000 is longer than video_frame_period_us"):
+        lc._plan(Sequence(8, 8, (WhiteFrame(),)))
+    with pytest.raises(PatternError, match="cannot be shown"):
+        lcm.pack_video_frames(Sequence(8, 8, (WhiteFrame(), OtherFrame("dots"))))
+    with pytest.raises(PatternError, match=r"patterns_per_image = 0: must be 1\.\.24"):
+        lcm.pack_video_frames(Sequence(8, 8, (WhiteFrame(),)), patterns_per_image=0)
+
+
+def test_a_device_object_can_be_passed_in_and_reads_use_the_documented_frame(fake: FakeDLPC350) -> None:
+    import usb.core
+
+    dev = usb.core.find(idVendor=0x0451, idProduct=0x6401, backend=FakeUsbBackend(fake))
+    lc = lcm.LightCrafter4500(LightCrafter4500Config(), device=dev)
+
+    async def go() -> None:
+        await lc.open()
+        await lc.close()
+
+    asyncio.run(go())
+    hw = next(e for e in fake.log if e.code == Cmd.HW_STATUS)
+    assert hw.reports == [_pad(f"C0 {hw.request.seq:02x} 02 00 0A 1A")]
+    assert fake.standby
+
+
+def _send(dev: FakeDLPC350, code: int, data: bytes = b"", read: bool = False) -> proto.Reply:
+    for report in proto.encode_request(code, data, read=read, seq=1):
+        dev.receive(report)
+    reports = [dev.send()]
+    return proto.decode_reply([r for r in reports if r is not None])
+
+
+def _validate(dev: FakeDLPC350) -> int:
+    _send(dev, Cmd.LUT_VALIDATE, b"\x00")
+    while (status := _send(dev, Cmd.LUT_VALIDATE, read=True).data[0]) & proto.VALIDATION_BUSY:
+        pass
+    return status
+
+
+def test_the_fake_validates_lut_consistency_like_the_device() -> None:
+    dev = FakeDLPC350()
+    white = LutEntry(0, 1, trigger=Trigger.EXTERNAL_POSITIVE, buffer_swap=True, insert_black=True)
+    _send(dev, Cmd.DISPLAY_MODE, b"\x01")
+    _send(dev, Cmd.LUT_CONTROL, proto.lut_control_data(2, False, 2, 1))  # says 2 entries ...
+    _send(dev, Cmd.MAILBOX_CONTROL, b"\x02")
+    _send(dev, Cmd.MAILBOX_DATA, proto.encode_lut([white]))  # ... but only 1 is written
+    _send(dev, Cmd.MAILBOX_CONTROL, b"\x00")
+    assert proto.VALIDATION_ERRORS[1] in proto.decode_validation(_validate(dev))
+    assert _send(dev, Cmd.SEQUENCE_CONTROL, b"\x02").nack  # an invalid sequence does not start
+    # An externally triggered pattern after one without insert-black: missing post-vector.
+    _send(dev, Cmd.LUT_CONTROL, proto.lut_control_data(2, False, 2, 1))
+    _send(dev, Cmd.MAILBOX_CONTROL, b"\x02")
+    _send(dev, Cmd.MAILBOX_DATA, proto.encode_lut([LutEntry(0, 1, trigger=Trigger.EXTERNAL_POSITIVE), white]))
+    _send(dev, Cmd.MAILBOX_CONTROL, b"\x00")
+    assert proto.decode_validation(_validate(dev)) == [proto.VALIDATION_ERRORS[3]]
+    assert _send(dev, Cmd.MAILBOX_DATA, b"\x00\x00\x00").nack  # mailbox closed
+    assert not dev.validated
