@@ -272,8 +272,12 @@ class BoardConfig(_Strict):
     type: Literal["chessboard", "circles", "acircles", "charuco"] = Field(
         "chessboard", description="Board kind: chessboard, circles, acircles or charuco."
     )
-    cols: int = Field(15, ge=2, le=200, description="Inner corners (chessboard), dots per row, or squares (ChArUco).")
-    rows: int = Field(11, ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco).")
+    cols: int = Field(
+        15, ge=2, le=200, description="Inner corners (chessboard), dots per row, or squares (ChArUco)."
+    )
+    rows: int = Field(
+        11, ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco)."
+    )
     square_mm: float | None = Field(15.0, gt=0, description="Square side (chessboard, ChArUco), mm.")
     pitch_mm: float | None = Field(None, gt=0, description="Dot spacing (circle grids), mm.")
     marker_mm: float | None = Field(None, gt=0, description="ArUco marker side (ChArUco), mm.")
@@ -293,14 +297,15 @@ class BoardConfig(_Strict):
             if self.marker_mm >= self.square_mm:
                 raise ValueError(f"marker_mm {self.marker_mm} must be < square_mm {self.square_mm}")
             if self.dictionary not in ARUCO_DICTIONARIES:
-                raise ValueError(f"dictionary {self.dictionary!r}: must be one of {', '.join(ARUCO_DICTIONARIES)}")
+                known = ", ".join(ARUCO_DICTIONARIES)
+                raise ValueError(f"dictionary {self.dictionary!r}: must be one of {known}")
         return self
 
 
 class ArtefactSphere(_Strict):
     """A calibrated sphere of the verification artefact."""
 
-    center_mm: Vec3 = Field(description="Nominal centre in the world frame (mm); points are segmented around it.")
+    center_mm: Vec3 = Field(description="Nominal centre, world frame (mm); points are segmented around it.")
     diameter_mm: float = Field(gt=0, le=1000, description="Calibrated diameter (mm).")
 
 
@@ -310,7 +315,7 @@ class ArtefactPlane(_Strict):
     point_mm: Vec3 = Field(description="Nominal point on the plane, world frame (mm).")
     normal: Vec3 = Field((0.0, 0.0, -1.0), description="Nominal normal (any length).")
     size_mm: tuple[float, float] = Field(
-        (300.0, 200.0), description="Evaluated extent around point_mm (mm); the virtual rig's plane is unbounded."
+        (300.0, 200.0), description="Evaluated extent around point_mm (mm); unbounded on the virtual rig."
     )
 
 
@@ -326,15 +331,15 @@ class ArtefactConfig(_Strict):
         default_factory=_default_spheres, max_length=8, description="Spheres; two make a ball bar."
     )
     ball_bar_length_mm: float | None = Field(
-        None, gt=0, description="Calibrated centre distance of the first two spheres (mm); nominal centres when unset."
+        None, gt=0, description="Calibrated distance of the first two sphere centres (mm); unset: nominal."
     )
     plane: ArtefactPlane | None = Field(
         default_factory=lambda: ArtefactPlane(point_mm=(0.0, 0.0, 640.0), normal=(0.0, 0.1, -1.0)),
         description="The flat (none: no flatness check).",
     )
     search_margin_mm: float = Field(
-        4.0, gt=0, le=100, description="Segmentation: points within radius + this of a nominal centre, or this "
-        "far from the nominal plane (mm).",
+        4.0, gt=0, le=100, description="Segmentation: points within this of the fitted sphere surfaces and "
+        "plane (mm); the first search reaches 3x as far from the nominal ones.",
     )
     albedo: float = Field(0.8, ge=0, le=1, description="Reflectance of the artefact on the virtual rig.")
 
@@ -342,7 +347,7 @@ class ArtefactConfig(_Strict):
 class VerifyTolerances(_Strict):
     """Pass/fail limits of ``scan3d verify`` (mm)."""
 
-    flatness_mm: float = Field(0.1, gt=0, description="Plane form error: peak-to-valley of the cell means (mm).")
+    flatness_mm: float = Field(0.1, gt=0, description="Plane form error: peak-to-valley of cell means (mm).")
     flatness_cell_mm: float = Field(
         10.0, ge=0, le=100, description="Cell size over which plane residuals are averaged before the "
         "peak-to-valley (mm); 0: raw points (noise included).",
@@ -350,7 +355,7 @@ class VerifyTolerances(_Strict):
     sphere_diameter_mm: float = Field(0.05, gt=0, description="|fitted - calibrated| sphere diameter (mm).")
     ball_bar_length_mm: float = Field(0.1, gt=0, description="|measured - calibrated| sphere distance (mm).")
     exclude_fraction: float = Field(
-        0.003, ge=0, le=0.1, description="Share of the largest residuals excluded before form and peak-to-valley "
+        0.003, ge=0, le=0.1, description="Share of the largest residuals excluded before peak-to-valley "
         "values (VDI/VDE 2634: 0.3 %).",
     )
 
@@ -361,12 +366,12 @@ class CalibrationConfig(_Strict):
     board: BoardConfig = Field(default_factory=BoardConfig)
     poses_wanted: int = Field(12, ge=3, le=100, description="Live calibration: enough board poses.")
     coverage_target: float = Field(
-        0.6, gt=0, le=1, description="Live calibration: share of each device's image the board must have covered."
+        0.6, gt=0, le=1, description="Live calibration: share of each camera's image the board must cover."
     )
     camera_model: DistortionName = Field(
         "k3p", description="Camera distortion: kN radial k1..kN, p tangential, rational k1..k6 p1 p2."
     )
-    projector_model: DistortionName = Field("k2p", description="Projector distortion model (as camera_model).")
+    projector_model: DistortionName = Field("k2p", description="Projector distortion (as camera_model).")
     artefact: ArtefactConfig = Field(default_factory=ArtefactConfig)
     tolerances: VerifyTolerances = Field(default_factory=VerifyTolerances)
 
