@@ -10,8 +10,10 @@ import datetime as dt
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from appliance.config import AppConfig, load_config
 from appliance.config.schema import ReconstructionConfig
@@ -74,12 +76,12 @@ def decode_manifest(
     for cam, m in maps.items():
         print(f"{cam}: {int(m.mask.sum())} of {m.mask.size} pixels decoded ({100 * m.mask.mean():.1f} %)")
     if maps_out is not None:
-        arrays = {}
+        arrays: dict[str, npt.NDArray[Any]] = {}
         for cam, m in maps.items():
             arrays[f"{cam}_u"], arrays[f"{cam}_v"] = m.u, m.v
             arrays[f"{cam}_mask"], arrays[f"{cam}_quality"] = m.mask, m.quality
         maps_out.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(maps_out, **arrays)  # type: ignore[arg-type]
+        np.savez_compressed(maps_out, allow_pickle=False, **arrays)
         print(f"maps: {maps_out}")
     t3 = t4 = time.perf_counter()
     if calibration is not None:

@@ -37,7 +37,7 @@ def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
     if len(cfg.periods_px) == 1:
         return gray_phase_sequence(width, height, cfg.axes, period=cfg.periods_px[0], steps=cfg.steps,
                                    inverses=cfg.inverses)
-    return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,  # type: ignore[call-arg]
+    return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,
                                inverses=cfg.inverses)
 
 
@@ -113,7 +113,8 @@ class Scanner:
                 )
             dtype = np.uint8 if info.pixel_format == "Mono8" else np.uint16
             if name not in self._buffers or self._buffers[name].shape != (n, *shape):
-                self._buffers[name] = np.zeros((n, *shape), dtype)
+                buf: FrameArray = np.zeros((n, *shape), dtype)  # type: ignore[assignment]
+                self._buffers[name] = buf
                 self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, self.params)
                 self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
         await self.rig.projector.open()
@@ -152,7 +153,7 @@ class Scanner:
         finished = await asyncio.gather(
             *(loop.run_in_executor(self._executors[n], warm_decode, n) for n in names)
         )
-        white = {n: self._white_u8(self._buffers[n]) for n in names}
+        white: dict[str, npt.NDArray[np.generic]] = {n: self._white_u8(self._buffers[n]) for n in names}
         await loop.run_in_executor(None, self.reconstructor.run, dict(zip(names, finished, strict=True)), white)
 
     async def scan(self) -> ScanResult:
@@ -210,7 +211,8 @@ class Scanner:
         timings["decode_finish_ms"] = (time.perf_counter() - t1) * 1e3
         white = {name: self._white_u8(buf) for name, buf in self._buffers.items()}
         t2 = time.perf_counter()
-        cloud, rtimes = await loop.run_in_executor(None, self.reconstructor.run, maps, white)
+        white_any: dict[str, npt.NDArray[np.generic]] = dict(white)
+        cloud, rtimes = await loop.run_in_executor(None, self.reconstructor.run, maps, white_any)
         timings.update(rtimes)
         timings["reconstruct_ms"] = (time.perf_counter() - t2) * 1e3
         timings["scan_ms"] = (time.perf_counter() - t0) * 1e3
@@ -223,8 +225,8 @@ class Scanner:
             return np.zeros(buf.shape[1:], np.uint8)
         w = buf[self._white_index]
         if w.dtype == np.uint8:
-            return w  # type: ignore[return-value]
-        return (w >> 8).astype(np.uint8)  # type: ignore[no-any-return]
+            return np.asarray(w, dtype=np.uint8)
+        return np.asarray(w >> 8, dtype=np.uint8)
 
     async def _abort(self) -> None:
         try:

@@ -19,7 +19,10 @@ def test_shipped_config_is_valid_and_virtual() -> None:
 
 
 def test_error_names_file_line_path_value_and_rule() -> None:
-    text = "cameras:\n  cam0:\n    type: aravis\n    address: 127.0.0.2\n    exposure_us: -5\ncalibration_file: c.yaml\n"
+    text = (
+        "cameras:\n  cam0:\n    type: aravis\n    address: 127.0.0.2\n    exposure_us: -5\n"
+        "calibration_file: c.yaml\n"
+    )
     with pytest.raises(ConfigError) as exc:
         parse_config(text, "appliance.yaml")
     msg = str(exc.value)
@@ -40,7 +43,7 @@ def test_yaml_syntax_error_names_the_line() -> None:
 def test_cross_field_rules() -> None:
     with pytest.raises(ConfigError, match="max_depth_mm"):
         parse_config("reconstruction: {min_depth_mm: 500, max_depth_mm: 100}")
-    with pytest.raises(ConfigError, match="stereo.*two cameras"):
+    with pytest.raises(ConfigError, match=r"stereo.*two cameras"):
         parse_config("reconstruction: {mode: stereo}")
     with pytest.raises(ConfigError, match="calibration_file must be set"):
         parse_config("projector: {type: lightcrafter4500}")

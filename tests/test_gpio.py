@@ -80,5 +80,5 @@ def test_missing_gpiod_disables_only_this_backend(monkeypatch: pytest.MonkeyPatc
         return real_import(name, *a, **k)  # type: ignore[arg-type]
 
     monkeypatch.setattr(builtins, "__import__", no_gpiod)
-    with pytest.raises(BackendUnavailableError, match="pip install 'gpiod>=2.1'"):
+    with pytest.raises(BackendUnavailableError, match=r"pip install 'gpiod>=2\.1'"):
         request_line_gpiod(GpioTriggerConfig())

@@ -122,7 +122,7 @@ def test_manifest_errors_name_the_problem(tmp_path: Path) -> None:
         read_manifest(p)
     p.write_text("projector: {width: 64, height: 32}\ncameras: [cam0]\nframes:\n"
                  "  - {pattern: white, images: {cam0: missing.png}}\n")
-    with pytest.raises(ManifestError, match="missing.png"):
+    with pytest.raises(ManifestError, match=r"missing\.png"):
         read_manifest(p).load_stack("cam0")
     p.write_text("projector: {width: 64, height: 32}\ncameras: [cam0]\nframes:\n"
                  "  - {pattern: white, images: {cam1: a.png}}\n")

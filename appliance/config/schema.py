@@ -10,7 +10,14 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from appliance.config.backends import CameraConfig, ProjectorConfig, SimCameraConfig, SimProjectorConfig, SimTriggerConfig, TriggerConfig
+from appliance.config.backends import (
+    CameraConfig,
+    ProjectorConfig,
+    SimCameraConfig,
+    SimProjectorConfig,
+    SimTriggerConfig,
+    TriggerConfig,
+)
 
 Vec3 = tuple[float, float, float]
 
@@ -70,7 +77,10 @@ class ReconstructionConfig(_Strict):
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
     min_neighbours: int = Field(
-        8, ge=0, le=8, description="Keep a point only when this many of its 8 neighbours are valid and near (8 also drops mixed pixels on depth edges)."
+        8,
+        ge=0,
+        le=8,
+        description="Keep a point when this many of its 8 neighbours are valid and near (8 drops mixed edge pixels).",
     )
     max_neighbour_jump_mm: float = Field(
         2.0, gt=0, description="A neighbour counts when nearer than this plus two pixel footprints at mid range (mm)."
@@ -122,7 +132,7 @@ class BoxObject(_Strict):
     type: Literal["box"] = "box"
     center_mm: Vec3
     size_mm: Vec3
-    rotation_deg: Vec3 = Field((0.0, 0.0, 0.0), description="Rotation about x, y, z (degrees, applied x then y then z).")
+    rotation_deg: Vec3 = Field((0.0, 0.0, 0.0), description="Rotation about x, y, z (degrees, x then y then z).")
     albedo: float = Field(0.8, ge=0, le=1)
     texture: float = Field(0.0, ge=0, le=1)
 

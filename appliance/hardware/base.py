@@ -58,7 +58,7 @@ class Camera(Protocol):
         """Connect and configure; idempotent."""
         ...
 
-    async def arm(self, n_frames: int, out: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], on_frame: FrameCallback | None = None) -> None:
+    async def arm(self, n_frames: int, out: FrameArray, on_frame: FrameCallback | None = None) -> None:
         """Prepare to capture ``n_frames`` frames into ``out`` (shape (n_frames, H, W)) on triggers."""
         ...
 

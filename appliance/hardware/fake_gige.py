@@ -412,21 +412,12 @@ def start_fake_camera(
         line_rate_hz,
         trigger_tick_hz,
     )
-    import time as _t
-    print("DEBUG ctx", _t.monotonic(), file=sys.stderr, flush=True)
     ctx = multiprocessing.get_context("spawn")
     parent, child = ctx.Pipe()
     process = ctx.Process(target=_serve, args=(spec, child), name=f"fake-gige-{address}", daemon=True)
-    print("DEBUG start0", _t.monotonic(), file=sys.stderr, flush=True)
-    import faulthandler
-    _fh = open(f"/tmp/arvproto/fh-{_t.monotonic():.0f}.txt", "w")
-    faulthandler.dump_traceback_later(2, exit=False, file=_fh)
     process.start()
-    faulthandler.cancel_dump_traceback_later()
-    print("DEBUG start1", _t.monotonic(), file=sys.stderr, flush=True)
     child.close()
     handle = FakeGigECamera(address, serial, width, height, process, parent)
-    _t0 = _t.monotonic()  # DEBUG
     if not parent.poll(ready_timeout_s):
         handle.stop()
         raise CameraError(f"fake camera {address}: did not start within {ready_timeout_s:.0f} s")
@@ -434,7 +425,6 @@ def start_fake_camera(
         reply = parent.recv()
     except EOFError:
         reply = ("error", f"process exited with code {process.exitcode}")
-    print("DEBUG ready after", _t.monotonic() - _t0, file=sys.stderr)  # DEBUG
     if reply[0] != "ready":
         handle.stop()
         raise CameraError(f"fake camera {address}: {reply[1]}")

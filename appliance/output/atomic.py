@@ -55,7 +55,11 @@ def write_atomic(path: Path, writer: Callable[[BinaryIO], None]) -> Path:
 
 def write_bytes_atomic(path: Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (see :func:`write_atomic`)."""
-    return write_atomic(path, lambda f: f.write(data) and None)
+
+    def _write(f: BinaryIO) -> None:
+        f.write(data)
+
+    return write_atomic(path, _write)
 
 
 def fsync_dir(folder: Path) -> None:

@@ -83,7 +83,7 @@ def _load_npy(path: Path, n_frames: int, manifest: Path) -> FrameStack:
         )
     if arr.dtype not in (np.uint8, np.uint16):
         raise ManifestError(f"{manifest}: stack {path}: dtype {arr.dtype}: must be uint8 or uint16")
-    return np.ascontiguousarray(arr)  # type: ignore[no-any-return]
+    return np.ascontiguousarray(arr)
 
 
 def load_images(paths: tuple[Path, ...] | list[Path], manifest: Path | str = "manifest") -> FrameStack:

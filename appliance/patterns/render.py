@@ -28,10 +28,10 @@ def frame_profile(frame: Frame, size_px: int) -> npt.NDArray[np.float64]:
         code = c // frame.stripe
         gray = code ^ (code >> 1)
         bit = ((gray >> frame.bit) & 1).astype(np.float64)
-        return 1.0 - bit if frame.inverted else bit
+        return np.asarray(1.0 - bit if frame.inverted else bit, dtype=np.float64)
     if isinstance(frame, PhaseFrame):
         arg = 2 * np.pi * c / frame.period + frame.offset + 2 * np.pi * frame.step / frame.steps
-        return 0.5 * (1.0 + np.cos(arg))
+        return np.asarray(0.5 * (1.0 + np.cos(arg)), dtype=np.float64)
     raise PatternError(f"frame_profile: {frame!r} has no axis profile")
 
 
