@@ -84,8 +84,9 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     from appliance.calibration import cli as cal
 
     if a.live or a.what is None:
-        return cal.calibrate_live_cli(a.config)
+        return cal.calibrate_live_cli(a.config, poses=a.poses, out=a.out)
     board = cal.board_from_args(a)
+    a.out = a.out or Path("calibration.yaml")
     if a.what == "camera":
         return cal.calibrate_camera_cli([Path(p) for p in a.inputs], board, a.out, a.model)
     return cal.calibrate_projector_cli([Path(p) for p in a.inputs], board, a.out)
@@ -193,7 +194,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--dictionary", default="DICT_6X6_250", help="ChArUco ArUco dictionary")
     sp.add_argument("--model", default="standard", help="distortion model: standard (k1 k2 p1 p2 k3), "
                     "simple (k1 k2 p1 p2), rational")
-    sp.add_argument("--out", type=Path, default=Path("calibration.yaml"))
+    sp.add_argument("--out", type=Path, default=None,
+                    help="calibration file to write (default: calibration.yaml; --live: the configured file)")
+    sp.add_argument("--poses", type=int, default=None,
+                    help="--live: capture this many poses without waiting for Enter (virtual rig, demos)")
     config_arg(sp)
 
     sp = cmd("verify", _cmd_verify, "scan the known artefact and check the calibration's accuracy")

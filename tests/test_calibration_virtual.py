@@ -73,7 +73,6 @@ def test_scan_with_recovered_calibration_measures_sphere_and_plane(
     assert report.passed
 
 
-@pytest.mark.slow
 def test_live_calibration_interactive_on_virtual_rig(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-from appliance.errors import BackendUnavailableError
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.config.schema import AppConfig
+from appliance.errors import BackendUnavailableError, HardwareError
 
 
 def probe_aravis(address: str) -> str:
@@ -43,3 +50,96 @@ def probe_aravis(address: str) -> str:
         return f"{label}: answers but its features cannot be read ({exc.message})"
     finally:
         del camera
+
+
+def discover_aravis() -> list[str]:
+    """GigE Vision / USB3 Vision device discovery: BROADCASTS on every network interface.
+
+    Only ``scan3d devices --discover`` calls this, on a person's explicit request; tests never do.
+
+    Returns
+    -------
+    list of str
+        One line per device found: id, vendor, model, serial, address.
+    """
+    from appliance.hardware.aravis import load_aravis
+
+    try:
+        aravis, _glib = load_aravis()
+    except BackendUnavailableError as exc:
+        return [f"unavailable: {exc}"]
+    aravis.update_device_list()  # the broadcast; user-requested only (never in tests, which use a namespace)
+    out = []
+    for i in range(aravis.get_n_devices()):
+        out.append(
+            f"{aravis.get_device_id(i)}: {aravis.get_device_vendor(i)} {aravis.get_device_model(i)} "
+            f"serial {aravis.get_device_serial_nbr(i)} at {aravis.get_device_address(i)}"
+        )
+    return out or ["no device answered"]
+
+
+def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> list[Path]:
+    """Grab ``frames`` software-triggered frames from one camera into PNG files in ``out``.
+
+    Parameters
+    ----------
+    cfg : AppConfig
+        The configuration (for configured camera names).
+    camera : str
+        A configured camera name, or ``aravis:ADDRESS`` for a camera that is not configured.
+    frames : int
+        How many frames.
+    out : Path
+        Output folder (created).
+
+    Returns
+    -------
+    list of Path
+        The PNG files written.
+    """
+    import asyncio
+
+    import cv2
+
+    from appliance.config.backends import AravisCameraConfig
+
+    out.mkdir(parents=True, exist_ok=True)
+    if camera.startswith("aravis:"):
+        cam_cfg: Any = AravisCameraConfig(address=camera.split(":", 1)[1], trigger="Software")
+        name = camera.replace(":", "-")
+    elif camera in cfg.cameras:
+        cam_cfg, name = cfg.cameras[camera], camera
+    else:
+        raise HardwareError(
+            f"grab: camera {camera!r} is not configured (configured: {sorted(cfg.cameras)}); "
+            "use a configured name or aravis:ADDRESS"
+        )
+
+    async def grab_all() -> list[npt.NDArray[Any]]:
+        if cam_cfg.type == "sim":
+            from appliance.patterns.sequence import WhiteFrame
+            from appliance.sim.rig import VirtualRig
+
+            rig = VirtualRig(cfg.virtual_rig)
+            return [rig.render_frame(WhiteFrame(), name) for _ in range(frames)]
+        if cam_cfg.type == "aravis":
+            from appliance.hardware.aravis import AravisCamera
+
+            cam: Any = AravisCamera(name, cam_cfg)
+        else:
+            from appliance.hardware.uvc import UvcCamera
+
+            cam = UvcCamera(name, cam_cfg)
+        try:
+            await cam.open()
+            return [np.array(await cam.grab()) for _ in range(frames)]
+        finally:
+            await cam.close()
+
+    paths = []
+    for i, img in enumerate(asyncio.run(grab_all())):
+        p = out / f"{name}_{i:03d}.png"
+        if not cv2.imwrite(str(p), img):
+            raise HardwareError(f"grab: {p} cannot be written; check the folder")
+        paths.append(p)
+    return paths
