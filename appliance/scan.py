@@ -187,6 +187,15 @@ class Scanner:
             for name, cam in self.rig.cameras.items():
                 await cam.arm(n, self._buffers[name], on_frame_factory(name))
             await self.rig.projector.start()
+            # a trigger controller emits the camera (and projector) pulses of the whole sequence
+            run_sequence = getattr(self.rig.trigger, "run_sequence", None)
+            if run_sequence is not None:
+                pulses = await run_sequence(n)
+                if len(pulses) != n:
+                    raise HardwareError(
+                        f"trigger {self.rig.trigger.name!r}: emitted {len(pulses)} of {n} pulses; check the "
+                        "controller's log (scan3d status) and its cable"
+                    )
             # cameras without a hardware trigger line (software-timed) are fired frame by frame
             software = [c for c in self.rig.cameras.values() if getattr(c, "needs_software_trigger", False)]
             for i in range(n if software else 0):

@@ -57,14 +57,14 @@ def test_streaming_scan_equals_batch_decode() -> None:
     asyncio.run(run())
 
 
-def test_dead_camera_fails_one_scan_and_the_next_succeeds() -> None:
+def test_dead_camera_fails_one_scan_and_the_next_succeeds(monkeypatch: pytest.MonkeyPatch) -> None:
+    import appliance.scan as scan_mod
+
     cfg = small_config()
+    monkeypatch.setattr(scan_mod, "FRAME_TIMEOUT_S", 0.5)
+    monkeypatch.setattr(scan_mod, "FRAME_TIMEOUT_PER_FRAME_S", 0.05)
 
     async def run() -> None:
-        import appliance.scan as scan_mod
-
-        scan_mod.FRAME_TIMEOUT_S = 0.5
-        scan_mod.FRAME_TIMEOUT_PER_FRAME_S = 0.05
         rig = build_rig(cfg)
         scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
         cam = rig.cameras["cam0"]

@@ -325,6 +325,62 @@ def _gray_row(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-unty
         _add_bit(d, bit, code[a], m1[a], m2[a])
 
 
+_N5 = np.uint16(5)
+NARROW_BIG = np.uint16(0x7FFF)  # "no contrast seen yet" of the 16-bit keys
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _diff16(p, n, d):  # type: ignore[no-untyped-def]
+    for x in range(d.shape[0]):
+        d[x] = np.int16(np.int16(p[x]) - np.int16(n[x]))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _single16(one, wr, br, sign, d):  # type: ignore[no-untyped-def]
+    for x in range(d.shape[0]):
+        d[x] = np.int16(sign * (2 * np.int16(one[x]) - np.int16(wr[x]) - np.int16(br[x])))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _code16(d, on, code):  # type: ignore[no-untyped-def]
+    zero = np.uint16(0)
+    for x in range(d.shape[0]):
+        code[x] |= on if d[x] > 0 else zero
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _fold16(d, bit, m1, m2):  # type: ignore[no-untyped-def]
+    for x in range(d.shape[0]):
+        key = np.uint16((np.uint16(abs(d[x])) << _N5) | bit)
+        m2[x] = min(m2[x], max(m1[x], key))
+        m1[x] = min(m1[x], key)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_row16(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-untyped-def]
+    """:func:`_gray_row` in 16-bit lanes for 8-bit frames (|contrast| <= 510, bits <= 15): same values."""
+    for g in range(gray_tab.shape[0]):
+        a = gray_tab[g, 0]
+        bit = gray_tab[g, 1]
+        ip = gray_tab[g, 2]
+        ineg = gray_tab[g, 3]
+        if ip >= 0 and ineg >= 0:
+            _diff16(frames[ip, y], frames[ineg, y], d)
+        else:
+            sign = np.int16(1) if ip >= 0 else np.int16(-1)
+            _single16(frames[ip if ip >= 0 else ineg, y], frames[wb[0], y], frames[wb[1], y], sign, d)
+        _code16(d, np.uint16(1 << bit), code[a])
+        _fold16(d, np.uint16(bit), m1[a], m2[a])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _widen16(c16, a16, b16, code, m1, m2):  # type: ignore[no-untyped-def]
+    for x in range(code.shape[0]):
+        code[x] = np.uint32(c16[x])
+        m1[x] = BIG if a16[x] == NARROW_BIG else np.uint32(a16[x])
+        m2[x] = BIG if b16[x] == NARROW_BIG else np.uint32(b16[x])
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: ignore[no-untyped-def]
     w = frames.shape[2]
@@ -348,9 +404,13 @@ def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def decode_stack(  # type: ignore[no-untyped-def]
     frames, wb, used, maxval, gray_tab, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos,
-    rel, thr, nthreads, u, v, mask, quality,
+    rel, thr, nthreads, narrow, u, v, mask, quality,
 ):  # fmt: skip
-    """Decode a (F, H, W) stack into u, v, mask, quality (H, W) in one pass over rows."""
+    """Decode a (F, H, W) stack into u, v, mask, quality (H, W) in one pass over rows.
+
+    ``narrow``: 8-bit frames with <= 15 Gray bits per axis, folded in 16-bit lanes (twice the SIMD width,
+    same values). ``v`` with no rows: the y axis is not coded and not written.
+    """
     h = frames.shape[1]
     w = frames.shape[2]
     nset = max(ph_tab.shape[0], 1)
@@ -358,26 +418,40 @@ def decode_stack(  # type: ignore[no-untyped-def]
     for ch in prange(nch):
         r = np.empty(w, np.int32)
         d = np.empty(w, np.int32)
+        d16 = np.empty(w, np.int16)
         mx = np.empty(w, np.int32)
         mn = np.empty(w, np.int32)
         code = np.empty((2, w), np.uint32)
         m1 = np.empty((2, w), np.uint32)
         m2 = np.empty((2, w), np.uint32)
+        c16 = np.empty((2, w), np.uint16)
+        a16 = np.empty((2, w), np.uint16)
+        b16 = np.empty((2, w), np.uint16)
         ssum = np.empty((nset, w), np.float64)
         csum = np.empty((nset, w), np.float64)
         scratch = np.empty((8, w), np.float64)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
+        vnone = np.empty(w, np.float32)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
-            code[:] = np.uint32(0)
-            m1[:] = BIG
-            m2[:] = BIG
-            _gray_row(frames, y, wb, gray_tab, d, code, m1, m2)
+            if narrow:
+                c16[:] = np.uint16(0)
+                a16[:] = NARROW_BIG
+                b16[:] = NARROW_BIG
+                _gray_row16(frames, y, wb, gray_tab, d16, c16, a16, b16)
+                for a in range(2):
+                    if axis_tab[a, 1] != 0:
+                        _widen16(c16[a], a16[a], b16[a], code[a], m1[a], m2[a])
+            else:
+                code[:] = np.uint32(0)
+                m1[:] = BIG
+                m2[:] = BIG
+                _gray_row(frames, y, wb, gray_tab, d, code, m1, m2)
             _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
                 r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr,
-                u[y], v[y], mask[y], quality[y], scratch, ok, lit,
+                u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], scratch, ok, lit,
             )  # fmt: skip
 
 
@@ -452,6 +526,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
         scratch = np.empty((8, w), np.float64)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
+        vnone = np.empty(w, np.float32)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             hr = hi[y]
             lr = lo[y]
@@ -459,5 +534,6 @@ def stream_finish(  # type: ignore[no-untyped-def]
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
             _finish_row(
                 r, code[:, y, :], m1[:, y, :], m2[:, y, :], ssum[:, y, :], csum[:, y, :],
-                axis_tab, ph_tab, ph_period, rel, thr, u[y], v[y], mask[y], quality[y], scratch, ok, lit,
+                axis_tab, ph_tab, ph_period, rel, thr, u[y], v[y] if v.shape[0] == h else vnone, mask[y],
+                quality[y], scratch, ok, lit,
             )  # fmt: skip

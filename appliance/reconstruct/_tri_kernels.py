@@ -605,3 +605,302 @@ def compact(xyz, quality, intensity, nrm, starts, o_xyz, o_row, o_col, o_q, o_i,
                 o_n[k, 1] = nrm[r, c, 1]
                 o_n[k, 2] = nrm[r, c, 2]
             k += 1
+
+
+# --- fused depth path: triangulate + neighbour filter to a depth map, then emit the kept points -----------
+# Rays come from a coarse table (every ``step``-th row, linear in between): a row of rays is rebuilt in
+# L1/L2 cache instead of streaming a full (H, W, 2) table from memory in each pass.
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _ray_row(tx, ty, r, step, mx, my):  # type: ignore[no-untyped-def]
+    """Normalised ray (mx, my) of every pixel of row ``r`` from the coarse tables (float64 rows)."""
+    g = r // step
+    t = np.float64(r - g * step) / step
+    ax, bx, ay, by = tx[g], tx[g + 1], ty[g], ty[g + 1]
+    for c in range(mx.shape[0]):
+        a = np.float64(ax[c])
+        b = np.float64(ay[c])
+        mx[c] = a + t * (np.float64(bx[c]) - a)
+        my[c] = b + t * (np.float64(by[c]) - b)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz):  # type: ignore[no-untyped-def]
+    """Per pixel of a row: fractional epipolar-line index (NaN if ill-posed) and the ray's coefficients."""
+    a0 = 0 if axis == 0 else 1
+    for c in range(mx.shape[0]):
+        x = mx[c]
+        y = my[c]
+        bxc = rcp[0, 0] * x + rcp[0, 1] * y + rcp[0, 2]
+        byc = rcp[1, 0] * x + rcp[1, 1] * y + rcp[1, 2]
+        bzc = rcp[2, 0] * x + rcp[2, 1] * y + rcp[2, 2]
+        l1 = tcp[1] * bzc - tcp[2] * byc
+        l2 = tcp[2] * bxc - tcp[0] * bzc
+        l3 = tcp[0] * byc - tcp[1] * bxc
+        la = l2 if a0 == 0 else l1
+        ok = (la * la >= min_sin * min_sin * (l1 * l1 + l2 * l2)) & (la != 0.0)
+        fc[c] = (-l3 / la - c_lo) * inv_dc if ok else np.nan
+        ba[c] = bxc if a0 == 0 else byc
+        bz[c] = bzc
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_row_depth(code, mask, fc, ba, bz, table, code0, tcp, axis, zmin, zmax, pz):  # type: ignore[no-untyped-def]
+    """Depth of every pixel of a row on its coded light surface (NaN: none or out of range)."""
+    nc, nu = table.shape[0], table.shape[1]
+    tc = tcp[2]
+    ta = tcp[0] if axis == 0 else tcp[1]
+    for c in range(pz.shape[0]):
+        fu = np.float64(code[c]) - code0
+        f = fc[c]
+        z = np.nan
+        if mask[c] and fu >= 0.0 and f >= 0.0 and fu < nu - 1 and f < nc - 1:  # false for NaN too
+            iu = int(fu)
+            ic = int(f)
+            tu = fu - iu
+            tcf = f - ic
+            q00 = np.float64(table[ic, iu])
+            q01 = np.float64(table[ic, iu + 1])
+            q10 = np.float64(table[ic + 1, iu])
+            q11 = np.float64(table[ic + 1, iu + 1])
+            q0 = q00 + tu * (q01 - q00)
+            q1 = q10 + tu * (q11 - q10)
+            q = q0 + tcf * (q1 - q0)
+            den = ba[c] - bz[c] * q
+            if den != 0.0:
+                zz = (tc * q - ta) / den
+                if zz >= zmin and zz <= zmax and tc + zz * bz[c] > 0.0:
+                    z = zz
+        pz[c] = z
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-untyped-def]
+    """Depth of the ray (mx, my, 1) nearest (projector px) to the projector ray of (cu, cv); NaN if none."""
+    hp, wp = und.shape[0], und.shape[1]
+    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
+    fy, cy = kmat[1, 1], kmat[1, 2]
+    fu = np.float64(cu) - origin
+    fv = np.float64(cv) - origin
+    if not (fu >= 0.0 and fv >= 0.0 and fu < wp - 1 and fv < hp - 1):
+        return np.nan
+    iu = int(fu)
+    iv = int(fv)
+    tu = fu - iu
+    tv = fv - iv
+    a = und[iv, iu, 0] + tu * (und[iv, iu + 1, 0] - und[iv, iu, 0])
+    b = und[iv + 1, iu, 0] + tu * (und[iv + 1, iu + 1, 0] - und[iv + 1, iu, 0])
+    xn = np.float64(a + tv * (b - a))
+    a = und[iv, iu, 1] + tu * (und[iv, iu + 1, 1] - und[iv, iu, 1])
+    b = und[iv + 1, iu, 1] + tu * (und[iv + 1, iu + 1, 1] - und[iv + 1, iu, 1])
+    yn = np.float64(a + tv * (b - a))
+    xd, yd, j11, j12, j21, j22 = distort_jac(xn, yn, d)
+    eu = np.float64(cu) - (fx * xd + sk * yd + cx)
+    ev = np.float64(cv) - (fy * yd + cy)
+    ex = (eu - sk * ev / fy) / fx
+    ey = ev / fy
+    det = j11 * j22 - j12 * j21
+    if det != 0.0:
+        xn += (j22 * ex - j12 * ey) / det
+        yn += (j11 * ey - j21 * ex) / det
+    bx = rcp[0, 0] * mx + rcp[0, 1] * my + rcp[0, 2]
+    by = rcp[1, 0] * mx + rcp[1, 1] * my + rcp[1, 2]
+    bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+    a1 = fx * (bx - xn * bz)
+    b1 = fx * (xn * tcp[2] - tcp[0])
+    a2 = fy * (by - yn * bz)
+    b2 = fy * (yn * tcp[2] - tcp[1])
+    nn = a1 * a1 + a2 * a2
+    z = (a1 * b1 + a2 * b2) / nn if nn > 0.0 else np.nan
+    return z if tcp[2] + z * bz > 0.0 else np.nan
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _depth_row(  # type: ignore[no-untyped-def]
+    r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
+    axis, zmin, zmax, mx, my, fc, ba, bz, p,
+):
+    """Camera-frame point of every pixel of row ``r`` into the padded rows ``p`` (3, W + 2) (NaN: none)."""
+    w = mx.shape[0]
+    _ray_row(tx, ty, r, step, mx, my)
+    px = p[0, 1 : w + 1]
+    py = p[1, 1 : w + 1]
+    pz = p[2, 1 : w + 1]
+    if ray:
+        ur = u[r]
+        vr = v[r]
+        mr = mask[r]
+        for c in range(w):
+            z = np.nan
+            if mr[c]:
+                z = _z_ray(ur[c], vr[c], mx[c], my[c], und, origin, kmat, d, rcp, tcp)
+            pz[c] = z if (z >= zmin and z <= zmax) else np.nan
+    else:
+        _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz)
+        _plane_row_depth(u[r] if axis == 0 else v[r], mask[r], fc, ba, bz, table, code0, tcp, axis, zmin,
+                         zmax, pz)  # fmt: skip
+    _scale_rays(pz, mx, my, px, py)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _scale_rays(pz, mx, my, px, py):  # type: ignore[no-untyped-def]
+    for c in range(pz.shape[0]):
+        z = np.float64(pz[c])
+        px[c] = z * mx[c]
+        py[c] = z * my[c]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _near(px, py, pz, qx, qy, qz, j2, n):  # type: ignore[no-untyped-def]
+    for c in range(n.shape[0]):
+        ex = qx[c] - px[c]
+        ey = qy[c] - py[c]
+        ez = qz[c] - pz[c]
+        n[c] += np.int32(ex * ex + ey * ey + ez * ez < j2)  # NaN compares false
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _near_count(p, q, off, j2, n):  # type: ignore[no-untyped-def]
+    """n[c] += 1 where the point of padded row q at column c + off is within sqrt(j2) of p's point c."""
+    w = n.shape[0]
+    a = 1 + off  # slices keep indices non-negative, so the loop vectorises
+    _near(p[0, 1 : w + 1], p[1, 1 : w + 1], p[2, 1 : w + 1], q[0, a : a + w], q[1, a : a + w],
+          q[2, a : a + w], j2, n)  # fmt: skip
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _keep_row(pz, n, min_nb, out):  # type: ignore[no-untyped-def]
+    kept = 0
+    for c in range(out.shape[0]):
+        z = pz[c]
+        k = (z == z) & (n[c] >= min_nb)
+        out[c] = z if k else np.float32(np.nan)
+        kept += np.int64(k)
+    return kept
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def depth_filtered(  # type: ignore[no-untyped-def]
+    u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
+    axis, zmin, zmax, min_nb, jump, nchunks, nthreads, depth, counts,
+):
+    """Triangulate to camera-frame depth (H, W) and drop points with < ``min_nb`` near neighbours (NaN).
+
+    ``counts[r + 1]`` receives the number of kept points of row r. Each chunk of rows keeps the points of
+    three rows (padded with a NaN column each side) in a small ring, so no organised cloud is written.
+    """
+    h, w = depth.shape[0], depth.shape[1]
+    j2 = np.float32(jump * jump)
+    counts[0] = 0
+    nthreads = min(nthreads, nchunks)
+    for t in prange(nthreads):  # thread t takes chunks t, t + nthreads, ...: valid pixels cluster in rows
+        mx = np.empty(w, np.float64)
+        my = np.empty(w, np.float64)
+        fc = np.empty(w, np.float64)
+        ba = np.empty(w, np.float64)
+        bz = np.empty(w, np.float64)
+        ring = np.full((3, 3, w + 2), np.nan, np.float32)  # (slot, x/y/z, padded column)
+        nb = np.zeros(w, np.int32)
+        for ch in range(t, nchunks, nthreads):
+            r0 = ch * h // nchunks
+            r1 = (ch + 1) * h // nchunks
+            _depth_chunk(r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
+                         origin, kmat, d, rcp, tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, ring,
+                         nb, depth, counts)  # fmt: skip
+    return counts
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _depth_chunk(  # type: ignore[no-untyped-def]
+    r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp,
+    tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, ring, nb, depth, counts,
+):
+    """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter)."""
+    h, w = depth.shape[0], depth.shape[1]
+    for r in range(r0 - 1, r1 + 1):
+        slot = (r - r0 + 3) % 3
+        if r < 0 or r >= h:
+            ring[slot].fill(np.nan)
+        else:
+            _depth_row(r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
+                       origin, kmat, d, rcp, tcp, axis, zmin, zmax, mx, my, fc, ba, bz,
+                       ring[slot])  # fmt: skip
+        if r - 1 < r0:
+            continue
+        cur = ring[(r - 1 - r0 + 3) % 3]  # row r - 1 is complete: rows r - 2 and r are in the ring
+        if min_nb > 0:
+            nb[:] = 0
+            for s in range(3):
+                q = ring[s]
+                for off in range(-1, 2):
+                    if s != (r - 1 - r0 + 3) % 3 or off != 0:
+                        _near_count(cur, q, off, j2, nb)
+        counts[r] = _keep_row(cur[2, 1 : w + 1], nb, min_nb, depth[r - 1])
+    return counts
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def emit_points(  # type: ignore[no-untyped-def]
+    depth, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads, o_xyz, o_row, o_col, o_q, o_i
+):
+    """Write the points of a depth map (world frame) and their pixel data at ``starts[r]`` per row."""
+    h, w = depth.shape[0], depth.shape[1]
+    has_i = intensity.shape[0] == h
+    nthreads = min(nthreads, nchunks)
+    for t in prange(nthreads):  # round-robin chunks: points cluster in rows
+        mx = np.empty(w, np.float64)
+        my = np.empty(w, np.float64)
+        for ch in range(t, nchunks, nthreads):
+            for r in range(ch * h // nchunks, (ch + 1) * h // nchunks):
+                if starts[r + 1] == starts[r]:
+                    continue
+                _ray_row(tx, ty, r, step, mx, my)
+                _emit_row(r, depth[r], mx, my, quality[r], intensity[r] if has_i else intensity[0], has_i,
+                          rwc, cwc, to_world, starts[r], o_xyz, o_row, o_col, o_q, o_i)  # fmt: skip
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _emit_row(r, dr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i):  # type: ignore[no-untyped-def]
+    for c in range(dr.shape[0]):
+        z = np.float64(dr[c])
+        if z != z:
+            continue
+        px = z * mx[c]
+        py = z * my[c]
+        if to_world:
+            o_xyz[k, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
+            o_xyz[k, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
+            o_xyz[k, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+        else:
+            o_xyz[k, 0] = px
+            o_xyz[k, 1] = py
+            o_xyz[k, 2] = z
+        o_row[k] = r
+        o_col[k] = c
+        o_q[k] = qr[c]
+        o_i[k] = ir[c] if has_i else 0
+        k += 1
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def organised_from_depth(depth, tx, ty, step, rwc, cwc, to_world, out):  # type: ignore[no-untyped-def]
+    """Organised world-frame cloud (H, W, 3) of a depth map (NaN where depth is NaN)."""
+    h, w = depth.shape[0], depth.shape[1]
+    for r in prange(h):
+        mx = np.empty(w, np.float64)
+        my = np.empty(w, np.float64)
+        _ray_row(tx, ty, r, step, mx, my)
+        for c in range(w):
+            z = np.float64(depth[r, c])
+            px = z * mx[c]
+            py = z * my[c]
+            if to_world:
+                out[r, c, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
+                out[r, c, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
+                out[r, c, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+            else:
+                out[r, c, 0] = px
+                out[r, c, 1] = py
+                out[r, c, 2] = z
+    return out

@@ -27,6 +27,7 @@ Per camera pixel:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import defaultdict
 from collections.abc import Iterable
@@ -471,6 +472,36 @@ def empty_maps(shape: tuple[int, int]) -> DecodedMaps:
     )
 
 
+def _outputs(
+    plan: DecodePlan, shape: tuple[int, int], out: DecodedMaps | None
+) -> tuple[DecodedMaps, npt.NDArray[np.float32]]:
+    """Output maps, and the v buffer the kernel writes (no rows: v is a read-only NaN map, not written)."""
+    if out is not None:
+        _check_out(out, shape)
+        return out, out.v
+    if "y" in plan.axes:
+        maps = empty_maps(shape)
+        return maps, maps.v
+    # the y axis is not coded: v is NaN everywhere, one shared read-only map instead of H x W stores per call
+    maps = DecodedMaps(
+        np.empty(shape, np.float32), _nan_map(shape), np.empty(shape, np.bool_), np.empty(shape, np.float32)
+    )
+    return maps, np.empty((0, shape[1]), np.float32)
+
+
+@functools.lru_cache(maxsize=4)
+def _nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
+    """A read-only all-NaN float32 map of ``shape`` (shared)."""
+    nan = np.full(shape, np.nan, np.float32)
+    nan.flags.writeable = False
+    return nan
+
+
+def _narrow(plan: DecodePlan, dtype: np.dtype[Any]) -> bool:
+    """8-bit frames and at most 15 Gray bits per axis: the kernel folds Gray bits in 16-bit lanes."""
+    return bool(dtype == np.uint8 and all(g.bits <= 15 for g in plan.gray))
+
+
 def decode(
     frames: FrameStack,
     sequence: Sequence | DecodePlan,
@@ -495,6 +526,7 @@ def decode(
     -------
     DecodedMaps
         ``u``, ``v`` (projector px, float32, NaN where undecoded or not coded), ``mask``, ``quality`` (DN).
+        Without ``out``, ``v`` of a sequence that codes no rows is a shared read-only all-NaN map.
 
     Raises
     ------
@@ -515,10 +547,7 @@ def decode(
         raise DecodeError(f"decode: frames have dtype {frames_arr.dtype}: must be uint8 or uint16")
     stack = np.ascontiguousarray(frames_arr)
     shape = (int(stack.shape[1]), int(stack.shape[2]))
-    if out is None:
-        out = empty_maps(shape)
-    else:
-        _check_out(out, shape)
+    out, v_arg = _outputs(plan, shape, out)
     t = plan.tables
     shift, nbins = _hist_layout(stack.dtype)
     maxval = 255 if stack.dtype == np.uint8 else 65535
@@ -530,7 +559,7 @@ def decode(
     _k.decode_stack(
         stack, t["wb"], t["used"], maxval, t["gray_tab"], t["axis_tab"], t["ph_tab"], t["ph_period"],
         t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
-        numba.get_num_threads(), out.u, out.v, out.mask, out.quality,
+        numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask, out.quality,
     )  # fmt: skip
     out.ignored = list(plan.ignored)
     return out
@@ -713,10 +742,7 @@ class StreamingDecoder:
                 f"streaming decoder: {len(missing)} frame(s) not pushed: {desc}{more}; push every frame "
                 "of the sequence before finish()"
             )
-        if out is None:
-            out = empty_maps(self.shape)
-        else:
-            _check_out(out, self.shape)
+        out, v_arg = _outputs(self.plan, self.shape, out)
         t = self.plan.tables
         shift, nbins = _hist_layout(self.dtype)
         hist = _k.range_hist(self._hi, self._lo, shift, nbins)
@@ -724,7 +750,7 @@ class StreamingDecoder:
         _k.stream_finish(
             self._hi, self._lo, self._code, self._m1, self._m2, self._ssum, self._csum, t["axis_tab"],
             t["ph_tab"], t["ph_period"], float(self.params.relative_contrast), float(thr),
-            numba.get_num_threads(), out.u, out.v, out.mask, out.quality,
+            numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
         )  # fmt: skip
         out.ignored = list(self.plan.ignored)
         return out

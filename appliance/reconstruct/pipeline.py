@@ -82,7 +82,11 @@ class Reconstructor:
                 projector=calibration.projector,
             )
             self.outputs = [names[0]]
+        # camera-projector without normals needs no organised cloud: depth maps, filtered as they are made
+        self._fused = cfg.mode == "projector" and not cfg.normals
         self._xyz: dict[str, F32] = {}
+        self._depth: dict[str, F32] = {}
+        self._counts: dict[str, npt.NDArray[np.int64]] = {}
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
         self._normals: dict[str, F32] = {}
         self._jump_mm: dict[str, float] = {}
@@ -91,13 +95,26 @@ class Reconstructor:
             # neighbours are a pixel apart: allow the diagonal footprint of a pixel at mid range on top
             footprint_mm = 0.5 * (cfg.min_depth_mm + cfg.max_depth_mm) / float(cam.K[0, 0])
             self._jump_mm[n] = cfg.max_neighbour_jump_mm + 2.0 * footprint_mm
+            if self._fused:
+                self._depth[n] = np.full((cam.height, cam.width), np.nan, np.float32)
+                self._counts[n] = np.zeros(cam.height + 1, np.int64)
+                continue
             self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
             self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
                 self._normals[n] = np.empty((cam.height, cam.width, 3), np.float32)
 
     def organised(self, name: str) -> F32:
-        """The organised cloud (H, W, 3) of camera ``name`` from the last :meth:`run` (reused buffer)."""
+        """The organised cloud (H, W, 3) of camera ``name`` from the last :meth:`run` (reused buffer).
+
+        Where the reconstruction keeps depth maps only (mode ``'projector'`` without normals), the cloud
+        is built from the depth map on this call.
+        """
+        if self._fused:
+            cam = self.calibration.devices[name]
+            if name not in self._xyz:
+                self._xyz[name] = np.empty((cam.height, cam.width, 3), np.float32)
+            self._proj_tri[name].organised_from_depth(self._depth[name], self._xyz[name])
         return self._xyz[name]
 
     def run(
@@ -117,7 +134,8 @@ class Reconstructor:
         cloud : PointCloud
             Points of every output camera, world frame (mm), with their source pixel and camera index.
         timings : dict of str to float
-            ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``.
+            ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``. In mode ``'projector'``
+            without normals the neighbour filter runs inside triangulation (``filter_ms`` is 0).
         """
         cfg = self.cfg
         needed = (
@@ -126,6 +144,8 @@ class Reconstructor:
         for n in needed:
             if n not in maps:
                 raise ScanError(f"reconstruct: no decoded maps for camera {n!r} (have {sorted(maps)})")
+        if self._fused:
+            return self._run_fused(maps, white)
         t0 = time.perf_counter()
         if self._stereo is not None:
             n0, n1 = needed
@@ -154,5 +174,44 @@ class Reconstructor:
             "filter_ms": 1e3 * (t2 - t1),
             "cloud_ms": 1e3 * (t3 - t2),
             "total_ms": 1e3 * (t3 - t0),
+        }
+        return cloud, timings
+
+    def _run_fused(
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
+    ) -> tuple[PointCloud, dict[str, float]]:
+        """Depth + neighbour filter per camera (one pass), then every kept point into one cloud (one pass)."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        for n, tri in self._proj_tri.items():
+            tri.triangulate_depth(
+                maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours,
+                self._jump_mm[n], self._counts[n],
+            )  # fmt: skip
+        t1 = time.perf_counter()
+        sizes = [int(self._counts[n].sum()) for n in self.outputs]
+        total = sum(sizes)
+        cloud = PointCloud(
+            np.empty((total, 3), np.float32),
+            np.empty(total, np.int32),
+            np.empty(total, np.int32),
+            np.empty(total, np.uint8),
+            np.empty(total, np.uint8),
+            np.empty(total, np.float32),
+        )
+        names = self.calibration.camera_names
+        start = 0
+        for n, size in zip(self.outputs, sizes, strict=True):
+            shape = self._depth[n].shape
+            inten = None if white is None or n not in white else _as_uint8(white[n], (shape[0], shape[1]), n)
+            cloud.camera[start : start + size] = names.index(n)
+            self._proj_tri[n].write_points(self._depth[n], self._counts[n], maps[n].quality, inten, cloud, start)
+            start += size
+        t2 = time.perf_counter()
+        timings = {
+            "triangulate_ms": 1e3 * (t1 - t0),
+            "filter_ms": 0.0,
+            "cloud_ms": 1e3 * (t2 - t1),
+            "total_ms": 1e3 * (t2 - t0),
         }
         return cloud, timings

@@ -30,14 +30,15 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
-from appliance.geometry.rays import RayTable
+from appliance.geometry.rays import ROW_TABLE_STEP, RayTable
 from appliance.reconstruct import _tri_kernels as K
-from appliance.reconstruct.types import DecodedMaps
+from appliance.reconstruct.types import DecodedMaps, PointCloud
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -68,13 +69,16 @@ def distortion12(model: CameraModel) -> F64:
 
 
 def check_maps(
-    maps: DecodedMaps, shape: tuple[int, int], name: str
+    maps: DecodedMaps, shape: tuple[int, int], name: str, need_v: bool = True
 ) -> tuple[F32, F32, npt.NDArray[np.bool_]]:
-    """C-contiguous float32 u, v and bool mask of ``maps``, checked against the camera's (H, W)."""
+    """C-contiguous float32 u, v and bool mask of ``maps``, checked against the camera's (H, W).
+
+    With ``need_v`` False, v is returned as given (it may be a read-only broadcast NaN map).
+    """
     if maps.shape != shape or maps.u.shape != shape or maps.v.shape != shape:
         raise ValueError(f"{name}: decoded maps are {maps.u.shape}, camera is {shape} (H, W): must match")
     u = np.ascontiguousarray(maps.u, dtype=np.float32)
-    v = np.ascontiguousarray(maps.v, dtype=np.float32)
+    v = np.ascontiguousarray(maps.v, dtype=np.float32) if need_v else maps.v
     return u, v, np.ascontiguousarray(maps.mask, dtype=np.bool_)
 
 
@@ -173,6 +177,7 @@ class ProjectorTriangulator:
         self._code0 = float(-CODE_MARGIN_PX)
         code_grid = self._code0 + np.arange(n_codes, dtype=np.float64)
         self._table = K.code_line_table(c_grid, code_grid, self._kp, self._dp, self._tcp, axis)
+        self._c_lo, self._inv_dc = lo, 1.0 / step
         raw -= np.float32(lo)
         raw *= np.float32(1.0 / step)
         self._cidx = raw
@@ -213,7 +218,7 @@ class ProjectorTriangulator:
             World-frame points (mm), organised by camera pixel; NaN where there is no point.
         """
         shape = self.rays.shape
-        u, v, mask = check_maps(maps, shape, self.camera.name)
+        u, v, mask = check_maps(maps, shape, self.camera.name, need_v=self.axes != "x")
         xyz = check_out(out, shape)
         zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
         if self.axes == "xy":
@@ -255,3 +260,150 @@ class ProjectorTriangulator:
                 xyz,
             )
         return xyz
+
+    # --- fused path: depth map with the neighbour filter, then the kept points -------------------------
+
+    def triangulate_depth(
+        self,
+        maps: DecodedMaps,
+        out: F32 | None = None,
+        min_depth_mm: float = 1e-6,
+        max_depth_mm: float = math.inf,
+        min_neighbours: int = 0,
+        max_jump_mm: float = math.inf,
+        counts: npt.NDArray[np.int64] | None = None,
+    ) -> tuple[F32, npt.NDArray[np.int64]]:
+        """Triangulate every decoded pixel to its depth, dropping isolated points, in one pass.
+
+        Same geometry as :meth:`triangulate`, but rays come from the camera's coarse
+        :meth:`~appliance.geometry.rays.RayTable.row_table` and only the depth is written (4 bytes per
+        pixel instead of 12); :meth:`write_points` turns it into points. The filter is
+        :func:`~appliance.reconstruct.filters.filter_isolated` (3-D distances, in the camera frame).
+
+        Parameters
+        ----------
+        maps : DecodedMaps
+            Decoded projector coordinates of this camera, shape (H, W).
+        out : ndarray, shape (H, W), float32, optional
+            Preallocated C-contiguous depth map; allocated when None.
+        min_depth_mm, max_depth_mm : float
+            Depth range (mm).
+        min_neighbours : int
+            0..8: a point is kept when this many of its 8 neighbours lie within ``max_jump_mm``.
+        max_jump_mm : float
+            Largest distance of a neighbour that counts (mm).
+        counts : ndarray, shape (H + 1,), int64, optional
+            Receives ``counts[r + 1]`` = kept points of row r (``counts[0]`` = 0); allocated when None.
+
+        Returns
+        -------
+        depth : ndarray, shape (H, W), float32
+            Depth z in this camera's frame (mm) of every kept point, NaN elsewhere.
+        counts : ndarray, shape (H + 1,), int64
+            Kept points per row (see above).
+        """
+        shape = self.rays.shape
+        if not 0 <= min_neighbours <= 8:
+            raise ValueError(f"min_neighbours = {min_neighbours}: must be 0..8")
+        u, v, mask = check_maps(maps, shape, self.camera.name, need_v=self.axes != "x")
+        if self.axes == "x":
+            v = u  # not read
+        depth = check_depth(out, shape)
+        if counts is None:
+            counts = np.empty(shape[0] + 1, np.int64)
+        elif counts.shape != (shape[0] + 1,) or counts.dtype != np.int64:
+            raise ValueError(f"counts: {counts.shape} {counts.dtype}: must be int64 {(shape[0] + 1,)}")
+        tx, ty, _ = self.rays.row_table()
+        zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
+        ray = self.axes == "xy"
+        axis = 1 if self.axes == "y" else 0
+        if ray:
+            table, code0, c_lo, inv_dc = np.zeros((2, 2), np.float32), 0.0, 0.0, 1.0
+            und, origin = self._und, self._origin
+        else:
+            table, code0, c_lo, inv_dc = self._table, self._code0, self._c_lo, self._inv_dc
+            und, origin = np.zeros((2, 2, 2), np.float32), 0.0
+        K.depth_filtered(
+            u, v, mask, tx, ty, ROW_TABLE_STEP, ray, table, code0, c_lo, inv_dc, MIN_LINE_SIN, und, origin,
+            self._kp, self._dp, self._rcp, self._tcp, axis, zmin, zmax, int(min_neighbours),
+            float(max_jump_mm), _chunks(shape[0]), numba.get_num_threads(), depth, counts,
+        )  # fmt: skip
+        return depth, counts
+
+    def write_points(
+        self,
+        depth: F32,
+        counts: npt.NDArray[np.int64],
+        quality: npt.NDArray[np.float32],
+        intensity: npt.NDArray[np.uint8] | None,
+        cloud: PointCloud,
+        start: int = 0,
+    ) -> int:
+        """Write the points of a :meth:`triangulate_depth` result into ``cloud`` from index ``start``.
+
+        Parameters
+        ----------
+        depth : ndarray, shape (H, W), float32
+            Depth map (mm), NaN where there is no point.
+        counts : ndarray, shape (H + 1,), int64
+            Points per row as returned with ``depth``.
+        quality : ndarray, shape (H, W), float32
+            Per-pixel quality (DN).
+        intensity : ndarray, shape (H, W), uint8, optional
+            Grey value under white light; 0 when None.
+        cloud : PointCloud
+            Destination (world frame, mm); its ``camera`` array is not touched.
+        start : int
+            Index of the first point.
+
+        Returns
+        -------
+        int
+            Number of points written (``counts.sum()``), in row-major pixel order.
+        """
+        shape = self.rays.shape
+        depth = check_depth(depth, shape)
+        q = np.ascontiguousarray(quality, np.float32)
+        if q.shape != shape:
+            raise ValueError(f"quality: {q.shape}: must be {shape}")
+        if intensity is None:
+            inten = np.zeros((1, 1), np.uint8)
+        else:
+            inten = np.ascontiguousarray(intensity, np.uint8)
+            if inten.shape != shape:
+                raise ValueError(f"intensity: {inten.shape}: must be {shape}")
+        starts = np.cumsum(counts)
+        starts += start
+        n = int(starts[-1]) - start
+        if start < 0 or start + n > len(cloud):
+            raise ValueError(f"cloud holds {len(cloud)} points: cannot write {n} from index {start}")
+        tx, ty, _ = self.rays.row_table()
+        K.emit_points(
+            depth, tx, ty, ROW_TABLE_STEP, q, inten, self._rwc, self._cwc, self._to_world, starts,
+            _chunks(shape[0]), numba.get_num_threads(), cloud.xyz, cloud.row, cloud.col, cloud.quality, cloud.intensity,
+        )  # fmt: skip
+        return n
+
+    def organised_from_depth(self, depth: F32, out: F32 | None = None) -> F32:
+        """The organised world-frame cloud (H, W, 3) of a depth map (NaN where depth is NaN)."""
+        shape = self.rays.shape
+        depth = check_depth(depth, shape)
+        xyz = check_out(out, shape)
+        tx, ty, _ = self.rays.row_table()
+        return K.organised_from_depth(  # type: ignore[no-any-return]
+            depth, tx, ty, ROW_TABLE_STEP, self._rwc, self._cwc, self._to_world, xyz
+        )
+
+
+def _chunks(height: int) -> int:
+    """Row chunks of a parallel pass (several per thread, for load balance)."""
+    return max(1, min(height, 8 * numba.get_num_threads()))
+
+
+def check_depth(depth: F32 | None, shape: tuple[int, int]) -> F32:
+    """A (H, W) float32 C-contiguous depth buffer (allocated when ``depth`` is None)."""
+    if depth is None:
+        return np.empty(shape, np.float32)
+    if depth.shape != shape or depth.dtype != np.float32 or not depth.flags.c_contiguous:
+        raise ValueError(f"depth: {depth.shape} {depth.dtype}: must be a C-contiguous float32 array of {shape}")
+    return depth
