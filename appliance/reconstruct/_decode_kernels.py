@@ -107,25 +107,71 @@ def _fold_min(d_row, bit, m1, m2):  # type: ignore[no-untyped-def]
 # vectorises them (numba cannot declare arrays non-aliasing; long loops over many arrays stay scalar).
 
 
+# The per-pixel arithmetic is float32 (8 SIMD lanes): coordinates up to 2**14 px keep ~1e-3 px, far below
+# decoding noise; the exact float64 phase sums are rounded once, identically in batch and streaming.
+_F0 = np.float32(0.0)
+_FHALF = np.float32(0.5)
+_F1 = np.float32(1.0)
+_FNAN = np.float32(np.nan)
+_FINF = np.float32(np.inf)
+_FPI = np.float32(math.pi)
+_FHALF_PI = np.float32(0.5 * math.pi)
+_FEDGE = np.float32(EDGE_RATIO)
+_B0 = np.float32(_A0)
+_B1 = np.float32(_A1)
+_B2 = np.float32(_A2)
+_B3 = np.float32(_A3)
+_B4 = np.float32(_A4)
+_B5 = np.float32(_A5)
+_B6 = np.float32(_A6)
+_B7 = np.float32(_A7)
+_B8 = np.float32(_A8)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _atan2_f32(y, x):  # type: ignore[no-untyped-def]
+    """:func:`_atan2` in float32 (error ~1e-7 rad)."""
+    ax = abs(x)
+    ay = abs(y)
+    hi = max(ax, ay)
+    lo = min(ax, ay)
+    t = lo / hi if hi > _F0 else _F0
+    t2 = t * t
+    p = _B8
+    p = p * t2 + _B7
+    p = p * t2 + _B6
+    p = p * t2 + _B5
+    p = p * t2 + _B4
+    p = p * t2 + _B3
+    p = p * t2 + _B2
+    p = p * t2 + _B1
+    p = p * t2 + _B0
+    a = t * p
+    a = _FHALF_PI - a if ay > ax else a
+    a = _FPI - a if x < _F0 else a
+    return -a if y < _F0 else a
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _gray_index(code, stripe, nstripes, cg, ok):  # type: ignore[no-untyped-def]
     nstripes = np.int32(nstripes)
+    stripe = np.float32(stripe)
     for x in range(code.shape[0]):
-        k = np.int32(_gray_to_binary(code[x]))  # int32 -> float64 vectorises on AVX2; int64/uint32 do not
-        cg[x] = (np.float64(k) + 0.5) * stripe - 0.5
+        k = np.int32(_gray_to_binary(code[x]))  # int32 -> float vectorises on AVX2; int64/uint32 do not
+        cg[x] = (np.float32(k) + _FHALF) * stripe - _FHALF
         ok[x] = k < nstripes
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _gray_gate(m1, m2, relv, tolerate, ok, qa):  # type: ignore[no-untyped-def]
     for x in range(m1.shape[0]):
-        q1 = np.float64(np.int32(m1[x] >> _U5))
+        q1 = np.float32(np.int32(m1[x] >> _U5))
         strong1 = q1 >= relv[x]
-        strong2 = tolerate & (np.float64(np.int32(m2[x] >> _U5)) >= relv[x])
+        strong2 = tolerate & (np.float32(np.int32(m2[x] >> _U5)) >= relv[x])
         ok[x] = ok[x] & (strong1 | strong2)
     for x in range(m1.shape[0]):
-        q1 = np.float64(np.int32(m1[x] >> _U5))
-        qa[x] = q1 if q1 >= relv[x] else np.float64(np.int32(m2[x] >> _U5))
+        q1 = np.float32(np.int32(m1[x] >> _U5))
+        qa[x] = q1 if q1 >= relv[x] else np.float32(np.int32(m2[x] >> _U5))
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -135,32 +181,38 @@ def _gray_edge(code, m1, m2, stripe, cg, cb):  # type: ignore[no-untyped-def]
     With stripe = period, both edges of a stripe have the same phase, so a pixel on an edge needs to
     know which edge; the weakest bit names it (the edge to the neighbouring stripe where it flips).
     """
+    stripe = np.float32(stripe)
     for x in range(code.shape[0]):
         g = code[x]
         k = np.int32(_gray_to_binary(g))
         flip = np.uint32(1) << (m1[x] & _U31)
         k2 = np.int32(_gray_to_binary(g ^ flip))
-        weak = np.float64(np.int32(m1[x] >> _U5)) < EDGE_RATIO * np.float64(np.int32(m2[x] >> _U5))
+        weak = np.float32(np.int32(m1[x] >> _U5)) < _FEDGE * np.float32(np.int32(m2[x] >> _U5))
         near = weak & (abs(k2 - k) == 1)
-        edge = np.float64(max(k, k2)) * stripe - 0.5
+        edge = np.float32(max(k, k2)) * stripe - _FHALF
         cb[x] = edge if near else cg[x]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _phase_wrapped(ss, cs, scale, period, mod, cph):  # type: ignore[no-untyped-def]
+    scale = np.float32(scale)
+    per = np.float32(period)
+    k = np.float32(period / _TWO_PI)
     for x in range(ss.shape[0]):
-        sv = ss[x]
-        cv = cs[x]
+        sv = np.float32(ss[x])
+        cv = np.float32(cs[x])
         mod[x] = scale * math.sqrt(sv * sv + cv * cv)
-        c = period * _atan2(-sv, cv) / _TWO_PI
-        cph[x] = c + period if c < 0.0 else c
+        c = k * _atan2_f32(-sv, cv)
+        cph[x] = c + per if c < _F0 else c
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _unwrap(cph, c0, period, cc):  # type: ignore[no-untyped-def]
+    per = np.float32(period)
+    inv = np.float32(1.0 / period)
     for x in range(cph.shape[0]):
         c = cph[x]
-        cc[x] = c + period * math.floor((c0[x] - c) / period + 0.5)
+        cc[x] = c + per * np.floor((c0[x] - c) * inv + _FHALF)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -175,8 +227,33 @@ def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
 def _emit_axis(cc, ok, lit, out):  # type: ignore[no-untyped-def]
     for x in range(cc.shape[0]):
         good = ok[x] & lit[x]
-        out[x] = np.float32(cc[x]) if good else np.float32(np.nan)
+        out[x] = cc[x] if good else _FNAN
         lit[x] = good
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _lit_row(r, rel, thr, relv, relg, lit):  # type: ignore[no-untyped-def]
+    """Contrast floors: ``relv`` for phase modulations, ``relg`` = ceil of it for integer Gray contrasts
+    (an integer c >= rel * r exactly when c >= ceil(rel * r), so float32 decides as float64 would)."""
+    for x in range(r.shape[0]):
+        rr = np.float64(r[x])
+        f = rel * rr
+        relv[x] = np.float32(f)
+        relg[x] = np.float32(np.ceil(f))
+        lit[x] = (rr >= thr) & (rr > 0.0)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _min_into(a, b):  # type: ignore[no-untyped-def]
+    for x in range(a.shape[0]):
+        a[x] = min(a[x], b[x])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _mask_quality(lit, qmin, mask, quality):  # type: ignore[no-untyped-def]
+    for x in range(lit.shape[0]):
+        mask[x] = lit[x]
+        quality[x] = qmin[x] if lit[x] else _F0
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -186,9 +263,8 @@ def _finish_row(  # type: ignore[no-untyped-def]
     """Per-pixel final step shared by batch and streaming: gates, Gray index, phase, unwrapping.
 
     ``r`` int32 (W,): contrast range; ``code``/``m1``/``m2`` uint32 (2, W); ``ssum``/``csum`` float64 (S, W);
-    ``scratch`` float64 (8, W), ``ok`` and ``lit`` bool (W,) are scratch.
+    ``scratch`` float32 (9, W), ``ok`` and ``lit`` bool (W,) are scratch.
     """
-    w = r.shape[0]
     relv = scratch[0]
     cg = scratch[1]
     cc = scratch[2]
@@ -197,24 +273,22 @@ def _finish_row(  # type: ignore[no-untyped-def]
     mod = scratch[5]
     cph = scratch[6]
     cb = scratch[7]
-    for x in range(w):
-        rr = np.float64(r[x])
-        relv[x] = rel * rr
-        lit[x] = (rr >= thr) & (rr > 0.0)
-    qmin[:] = np.inf
+    relg = scratch[8]
+    _lit_row(r, rel, thr, relv, relg, lit)
+    qmin[:] = _FINF
     for a in range(2):
         out = u if a == 0 else v
         if axis_tab[a, 0] == 0:
-            out[:] = np.nan
+            out[:] = _FNAN
             continue
         stripe = np.float64(axis_tab[a, 2])
         if axis_tab[a, 1] != 0:
             _gray_index(code[a], stripe, axis_tab[a, 3], cg, ok)
-            _gray_gate(m1[a], m2[a], relv, axis_tab[a, 4] != 0, ok, qa)
+            _gray_gate(m1[a], m2[a], relg, axis_tab[a, 4] != 0, ok, qa)
         else:
             ok[:] = True
-            qa[:] = np.inf
-            cg[:] = 0.5 * np.float64(axis_tab[a, 5] - 1)
+            qa[:] = _FINF
+            cg[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
         cc[:] = cg
         for s in range(ph_tab.shape[0]):
             if ph_tab[s, 0] != a:
@@ -223,19 +297,20 @@ def _finish_row(  # type: ignore[no-untyped-def]
             _phase_wrapped(ssum[s], csum[s], 4.0 / np.float64(ph_tab[s, 1]), period, mod, cph)
             src = ph_tab[s, 2]
             if src == -2:
-                cb[:] = 0.5 * np.float64(axis_tab[a, 5] - 1)
+                cb[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
+                _unwrap(cph, cb, period, cc)
             elif src == -3:
                 _gray_edge(code[a], m1[a], m2[a], stripe, cg, cb)
+                _unwrap(cph, cb, period, cc)
+            elif src > 0:
+                cb[:] = cc
+                _unwrap(cph, cb, period, cc)
             else:
-                cb[:] = cc if src > 0 else cg
-            _unwrap(cph, cb, period, cc)
+                _unwrap(cph, cg, period, cc)
             _phase_gate(mod, relv, ok, qa)
         _emit_axis(cc, ok, lit, out)
-        for x in range(w):
-            qmin[x] = min(qmin[x], qa[x])
-    for x in range(w):
-        mask[x] = lit[x]
-        quality[x] = np.float32(qmin[x]) if lit[x] else np.float32(0.0)
+        _min_into(qmin, qa)
+    _mask_quality(lit, qmin, mask, quality)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -429,7 +504,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
         b16 = np.empty((2, w), np.uint16)
         ssum = np.empty((nset, w), np.float64)
         csum = np.empty((nset, w), np.float64)
-        scratch = np.empty((8, w), np.float64)
+        scratch = np.empty((9, w), np.float32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
@@ -523,7 +598,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
     nch = min(h, 8 * nthreads)
     for ch in prange(nch):
         r = np.empty(w, np.int32)
-        scratch = np.empty((8, w), np.float64)
+        scratch = np.empty((9, w), np.float32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)

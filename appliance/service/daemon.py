@@ -707,6 +707,8 @@ class Service:
                 await self._start_mdns()
             if any(getattr(new, k) != getattr(old, k) for k in HARDWARE_KEYS):
                 log.info("configuration changes the rig: reconnecting")
+                # say so at once: until the rig is rebuilt, the old one must not look ready
+                b.set_state(State.STARTING, "reconnecting for the new configuration", Phase.CONNECT)
                 self._hw_changed.set()
             b.changed()
 
