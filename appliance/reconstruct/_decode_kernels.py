@@ -128,14 +128,18 @@ _B7 = np.float32(_A7)
 _B8 = np.float32(_A8)
 
 
-@njit(nogil=True, cache=True, error_model="numpy")
+_FTINY = np.float32(1e-30)
+
+
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
 def _atan2_f32(y, x):  # type: ignore[no-untyped-def]
-    """:func:`_atan2` in float32 (error ~1e-7 rad)."""
+    """:func:`_atan2` in float32 (error ~1e-7 rad); selects only, so a loop of it vectorises 8 wide."""
     ax = abs(x)
     ay = abs(y)
-    hi = max(ax, ay)
-    lo = min(ax, ay)
-    t = lo / hi if hi > _F0 else _F0
+    swap = ay > ax
+    hi = ay if swap else ax
+    lo = ax if swap else ay
+    t = lo / (hi if hi > _FTINY else _FTINY)  # hi = 0 means lo = 0: t = 0
     t2 = t * t
     p = _B8
     p = p * t2 + _B7
@@ -147,7 +151,7 @@ def _atan2_f32(y, x):  # type: ignore[no-untyped-def]
     p = p * t2 + _B1
     p = p * t2 + _B0
     a = t * p
-    a = _FHALF_PI - a if ay > ax else a
+    a = _FHALF_PI - a if swap else a
     a = _FPI - a if x < _F0 else a
     return -a if y < _F0 else a
 
@@ -193,17 +197,21 @@ def _gray_edge(code, m1, m2, stripe, cg, cb):  # type: ignore[no-untyped-def]
         cb[x] = edge if near else cg[x]
 
 
-@njit(nogil=True, cache=True, error_model="numpy")
+@njit(nogil=True, cache=True, error_model="numpy", fastmath={"contract"})
 def _phase_wrapped(ss, cs, scale, period, mod, cph):  # type: ignore[no-untyped-def]
+    """Modulation and wrapped coordinate of a row; the float64 sums are rounded to float32 first."""
     scale = np.float32(scale)
     per = np.float32(period)
     k = np.float32(period / _TWO_PI)
+    for x in range(ss.shape[0]):  # float64 -> float32 apart, so the next loop is all 8-lane float32
+        mod[x] = np.float32(ss[x])
+        cph[x] = np.float32(cs[x])
     for x in range(ss.shape[0]):
-        sv = np.float32(ss[x])
-        cv = np.float32(cs[x])
-        mod[x] = scale * math.sqrt(sv * sv + cv * cv)
+        sv = mod[x]
+        cv = cph[x]
         c = k * _atan2_f32(-sv, cv)
         cph[x] = c + per if c < _F0 else c
+        mod[x] = scale * math.sqrt(sv * sv + cv * cv)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
