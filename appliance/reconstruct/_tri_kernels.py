@@ -614,15 +614,22 @@ def compact(xyz, quality, intensity, nrm, starts, o_xyz, o_row, o_col, o_q, o_i,
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _ray_row(tx, ty, r, step, mx, my):  # type: ignore[no-untyped-def]
-    """Normalised ray (mx, my) of every pixel of row ``r`` from the coarse tables (float64 rows)."""
-    g = r // step
-    t = np.float64(r - g * step) / step
-    ax, bx, ay, by = tx[g], tx[g + 1], ty[g], ty[g + 1]
-    for c in range(mx.shape[0]):
-        a = np.float64(ax[c])
-        b = np.float64(ay[c])
-        mx[c] = a + t * (np.float64(bx[c]) - a)
-        my[c] = b + t * (np.float64(by[c]) - b)
+    """Normalised ray (mx, my) of every pixel of row ``r``: Catmull-Rom cubic over the coarse table rows."""
+    g = r // step + 1  # table row k holds pixel row (k - 1) * step
+    t = np.float64(r - (g - 1) * step) / step
+    _cubic_row(tx[g - 1], tx[g], tx[g + 1], tx[g + 2], t, mx)
+    _cubic_row(ty[g - 1], ty[g], ty[g + 1], ty[g + 2], t, my)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _cubic_row(p0, p1, p2, p3, t, out):  # type: ignore[no-untyped-def]
+    """Catmull-Rom weights (as in ``rays.catmull_rom``), applied per column."""
+    w0 = 0.5 * t * (-1.0 + t * (2.0 - t))
+    w1 = 1.0 + t * t * (-2.5 + 1.5 * t)
+    w2 = 0.5 * t * (1.0 + t * (4.0 - 3.0 * t))
+    w3 = 0.5 * t * t * (t - 1.0)
+    for c in range(out.shape[0]):
+        out[c] = w0 * np.float64(p0[c]) + w1 * np.float64(p1[c]) + w2 * np.float64(p2[c]) + w3 * np.float64(p3[c])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -645,34 +652,51 @@ def _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, b
         bz[c] = bzc
 
 
+# Depth on the light surfaces in three loops over a row: two vectorise, the table gather between them is
+# a short scalar loop (one long loop with the branches and the gather stays scalar and is ~2x slower).
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def _plane_row_depth(code, mask, fc, ba, bz, table, code0, tcp, axis, zmin, zmax, pz):  # type: ignore[no-untyped-def]
-    """Depth of every pixel of a row on its coded light surface (NaN: none or out of range)."""
-    nc, nu = table.shape[0], table.shape[1]
-    tc = tcp[2]
-    ta = tcp[0] if axis == 0 else tcp[1]
-    for c in range(pz.shape[0]):
+def _plane_cells(code, mask, fc, nc, nu, code0, cell, tu, tv):  # type: ignore[no-untyped-def]
+    """Flat index of each pixel's table cell (-1: undecoded or off the table) and its bilinear weights."""
+    for c in range(code.shape[0]):
         fu = np.float64(code[c]) - code0
         f = fc[c]
-        z = np.nan
-        if mask[c] and fu >= 0.0 and f >= 0.0 and fu < nu - 1 and f < nc - 1:  # false for NaN too
-            iu = int(fu)
-            ic = int(f)
-            tu = fu - iu
-            tcf = f - ic
-            q00 = np.float64(table[ic, iu])
-            q01 = np.float64(table[ic, iu + 1])
-            q10 = np.float64(table[ic + 1, iu])
-            q11 = np.float64(table[ic + 1, iu + 1])
-            q0 = q00 + tu * (q01 - q00)
-            q1 = q10 + tu * (q11 - q10)
-            q = q0 + tcf * (q1 - q0)
-            den = ba[c] - bz[c] * q
-            if den != 0.0:
-                zz = (tc * q - ta) / den
-                if zz >= zmin and zz <= zmax and tc + zz * bz[c] > 0.0:
-                    z = zz
-        pz[c] = z
+        ok = mask[c] & (fu >= 0.0) & (f >= 0.0) & (fu < nu - 1) & (f < nc - 1)  # false for NaN too
+        fu = fu if ok else 0.0
+        f = f if ok else 0.0
+        iu = np.int32(fu)
+        ic = np.int32(f)
+        tu[c] = fu - iu
+        tv[c] = f - ic
+        cell[c] = ic * np.int32(nu) + iu if ok else np.int32(-1)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_gather(flat, nu, cell, tu, tv, q):  # type: ignore[no-untyped-def]
+    """Bilinear interpolation of the code-line table at each pixel's cell (NaN where none)."""
+    for c in range(cell.shape[0]):
+        k = cell[c]
+        if k < 0:
+            q[c] = np.nan
+            continue
+        q00 = np.float64(flat[k])
+        q01 = np.float64(flat[k + 1])
+        q10 = np.float64(flat[k + nu])
+        q11 = np.float64(flat[k + nu + 1])
+        a = q00 + tu[c] * (q01 - q00)
+        b = q10 + tu[c] * (q11 - q10)
+        q[c] = a + tv[c] * (b - a)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_depth(q, ba, bz, tc, ta, zmin, zmax, pz):  # type: ignore[no-untyped-def]
+    """Depth where the ray meets the light surface through normalised coordinate q (NaN: out of range)."""
+    for c in range(q.shape[0]):
+        qq = q[c]
+        z = (tc * qq - ta) / (ba[c] - bz[c] * qq)
+        good = (z >= zmin) & (z <= zmax) & (tc + z * bz[c] > 0.0)  # NaN and inf fail
+        pz[c] = z if good else np.nan
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
@@ -719,7 +743,7 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
 @njit(nogil=True, cache=True, error_model="numpy")
 def _depth_row(  # type: ignore[no-untyped-def]
     r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
-    axis, zmin, zmax, mx, my, fc, ba, bz, p,
+    axis, zmin, zmax, mx, my, fc, ba, bz, scratch, scratch_i, p,
 ):
     """Camera-frame point of every pixel of row ``r`` into the padded rows ``p`` (3, W + 2) (NaN: none)."""
     w = mx.shape[0]
@@ -737,9 +761,12 @@ def _depth_row(  # type: ignore[no-untyped-def]
                 z = _z_ray(ur[c], vr[c], mx[c], my[c], und, origin, kmat, d, rcp, tcp)
             pz[c] = z if (z >= zmin and z <= zmax) else np.nan
     else:
+        nc, nu = table.shape[0], table.shape[1]
+        cell, tu, tv, q = scratch_i[0], scratch[0], scratch[1], scratch[2]
         _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz)
-        _plane_row_depth(u[r] if axis == 0 else v[r], mask[r], fc, ba, bz, table, code0, tcp, axis, zmin,
-                         zmax, pz)  # fmt: skip
+        _plane_cells(u[r] if axis == 0 else v[r], mask[r], fc, nc, nu, code0, cell, tu, tv)
+        _plane_gather(table.reshape(nc * nu), nu, cell, tu, tv, q)
+        _plane_depth(q, ba, bz, tcp[2], tcp[0] if axis == 0 else tcp[1], zmin, zmax, pz)
     _scale_rays(pz, mx, my, px, py)
 
 
@@ -751,27 +778,58 @@ def _scale_rays(pz, mx, my, px, py):  # type: ignore[no-untyped-def]
         py[c] = z * my[c]
 
 
+# Neighbour counting visits each pair of neighbouring pixels once (4 pairs per pixel: right, and the three
+# below) and credits both ends; every loop runs over whole rows with non-negative indices, so it vectorises.
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def _near(px, py, pz, qx, qy, qz, j2, n):  # type: ignore[no-untyped-def]
-    for c in range(n.shape[0]):
+def _near(px, py, pz, qx, qy, qz, j2, e):  # type: ignore[no-untyped-def]
+    """e[c] = 1 where points p[c] and q[c] are nearer than sqrt(j2), else 0 (NaN compares false)."""
+    for c in range(e.shape[0]):
         ex = qx[c] - px[c]
         ey = qy[c] - py[c]
         ez = qz[c] - pz[c]
-        n[c] += np.int32(ex * ex + ey * ey + ez * ez < j2)  # NaN compares false
+        e[c] = np.int32(ex * ex + ey * ey + ez * ez < j2)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _near_count(p, q, off, j2, n):  # type: ignore[no-untyped-def]
-    """n[c] += 1 where the point of padded row q at column c + off is within sqrt(j2) of p's point c."""
-    w = n.shape[0]
-    a = 1 + off  # slices keep indices non-negative, so the loop vectorises
-    _near(p[0, 1 : w + 1], p[1, 1 : w + 1], p[2, 1 : w + 1], q[0, a : a + w], q[1, a : a + w],
-          q[2, a : a + w], j2, n)  # fmt: skip
+def _add2(n, a, b):  # type: ignore[no-untyped-def]
+    for c in range(n.shape[0]):
+        n[c] += a[c] + b[c]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _add1(n, a):  # type: ignore[no-untyped-def]
+    for c in range(n.shape[0]):
+        n[c] += a[c]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _pairs_in_row(p, j2, e, n):  # type: ignore[no-untyped-def]
+    """Credit both pixels of every near horizontal pair of padded row p (3, W + 2) to n (W + 2,)."""
+    w = p.shape[1] - 2
+    # e[k]: padded columns k and k + 1 (the pads are NaN: pairs with them never count)
+    _near(p[0, 0 : w + 1], p[1, 0 : w + 1], p[2, 0 : w + 1], p[0, 1 : w + 2], p[1, 1 : w + 2], p[2, 1 : w + 2],
+          j2, e[: w + 1])  # fmt: skip
+    _add2(n[1 : w + 1], e[0:w], e[1 : w + 1])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _pairs_between_rows(p, q, j2, e, np_, nq):  # type: ignore[no-untyped-def]
+    """Credit every near pair (p column c, q column c + off), off = -1, 0, 1, to np_ and nq (padded)."""
+    w = p.shape[1] - 2
+    for off in range(-1, 2):
+        a = 1 + off
+        _near(p[0, 1 : w + 1], p[1, 1 : w + 1], p[2, 1 : w + 1], q[0, a : a + w], q[1, a : a + w],
+              q[2, a : a + w], j2, e[:w])  # fmt: skip
+        _add1(np_[1 : w + 1], e[:w])
+        _add1(nq[a : a + w], e[:w])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _keep_row(pz, n, min_nb, out):  # type: ignore[no-untyped-def]
-    kept = 0
+    """out = the depths of row pz kept by the neighbour count n; returns how many."""
+    kept = np.int64(0)
     for c in range(out.shape[0]):
         z = pz[c]
         k = (z == z) & (n[c] >= min_nb)
@@ -788,7 +846,7 @@ def depth_filtered(  # type: ignore[no-untyped-def]
     """Triangulate to camera-frame depth (H, W) and drop points with < ``min_nb`` near neighbours (NaN).
 
     ``counts[r + 1]`` receives the number of kept points of row r. Each chunk of rows keeps the points of
-    three rows (padded with a NaN column each side) in a small ring, so no organised cloud is written.
+    two rows (padded with a NaN column each side) in a small ring, so no organised cloud is written.
     """
     h, w = depth.shape[0], depth.shape[1]
     j2 = np.float32(jump * jump)
@@ -800,50 +858,55 @@ def depth_filtered(  # type: ignore[no-untyped-def]
         fc = np.empty(w, np.float64)
         ba = np.empty(w, np.float64)
         bz = np.empty(w, np.float64)
-        ring = np.full((3, 3, w + 2), np.nan, np.float32)  # (slot, x/y/z, padded column)
-        nb = np.zeros(w, np.int32)
+        scratch = np.empty((3, w), np.float64)
+        scratch_i = np.empty((1, w), np.int32)
+        ring = np.full((2, 3, w + 2), np.nan, np.float32)  # (slot, x/y/z, padded column)
+        nb = np.zeros((2, w + 2), np.int32)
+        e = np.empty(w + 1, np.int32)
         for ch in range(t, nchunks, nthreads):
             r0 = ch * h // nchunks
             r1 = (ch + 1) * h // nchunks
             _depth_chunk(r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
-                         origin, kmat, d, rcp, tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, ring,
-                         nb, depth, counts)  # fmt: skip
+                         origin, kmat, d, rcp, tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, scratch,
+                         scratch_i, ring, nb, e, depth, counts)  # fmt: skip
     return counts
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _depth_chunk(  # type: ignore[no-untyped-def]
     r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp,
-    tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, ring, nb, depth, counts,
+    tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, scratch, scratch_i, ring, nb, e, depth, counts,
 ):
-    """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter)."""
+    """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter).
+
+    ``ring`` (2, 3, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts;
+    row r - 1 is complete once the pairs it shares with row r are counted.
+    """
     h, w = depth.shape[0], depth.shape[1]
     for r in range(r0 - 1, r1 + 1):
-        slot = (r - r0 + 3) % 3
+        s = (r - r0 + 1) % 2
+        p = ring[s]
         if r < 0 or r >= h:
-            ring[slot].fill(np.nan)
+            p.fill(np.nan)
         else:
             _depth_row(r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
-                       origin, kmat, d, rcp, tcp, axis, zmin, zmax, mx, my, fc, ba, bz,
-                       ring[slot])  # fmt: skip
-        if r - 1 < r0:
-            continue
-        cur = ring[(r - 1 - r0 + 3) % 3]  # row r - 1 is complete: rows r - 2 and r are in the ring
+                       origin, kmat, d, rcp, tcp, axis, zmin, zmax, mx, my, fc, ba, bz, scratch, scratch_i,
+                       p)  # fmt: skip
         if min_nb > 0:
-            nb[:] = 0
-            for s in range(3):
-                q = ring[s]
-                for off in range(-1, 2):
-                    if s != (r - 1 - r0 + 3) % 3 or off != 0:
-                        _near_count(cur, q, off, j2, nb)
-        counts[r] = _keep_row(cur[2, 1 : w + 1], nb, min_nb, depth[r - 1])
+            nb[s].fill(0)
+            _pairs_in_row(p, j2, e, nb[s])
+            if r > r0 - 1:
+                _pairs_between_rows(ring[1 - s], p, j2, e, nb[1 - s], nb[s])
+        if r - 1 >= r0:
+            counts[r] = _keep_row(ring[1 - s][2, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, depth[r - 1])
     return counts
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def emit_points(  # type: ignore[no-untyped-def]
-    depth, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads, o_xyz, o_row, o_col, o_q, o_i
-):
+    depth, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads,
+    o_xyz, o_row, o_col, o_q, o_i,
+):  # fmt: skip
     """Write the points of a depth map (world frame) and their pixel data at ``starts[r]`` per row."""
     h, w = depth.shape[0], depth.shape[1]
     has_i = intensity.shape[0] == h

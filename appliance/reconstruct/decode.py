@@ -50,6 +50,7 @@ from appliance.patterns.sequence import (
     gray_bits_needed,
 )
 from appliance.reconstruct import _decode_kernels as _k
+from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.types import DecodedMaps
 
 FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
@@ -60,6 +61,8 @@ MAX_PERIOD_RATIO = 16.0
 #: Phase coefficients are quantised to this step so that sums of products are exact in float64.
 COEFFICIENT_QUANTUM = 2.0**-20
 _AXES: tuple[Axis, Axis] = ("x", "y")
+#: Output blocks of decode() / StreamingDecoder.finish() without ``out`` (a few cameras' maps at once).
+_POOL = BufferPool(max_blocks=4)
 
 
 @dataclass(frozen=True)
@@ -479,13 +482,15 @@ def _outputs(
     if out is not None:
         _check_out(out, shape)
         return out, out.v
+    # outputs are views of blocks reused once the caller drops them (saves their first-touch page faults)
     if "y" in plan.axes:
-        maps = empty_maps(shape)
+        u, v, mask, quality = _POOL.arrays([(shape, np.float32), (shape, np.float32), (shape, np.bool_),
+                                            (shape, np.float32)])  # fmt: skip
+        maps = DecodedMaps(u, v, mask, quality)  # type: ignore[arg-type]
         return maps, maps.v
     # the y axis is not coded: v is NaN everywhere, one shared read-only map instead of H x W stores per call
-    maps = DecodedMaps(
-        np.empty(shape, np.float32), _nan_map(shape), np.empty(shape, np.bool_), np.empty(shape, np.float32)
-    )
+    u, mask, quality = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32)])
+    maps = DecodedMaps(u, _nan_map(shape), mask, quality)  # type: ignore[arg-type]
     return maps, np.empty((0, shape[1]), np.float32)
 
 

@@ -11,6 +11,7 @@ from appliance.config.schema import ReconstructionConfig
 from appliance.errors import CalibrationError, ScanError
 from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
+from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, filter_isolated, to_point_cloud
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
@@ -84,6 +85,8 @@ class Reconstructor:
             self.outputs = [names[0]]
         # camera-projector without normals needs no organised cloud: depth maps, filtered as they are made
         self._fused = cfg.mode == "projector" and not cfg.normals
+        # clouds are views of blocks reused once the caller drops them (saves the page faults of ~26 B/point)
+        self._pool = BufferPool()
         self._xyz: dict[str, F32] = {}
         self._depth: dict[str, F32] = {}
         self._counts: dict[str, npt.NDArray[np.int64]] = {}
@@ -191,14 +194,11 @@ class Reconstructor:
         t1 = time.perf_counter()
         sizes = [int(self._counts[n].sum()) for n in self.outputs]
         total = sum(sizes)
-        cloud = PointCloud(
-            np.empty((total, 3), np.float32),
-            np.empty(total, np.int32),
-            np.empty(total, np.int32),
-            np.empty(total, np.uint8),
-            np.empty(total, np.uint8),
-            np.empty(total, np.float32),
-        )
+        xyz, row, col, cam, inten8, qual = self._pool.arrays(
+            [((total, 3), np.float32), ((total,), np.int32), ((total,), np.int32), ((total,), np.uint8),
+             ((total,), np.uint8), ((total,), np.float32)]
+        )  # fmt: skip
+        cloud = PointCloud(xyz, row, col, cam, inten8, qual)  # type: ignore[arg-type]
         names = self.calibration.camera_names
         start = 0
         for n, size in zip(self.outputs, sizes, strict=True):
