@@ -49,6 +49,9 @@ def test_cross_field_rules() -> None:
         parse_config("projector: {type: lightcrafter4500}")
     with pytest.raises(ConfigError, match="coarsest first"):
         parse_config("sequence: {periods_px: [16, 64]}")
+    with pytest.raises(ConfigError, match=r"set reconstruction.normals: true"):
+        parse_config("output: {normals: true}")
+    assert parse_config("output: {normals: true}\nreconstruction: {normals: true}").output.normals
 
 
 def test_missing_file() -> None:

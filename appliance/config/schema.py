@@ -89,6 +89,9 @@ class ReconstructionConfig(_Strict):
         1.5, gt=0, description="Stereo: reject matches this far from the epipolar line (px)."
     )
     normals: bool = Field(False, description="Estimate normals from the organised cloud.")
+    normal_radius_px: int = Field(
+        3, ge=1, le=10, description="Normals: half size of the pixel window a plane is fitted to (px)."
+    )
 
     @model_validator(mode="after")
     def _range(self) -> ReconstructionConfig:
@@ -430,6 +433,11 @@ class AppConfig(_Strict):
             self.projector.type != "sim" or any(c.type != "sim" for c in self.cameras.values())
         ):
             raise ValueError("calibration_file must be set when any device is real hardware")
+        if self.output.normals and not self.reconstruction.normals:
+            raise ValueError(
+                "output.normals: true writes normals, but reconstruction.normals is false so none are estimated; "
+                "set reconstruction.normals: true as well (or output.normals: false)"
+            )
         return self
 
     @property

@@ -6,6 +6,8 @@ there is no point. Filters set rejected points to NaN in place and return how ma
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
@@ -117,24 +119,48 @@ def filter_isolated(
     return int(K.apply_keep(xyz, scratch))
 
 
-def estimate_normals(xyz: F32, eye_mm: npt.ArrayLike = (0.0, 0.0, 0.0), out: F32 | None = None) -> F32:
-    """Unit surface normals of an organised cloud (cross product of central differences).
+def estimate_normals(
+    xyz: F32,
+    eye_mm: npt.ArrayLike = (0.0, 0.0, 0.0),
+    out: F32 | None = None,
+    radius_px: int = 3,
+    max_distance_mm: float = math.inf,
+    min_points: int = 6,
+) -> F32:
+    """Unit surface normals of an organised cloud: a least-squares plane through each pixel's neighbourhood.
+
+    The normal is the principal axis of least variance of the valid points in the ``(2 radius_px + 1)^2``
+    pixel window that lie within ``max_distance_mm`` of the centre point. With radius 3 on a surface
+    sampled every ~0.2 mm and 0.1 mm of depth noise, that is ~10x less angular noise than central
+    differences of adjacent pixels.
 
     Parameters
     ----------
     xyz : ndarray, shape (H, W, 3), float32
-        Organised cloud (mm).
+        Organised cloud (mm); NaN where there is no point.
     eye_mm : array_like, shape (3,)
         The camera centre (world frame, mm); normals are turned towards it.
     out : ndarray, shape (H, W, 3), float32, optional
         Output buffer.
+    radius_px : int
+        Half size of the window (px), >= 1.
+    max_distance_mm : float
+        Neighbours farther than this from the centre point are left out (keeps fits off depth steps).
+    min_points : int
+        Fewest points (the centre included) for a fit, >= 3.
 
     Returns
     -------
     ndarray, shape (H, W, 3), float32
-        Unit normals; NaN where the point or all neighbours along a direction are missing.
+        Unit normals; NaN where the point is missing or has too few neighbours for a plane.
     """
     _organised(xyz)
+    if radius_px < 1:
+        raise ValueError(f"radius_px = {radius_px}: must be >= 1")
+    if min_points < 3:
+        raise ValueError(f"min_points = {min_points}: a plane needs at least 3")
+    if not max_distance_mm > 0:
+        raise ValueError(f"max_distance_mm = {max_distance_mm}: must be > 0")
     if out is None:
         out = np.empty_like(xyz)
     else:
@@ -142,7 +168,7 @@ def estimate_normals(xyz: F32, eye_mm: npt.ArrayLike = (0.0, 0.0, 0.0), out: F32
         if out.shape != xyz.shape:
             raise ValueError(f"out: {out.shape}: must be {xyz.shape}")
     eye = np.asarray(eye_mm, np.float64).reshape(3)
-    return K.normals(xyz, eye, out)  # type: ignore[no-any-return]
+    return K.normals(xyz, eye, int(radius_px), float(max_distance_mm), int(min_points), out)  # type: ignore[no-any-return]
 
 
 def to_point_cloud(

@@ -160,7 +160,9 @@ class Reconstructor:
         for n in self.outputs:
             filter_isolated(self._xyz[n], cfg.min_neighbours, self._jump_mm[n], self._scratch[n])
             if cfg.normals:
-                estimate_normals(self._xyz[n], self.calibration.devices[n].center, self._normals[n])
+                eye = self.calibration.devices[n].center
+                r = cfg.normal_radius_px
+                estimate_normals(self._xyz[n], eye, self._normals[n], r, r * self._jump_mm[n])
         t2 = time.perf_counter()
         clouds = []
         names = self.calibration.camera_names

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from appliance.reconstruct.types import PointCloud
 
@@ -82,3 +83,33 @@ def compare_to_ground_truth(cloud: PointCloud, rig: Any, cameras: list[str]) -> 
         share_over_1mm=float(np.mean(e > 1.0)),
         completeness=lit_hit / lit_total if lit_total else 0.0,
     )
+
+
+def normal_errors_deg(cloud: PointCloud, rig: Any, cameras: list[str]) -> npt.NDArray[np.float64]:
+    """Angle between each point's estimated normal and the true surface normal of its pixel.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+        Points with normals (``cloud.normal`` not None), source camera index and pixel.
+    rig : VirtualRig
+        The rig that rendered the scan.
+    cameras : list of str
+        Camera names in the order of ``cloud.camera`` indices.
+
+    Returns
+    -------
+    ndarray, shape (N,), float64
+        Angles (degrees, 0..180: both normals face the camera, so a flipped one is ~180) in the order of the
+        cloud's points; NaN where either normal is missing.
+    """
+    if cloud.normal is None:
+        raise ValueError("normal_errors_deg: the cloud has no normals (set reconstruction.normals: true)")
+    out = np.full(len(cloud.xyz), np.nan)
+    for idx, name in enumerate(cameras):
+        gt = rig.ground_truth(name)
+        sel = np.flatnonzero(cloud.camera == idx)
+        truth = gt.normal[cloud.row[sel], cloud.col[sel]]
+        cos = np.sum(cloud.normal[sel].astype(np.float64) * truth, axis=1)  # both face the camera
+        out[sel] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
