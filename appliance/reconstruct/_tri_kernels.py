@@ -156,86 +156,40 @@ def tri_plane(code, mask, norm, cidx, table, code0, rcp, tcp, rwc, cwc, to_world
             bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
             den = ba - bz * q
             z = (tc * q - ta) / den if den != 0.0 else np.nan
-            if not (z >= zmin and z <= zmax and tc + z * bz > 0.0):
-                out[r, col, 0] = _NAN
-                out[r, col, 1] = _NAN
-                out[r, col, 2] = _NAN
-                continue
-            px = z * mx
-            py = z * my
-            if to_world:
-                out[r, col, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
-                out[r, col, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
-                out[r, col, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
-            else:
-                out[r, col, 0] = px
-                out[r, col, 1] = py
-                out[r, col, 2] = z
+            _store_point(out, r, col, z if tc + z * bz > 0.0 else np.nan, mx, my, zmin, zmax, to_world, rwc, cwc)
     return out
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _store_point(out, r, col, z, mx, my, zmin, zmax, to_world, rwc, cwc):  # type: ignore[no-untyped-def]
+    """out[r, col] = the point at depth z on the ray (mx, my, 1), world or camera frame; NaN if z is out of range."""
+    if not (z >= zmin and z <= zmax):  # also false for NaN
+        out[r, col, 0] = _NAN
+        out[r, col, 1] = _NAN
+        out[r, col, 2] = _NAN
+        return
+    px = z * mx
+    py = z * my
+    if to_world:
+        out[r, col, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
+        out[r, col, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
+        out[r, col, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+    else:
+        out[r, col, 0] = px
+        out[r, col, 1] = py
+        out[r, col, 2] = z
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def tri_ray(u, v, mask, norm, und, origin, kmat, d, rcp, tcp, rwc, cwc, to_world, zmin, zmax, out):  # type: ignore[no-untyped-def]
     """Ray-ray triangulation: the point on the camera ray nearest (in projector px) to the coded ray."""
     h, w = u.shape[0], u.shape[1]
-    hp, wp = und.shape[0], und.shape[1]
-    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
-    fy, cy = kmat[1, 1], kmat[1, 2]
     for r in prange(h):
         for col in range(w):
-            fu = np.float64(u[r, col]) - origin
-            fv = np.float64(v[r, col]) - origin
-            if not (mask[r, col] and fu >= 0.0 and fv >= 0.0 and fu < wp - 1 and fv < hp - 1):
-                out[r, col, 0] = _NAN
-                out[r, col, 1] = _NAN
-                out[r, col, 2] = _NAN
-                continue
-            iu = int(fu)
-            iv = int(fv)
-            tu = fu - iu
-            tv = fv - iv
-            a = und[iv, iu, 0] + tu * (und[iv, iu + 1, 0] - und[iv, iu, 0])
-            b = und[iv + 1, iu, 0] + tu * (und[iv + 1, iu + 1, 0] - und[iv + 1, iu, 0])
-            xn = np.float64(a + tv * (b - a))
-            a = und[iv, iu, 1] + tu * (und[iv, iu + 1, 1] - und[iv, iu, 1])
-            b = und[iv + 1, iu, 1] + tu * (und[iv + 1, iu + 1, 1] - und[iv + 1, iu, 1])
-            yn = np.float64(a + tv * (b - a))
-            # one Newton step on the distortion model removes the table's interpolation error
-            xd, yd, j11, j12, j21, j22 = distort_jac(xn, yn, d)
-            eu = np.float64(u[r, col]) - (fx * xd + sk * yd + cx)
-            ev = np.float64(v[r, col]) - (fy * yd + cy)
-            ex = (eu - sk * ev / fy) / fx
-            ey = ev / fy
-            det = j11 * j22 - j12 * j21
-            if det != 0.0:
-                xn += (j22 * ex - j12 * ey) / det
-                yn += (j11 * ey - j21 * ex) / det
             mx = np.float64(norm[r, col, 0])
             my = np.float64(norm[r, col, 1])
-            bx = rcp[0, 0] * mx + rcp[0, 1] * my + rcp[0, 2]
-            by = rcp[1, 0] * mx + rcp[1, 1] * my + rcp[1, 2]
-            bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
-            a1 = fx * (bx - xn * bz)
-            b1 = fx * (xn * tcp[2] - tcp[0])
-            a2 = fy * (by - yn * bz)
-            b2 = fy * (yn * tcp[2] - tcp[1])
-            nrm = a1 * a1 + a2 * a2
-            z = (a1 * b1 + a2 * b2) / nrm if nrm > 0.0 else np.nan
-            if not (z >= zmin and z <= zmax and tcp[2] + z * bz > 0.0):
-                out[r, col, 0] = _NAN
-                out[r, col, 1] = _NAN
-                out[r, col, 2] = _NAN
-                continue
-            px = z * mx
-            py = z * my
-            if to_world:
-                out[r, col, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
-                out[r, col, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
-                out[r, col, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
-            else:
-                out[r, col, 0] = px
-                out[r, col, 1] = py
-                out[r, col, 2] = z
+            z = _z_ray(u[r, col], v[r, col], mx, my, und, origin, kmat, d, rcp, tcp) if mask[r, col] else np.nan
+            _store_point(out, r, col, z, mx, my, zmin, zmax, to_world, rwc, cwc)
     return out
 
 
@@ -765,6 +719,7 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
     a = und[iv, iu, 1] + tu * (und[iv, iu + 1, 1] - und[iv, iu, 1])
     b = und[iv + 1, iu, 1] + tu * (und[iv + 1, iu + 1, 1] - und[iv + 1, iu, 1])
     yn = np.float64(a + tv * (b - a))
+    # one Newton step on the distortion model removes the table's interpolation error
     xd, yd, j11, j12, j21, j22 = distort_jac(xn, yn, d)
     eu = np.float64(cu) - (fx * xd + sk * yd + cx)
     ev = np.float64(cv) - (fy * yd + cy)
