@@ -1,7 +1,8 @@
 """The aravis camera backend through the real Aravis stack, against fake GigE Vision cameras on loopback.
 
 Everything runs inside a :class:`LoopbackLab`: a private network namespace (when the test may create one)
-where 127.0.0.2+ exist and no packet can reach a real network. Cameras are always opened by address.
+where 127.0.0.2+ exist and no packet can reach a real network. Cameras are opened by address, except in the
+one test of opening by serial (which needs discovery), and that one runs only inside the private namespace.
 """
 
 from __future__ import annotations
@@ -377,3 +378,41 @@ def test_probe_refuses_host_names() -> None:
     from appliance.hardware.devices_probe import probe_aravis
 
     assert "not an IPv4 address" in probe_aravis("camera.local")
+
+
+# --- discovery: only inside the private namespace, where loopback is the only interface --------------------
+
+
+def _require_isolation(lab: fake_gige.LoopbackLab) -> None:
+    if not lab.isolated:
+        pytest.skip(f"discovery broadcasts: only inside a private network namespace ({lab.setup_error})")
+
+
+def test_open_by_serial_and_discover_inside_the_namespace(lab: fake_gige.LoopbackLab, procs: Processes) -> None:
+    from appliance.hardware.devices_probe import discover_aravis
+
+    _require_isolation(lab)
+    host_ns = os.readlink("/proc/thread-self/ns/net")
+
+    async def scenario() -> None:
+        # threads (and processes) started from the lab's thread live in its namespace, not the host's
+        assert await asyncio.to_thread(os.readlink, "/proc/thread-self/ns/net") != host_ns
+        procs.tool(addr(lab, 1))  # serial TOOLFAKE
+        await asyncio.sleep(0.3)
+        found = discover_aravis()
+        assert any("serial TOOLFAKE" in d and addr(lab, 1) in d for d in found), found
+        cam = camera("left", None, serial="TOOLFAKE")
+        try:
+            info = await cam.open()
+            assert info.serial == "TOOLFAKE"
+            out, order = await capture(cam, 3, (info.height, info.width))
+        finally:
+            await cam.close()
+        assert order == [0, 1, 2] and out.max() > 100
+        missing = camera("right", None, serial="NOSUCHCAMERA", reconnect_timeout_s=0.0)
+        with pytest.raises(CameraError, match="NOSUCHCAMERA"):
+            await missing.open()
+        await missing.close()
+
+    assert lab.call(os.readlink, "/proc/thread-self/ns/net") != host_ns
+    run(lab, scenario)

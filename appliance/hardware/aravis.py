@@ -444,9 +444,29 @@ class AravisCamera:
                 attempt += 1
                 time.sleep(wait)
 
+    def _id_of_serial(self, serial: str) -> str:
+        """The Aravis device id of the camera with this serial number, by discovery (broadcasts).
+
+        ``Aravis.Camera.new`` matches ids, MAC and IP addresses but not serial numbers, so the serial is looked
+        up in the discovered device list.
+        """
+        aravis = self._aravis
+        aravis.update_device_list()  # configured by the user: cameras.<name>.serial without an address
+        seen = []
+        for i in range(aravis.get_n_devices()):
+            if aravis.get_device_serial_nbr(i) == serial:
+                return str(aravis.get_device_id(i))
+            seen.append(f"{aravis.get_device_serial_nbr(i)} at {aravis.get_device_address(i)}")
+        raise CameraError(
+            self._msg(
+                f"no camera with serial {serial!r} answered discovery (found: {', '.join(seen) or 'none'}); "
+                "check power and the cable, or set the camera's address instead"
+            )
+        )
+
     def _connect(self) -> CameraInfo:
         aravis, glib, cfg = self._aravis, self._glib, self.config
-        target = cfg.address if cfg.address is not None else cfg.serial
+        target = cfg.address if cfg.address is not None else self._id_of_serial(str(cfg.serial))
         try:
             camera = aravis.Camera.new(target)
         except glib.Error as exc:
