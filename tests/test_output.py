@@ -106,7 +106,7 @@ def test_preview_scale_bar_spans_depth_range() -> None:
     # the depth tile uses many colours (a ramp), empty pixels are dark grey
     tile = img[:, :120]
     assert len(np.unique(tile[30, 20:100].reshape(-1, 3), axis=0)) > 20
-    assert tuple(tile[5, 5]) == (40, 40, 40)
+    assert tuple(tile[50, 5]) == (40, 40, 40)  # (the top-left corner holds the title)
     # the scale bar's top (labelled with the nearest depth) has the colour of the nearest pixels
     bar_x = 120 + 4 + 8 + 5  # tile, its 4-px gap, the bar's margin, a few px into the bar
     bar_h = int(0.8 * 100)

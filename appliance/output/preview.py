@@ -71,8 +71,9 @@ def render_preview(
         cv2.putText(canvas, f"{val:.0f}", (x0 + bar_w + 6, y + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(canvas, "z mm", (x0, max(12, y0 - 6)), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     if title:
-        cv2.putText(canvas, title, (8, 20), font, 0.55, (255, 255, 255), 2, cv2.LINE_AA)
-        cv2.putText(canvas, title, (8, 20), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+        (tw, th), base = cv2.getTextSize(title, font, 0.55, 1)
+        cv2.rectangle(canvas, (4, 20 - th - 4), (12 + tw, 20 + base + 2), (0, 0, 0), -1)  # legible on any colour
+        cv2.putText(canvas, title, (8, 20), font, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
     return canvas
 
 
