@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import importlib.util
 import threading
 
 import numpy as np
@@ -161,8 +160,7 @@ def test_size_mismatch_and_banding_exposure_are_refused() -> None:
     asyncio.run(go())
 
 
-@pytest.mark.skipif(importlib.util.find_spec("pygame") is not None, reason="pygame is installed here")
-def test_missing_pygame_disables_only_this_backend_with_advice() -> None:
+def test_missing_pygame_disables_only_this_backend_with_advice(without_pygame: None) -> None:
     with pytest.raises(BackendUnavailableError, match="pip install pygame"):
         DisplayProjector(DisplayProjectorConfig())
     assert dm.DisplayTiming(60.0, 1, 1).frame_period_us > 0  # the timing logic still imports

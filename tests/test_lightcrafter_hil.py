@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import asyncio
+import errno
 import threading
 from collections.abc import Iterator
 
 import numpy as np
+import numpy.typing as npt
+import pydantic
 import pytest
+import usb.core
 
-from appliance.config.backends import LightCrafter4500Config
-from appliance.errors import PatternError, ProjectorError
+from appliance.config.backends import LightCrafter4500Config, VideoOutputConfig
+from appliance.config.loader import parse_config
+from appliance.errors import BackendUnavailableError, ConfigError, PatternError, ProjectorError
 from appliance.hardware import dlpc350 as proto
 from appliance.hardware import lightcrafter4500 as lcm
 from appliance.hardware.dlpc350 import Cmd, Led, LutEntry, Trigger
@@ -29,10 +34,12 @@ from appliance.patterns import (
 pytestmark = pytest.mark.hil
 
 
+
 @pytest.fixture(autouse=True)
 def _fast(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(lcm, "WAKE_S", 0.0)
     monkeypatch.setattr(lcm, "VALIDATE_POLL_S", 0.0)
+    monkeypatch.setattr(lcm, "flip_clock_ns", lcm.flip_clock_ns)  # a VirtualDisplay replaces it; restored after
 
 
 @pytest.fixture
@@ -44,8 +51,81 @@ def fake() -> Iterator[FakeDLPC350]:
     assert not any(proto.is_flash_command(e.code) for e in dev.log)
 
 
-def _lc(fake: FakeDLPC350, **cfg: object) -> lcm.LightCrafter4500:
-    return lcm.LightCrafter4500(LightCrafter4500Config(**cfg), usb_backend=FakeUsbBackend(fake))  # type: ignore[arg-type]
+class VirtualDisplay:
+    """A fake :class:`~appliance.hardware.display.Screen` on a virtual clock, and what went out on its HDMI link.
+
+    Each flip returns at the next vsync of a display at ``refresh_hz``: the virtual clock (which becomes the
+    backend's flip clock) jumps to it, no real time passes. ``scanned[p]`` is the image index (-1 = black) on
+    the link from vsync ``p`` to ``p + 1``. A flip whose number is in ``miss_vsync_at`` misses one vsync: the
+    previous frame goes out twice.
+    """
+
+    def __init__(self, cfg: VideoOutputConfig, size: tuple[int, int] = (8, 8)) -> None:
+        self.cfg = cfg
+        self.size = size
+        self.period_ns = round(1e9 / cfg.refresh_hz)
+        self.t0_ns = 10**9
+        self.now_ns = self.t0_ns
+        self.images: list[npt.NDArray[np.uint8]] = []
+        self.back = -1
+        self.scanned: list[int] = []
+        self.flips = 0
+        self.miss_vsync_at: set[int] = set()
+        self.threads: set[threading.Thread] = set()
+        self.closed = False
+        lcm.flip_clock_ns = self.clock_ns
+
+    def clock_ns(self) -> int:
+        return self.now_ns
+
+    @property
+    def vsync(self) -> int:
+        """Index of the vsync at which the last flip returned."""
+        return len(self.scanned) - 1
+
+    def prepare(self, images: list[npt.NDArray[np.uint8]]) -> None:
+        assert all(img.shape == (self.size[1], self.size[0], 3) and img.dtype == np.uint8 for img in images)
+        self.images = list(images)
+
+    def show(self, index: int) -> None:
+        assert -1 <= index < len(self.images)
+        self.back = index
+
+    def flip(self) -> None:
+        self.threads.add(threading.current_thread())
+        if self.flips in self.miss_vsync_at:
+            self.scanned.append(self.scanned[-1] if self.scanned else -1)
+        self.scanned.append(self.back)
+        self.now_ns = self.t0_ns + self.vsync * self.period_ns
+        self.flips += 1
+
+    def close(self) -> None:
+        self.closed = True
+
+    def frame(self, p: int) -> npt.NDArray[np.uint8]:
+        """The image on the link from vsync ``p`` to ``p + 1``."""
+        index = self.scanned[p]
+        return self.images[index] if index >= 0 else np.zeros((self.size[1], self.size[0], 3), np.uint8)
+
+
+class Displays:
+    """A screen factory that makes :class:`VirtualDisplay` objects of one size and keeps them."""
+
+    def __init__(self, size: tuple[int, int] = (8, 8)) -> None:
+        self.size = size
+        self.made: list[VirtualDisplay] = []
+
+    def __call__(self, cfg: VideoOutputConfig) -> VirtualDisplay:
+        self.made.append(VirtualDisplay(cfg, self.size))
+        return self.made[-1]
+
+
+def _lc(fake: FakeDLPC350, displays: Displays | None = None, **cfg: object) -> lcm.LightCrafter4500:
+    return lcm.LightCrafter4500(
+        LightCrafter4500Config(**cfg),  # type: ignore[arg-type]
+        usb_backend=FakeUsbBackend(fake),
+        screen_factory=displays if displays is not None else Displays(),
+    )
 
 
 def _pad(hexstr: str) -> bytes:
@@ -98,7 +178,7 @@ def test_status_bytes_decode_into_messages() -> None:
 
 def test_small_sequence_produces_exactly_the_expected_packets(fake: FakeDLPC350) -> None:
     seq = Sequence(16, 4, (WhiteFrame(), BlackFrame(), GrayFrame("x", 0), PhaseFrame("x", 4.0, 0, 3)))
-    lc = _lc(fake, exposure_us=8333, period_us=8333)  # two patterns per 16667 µs video frame
+    lc = _lc(fake, Displays((16, 4)), exposure_us=8333, period_us=8333)  # two patterns per 16667 µs video frame
 
     async def go() -> None:
         await lc.open()
@@ -153,7 +233,7 @@ def _unpack(image: np.ndarray, e: LutEntry) -> np.ndarray:
 
 def test_full_gray_phase_sequence_loads_validates_and_runs(fake: FakeDLPC350) -> None:
     seq = gray_phase_sequence(912, 1140, "xy", period=16, steps=4)
-    lc = _lc(fake, exposure_us=8333, period_us=8333)
+    lc = _lc(fake, Displays((912, 1140)), exposure_us=8333, period_us=8333)
     loop_thread = threading.current_thread()
     usb_threads: set[threading.Thread] = set()
     receive = fake.receive
@@ -251,7 +331,9 @@ def test_forced_invalid_timing_is_rejected_by_the_device_with_decoded_bits(
         ):
             await lc.load(Sequence(8, 8, frames))
         with pytest.raises(ProjectorError, match=r"0x1A24 \(sequence start/stop\).*NACK"):
-            await lc.start()  # the device will not start an invalid sequence
+            await lc.command(0x1A24, b"\x02")  # the device will not start an invalid sequence
+        with pytest.raises(ProjectorError, match=r"no sequence loaded \(load\(\) not called or it failed\)"):
+            await lc.start()  # nor will the backend present its images
         await lc.close()
 
     asyncio.run(go())
@@ -363,7 +445,7 @@ def test_a_device_object_can_be_passed_in_and_reads_use_the_documented_frame(fak
     import usb.core
 
     dev = usb.core.find(idVendor=0x0451, idProduct=0x6401, backend=FakeUsbBackend(fake))
-    lc = lcm.LightCrafter4500(LightCrafter4500Config(), device=dev)
+    lc = lcm.LightCrafter4500(LightCrafter4500Config(), device=dev, screen_factory=Displays())
 
     async def go() -> None:
         await lc.open()
@@ -407,3 +489,273 @@ def test_the_fake_validates_lut_consistency_like_the_device() -> None:
     assert proto.decode_validation(_validate(dev)) == [proto.VALIDATION_ERRORS[3]]
     assert _send(dev, Cmd.MAILBOX_DATA, b"\x00\x00\x00").nack  # mailbox closed
     assert not dev.validated
+
+
+# --- video source: the packed images on the HDMI input, in step with the sequencer -------------------------
+
+
+def _video_lc(
+    fake: FakeDLPC350, latency: int = 1, size: tuple[int, int] = (64, 32)
+) -> tuple[lcm.LightCrafter4500, Displays, Sequence, list[int]]:
+    """A backend at one pattern per video frame, its displays, a sequence, and the vsyncs of start packets."""
+    displays = Displays(size)
+    lc = _lc(fake, displays, exposure_us=16667, period_us=16667, video_latency_frames=latency)
+    starts: list[int] = []
+    receive = fake.receive
+
+    def spy(report: bytes) -> None:  # the vsync at which the last flip returned when a start packet arrives
+        n = len(fake.log)
+        receive(report)
+        if len(fake.log) > n and fake.log[-1].code == Cmd.SEQUENCE_CONTROL and fake.log[-1].request.data == b"\x02":
+            starts.append(displays.made[-1].vsync)
+
+    fake.receive = spy  # type: ignore[method-assign]
+    return lc, displays, gray_phase_sequence(64, 32, "x", period=16, steps=3), starts
+
+
+def _assert_sequencer_sees_the_packed_images(
+    display: VirtualDisplay, images: list[npt.NDArray[np.uint8]], start_vsync: int, latency: int
+) -> None:
+    """The DLPC350 model: started at the vsync after the start packet, it shows at vsync V the frame that
+    arrived ``latency`` frames earlier; it must see images 0..n-1 on consecutive vsyncs, then black."""
+    n = len(images)
+    for j in range(n):
+        np.testing.assert_array_equal(display.frame(start_vsync + 1 + j - latency), images[j], err_msg=f"image {j}")
+    after = start_vsync + 1 + n - latency
+    assert display.scanned[after] == -1  # then black
+
+
+def test_video_flip_plan_puts_image_j_where_the_sequencer_looks_at_its_vsync_j() -> None:
+    for latency in range(5):
+        for n in range(1, 6):
+            plan = lcm.video_flip_plan(n, latency, sync_flips=3)
+            s = plan.start_after_flip
+            assert s == 3 + max(latency - 1, 0)
+            # flip k is on the link during [V_k, V_k+1); the sequencer starts at V_(s+1), shows frame m - L at V_m
+            shown = [plan.images[s + 1 + j - latency] for j in range(n + 1)]
+            assert shown == [*range(n), -1]
+            assert plan.images[s + 1 - latency + n :] == [-1] * (latency + 1)
+            assert plan.in_step_until == max(s + n - latency, s)
+            assert plan.images[:3] == [-1, -1, -1]
+
+
+@pytest.mark.parametrize("latency", [0, 1, 2, 3])
+def test_video_source_shows_each_packed_image_on_the_vsync_the_sequencer_expects_it(
+    fake: FakeDLPC350, latency: int
+) -> None:
+    lc, displays, seq, starts = _video_lc(fake, latency)
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        await lc.start()
+        first_run = list(starts)
+        await lc.start()  # again: the sequence stops (back to entry 0) and runs again in step
+        assert len(starts) == 2 and starts[0] == first_run[0]
+        await lc.stop()
+        await lc.close()
+
+    asyncio.run(go())
+    display = displays.made[0]
+    assert lc.packing is not None
+    images = lc.packing.images
+    n = len(images)
+    assert n == len(seq) > 4  # one pattern per video frame
+    assert display.images == images  # the very arrays of the packing
+    for start_vsync in starts:
+        _assert_sequencer_sees_the_packed_images(display, images, start_vsync, latency)
+    assert set(display.scanned[starts[1] + 1 + n - latency :]) == {-1}  # black to the end
+    # The start packet went out between the right two flips: after the one carrying image L-1 (black for
+    # L = 0), before the one carrying image L.
+    for start_vsync in starts:
+        assert display.scanned[start_vsync] == latency - 1
+        assert display.scanned[start_vsync + 1] == (latency if latency < n else -1)
+    assert lc.start_flip == lcm.SYNC_FLIPS + max(latency - 1, 0)
+    assert lc.start_delay_us == pytest.approx(0, abs=0.01)  # virtual time stands still during the USB call
+    assert np.all(np.diff(lc.flip_times_ns) == display.period_ns)
+    # Flips and USB share the backend's worker thread; the display was opened black, closed at the end.
+    assert display.scanned[0] == -1 and display.closed
+    assert all(t.name.startswith("lcr4500") for t in display.threads)
+    assert fake.sequencer == 0 and fake.standby
+    writes = fake.writes()
+    starts_and_stops = [d for c, d in writes if c == Cmd.SEQUENCE_CONTROL]
+    assert starts_and_stops.count(b"\x02") == 2
+
+
+def test_a_missed_vsync_is_an_error_and_the_next_start_is_in_step(fake: FakeDLPC350) -> None:
+    lc, displays, seq, starts = _video_lc(fake)
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        display = displays.made[0]
+        display.miss_vsync_at = {display.flips + lcm.SYNC_FLIPS + 2}  # while image 2 goes out
+        with pytest.raises(ProjectorError, match=r"missed vsync: flip 5 came 33333 µs after.*out of step") as err:
+            await lc.start()
+        assert "Scan again" in str(err.value)
+        assert fake.sequencer == 0 and display.scanned[-1] == -1  # stopped, black
+        mark = len(display.scanned)
+        await lc.start()
+        assert len(starts) == 2 and starts[1] >= mark
+        _assert_sequencer_sees_the_packed_images(display, display.images, starts[1], 1)
+        await lc.close()
+
+    asyncio.run(go())
+
+
+def test_a_start_command_later_than_half_a_frame_is_an_error(fake: FakeDLPC350) -> None:
+    lc, displays, seq, starts = _video_lc(fake)
+    receive = fake.receive
+
+    def slow(report: bytes) -> None:
+        receive(report)
+        if fake.log[-1].code == Cmd.SEQUENCE_CONTROL and fake.log[-1].request.data == b"\x02":
+            displays.made[-1].now_ns += displays.made[-1].period_ns * 6 // 10  # 10 ms of USB latency
+
+    fake.receive = slow  # type: ignore[method-assign]
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        with pytest.raises(ProjectorError, match=r"start command completed 10000 µs after the vsync.*half a frame"):
+            await lc.start()
+        assert fake.sequencer == 0 and displays.made[0].scanned[-1] == -1
+        await lc.close()
+
+    asyncio.run(go())
+    assert len(starts) == 1
+
+
+def test_a_display_that_is_not_the_packed_image_size_is_refused_at_load(fake: FakeDLPC350) -> None:
+    lc, displays, seq, _ = _video_lc(fake, size=(912, 1140))
+
+    async def go() -> None:
+        await lc.open()
+        n = len(fake.log)
+        with pytest.raises(
+            ProjectorError, match=r"packed images are 64x32 but the display on the HDMI input .* is 912x1140"
+        ) as err:
+            await lc.load(seq)
+        assert "nothing was sent" in str(err.value) and len(fake.log) == n
+        with pytest.raises(ProjectorError, match="no sequence loaded"):
+            await lc.start()
+        await lc.close()
+
+    asyncio.run(go())
+    assert displays.made[0].images == []
+
+
+def test_stop_stops_the_sequencer_and_shows_black(fake: FakeDLPC350) -> None:
+    lc, displays, seq, _ = _video_lc(fake)
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        await lc.start()
+        displays.made[0].back = 3  # whatever was drawn last
+        await lc.stop()
+        assert fake.sequencer == 0 and displays.made[0].scanned[-1] == -1
+        await lc.close()
+
+    asyncio.run(go())
+
+
+def test_the_flash_source_never_makes_a_display(fake: FakeDLPC350) -> None:
+    displays = Displays((64, 32))
+    seq = gray_phase_sequence(64, 32, "x", period=8, steps=3)
+    for factory in (displays, None):  # None: the default (pygame), which must not be needed
+        lc = lcm.LightCrafter4500(
+            LightCrafter4500Config(source="flash", exposure_us=8333, period_us=8333),
+            usb_backend=FakeUsbBackend(fake),
+            screen_factory=factory,
+        )
+
+        async def go(lc: lcm.LightCrafter4500 = lc) -> None:
+            await lc.open()
+            await lc.load(seq)
+            await lc.start()
+            await lc.stop()
+            await lc.close()
+
+        asyncio.run(go())
+        assert lc.flip_times_ns == [] and fake.source == 3
+    assert displays.made == []
+
+
+def test_a_display_that_fails_to_open_releases_everything(fake: FakeDLPC350) -> None:
+    def broken(cfg: VideoOutputConfig) -> VirtualDisplay:
+        raise ProjectorError(f"display: display_index = {cfg.display_index}: only 1 display(s) found")
+
+    lc = lcm.LightCrafter4500(LightCrafter4500Config(), usb_backend=FakeUsbBackend(fake), screen_factory=broken)
+    with pytest.raises(ProjectorError, match="display_index = 1"):
+        asyncio.run(lc.open())
+    assert lc._executor is None and lc._link is None
+    assert not [t for t in threading.enumerate() if t.name.startswith("lcr4500")]
+
+
+def test_close_closes_the_display_even_when_the_usb_part_fails(fake: FakeDLPC350) -> None:
+    lc, displays, _, _ = _video_lc(fake)
+
+    def unplugged(report: bytes) -> None:
+        raise usb.core.USBError("No such device", errno.ENODEV, errno.ENODEV)
+
+    async def go() -> None:
+        await lc.open()
+        fake.receive = unplugged  # type: ignore[method-assign]
+        with pytest.raises(ProjectorError, match="USB error on 0x1A24"):
+            await lc.close()
+        await lc.close()  # idempotent
+
+    asyncio.run(go())
+    assert displays.made[0].closed
+    assert not [t for t in threading.enumerate() if t.name.startswith("lcr4500")]
+
+
+def test_the_video_source_without_pygame_says_what_to_install(
+    fake: FakeDLPC350, without_pygame: None
+) -> None:
+    lc = lcm.LightCrafter4500(LightCrafter4500Config(), usb_backend=FakeUsbBackend(fake))
+    with pytest.raises(BackendUnavailableError, match=r"pip install pygame \(or use source: flash\)"):
+        asyncio.run(lc.open())
+    assert fake.log == []
+
+
+def test_video_frame_period_must_match_the_display_refresh_rate() -> None:
+    with pytest.raises(
+        pydantic.ValidationError,
+        match=r"video_frame_period_us = 20000 disagrees with video_output.refresh_hz = 60 .* set "
+        r"video_frame_period_us to 16667 or refresh_hz to 50",
+    ):
+        LightCrafter4500Config(video_frame_period_us=20000)
+    with pytest.raises(ConfigError, match=r"appliance.yaml:2: projector: .*refresh_hz = 50 \(frames of 20000 µs\)"):
+        parse_config(
+            "calibration_file: c.yaml\nprojector:\n  type: lightcrafter4500\n  video_output: {refresh_hz: 50}\n",
+            "appliance.yaml",
+        )
+    assert LightCrafter4500Config(video_frame_period_us=20000, video_output={"refresh_hz": 50}).video_output  # type: ignore[arg-type]
+    assert LightCrafter4500Config(video_output={"refresh_hz": 59.94})  # type: ignore[arg-type]  # 0.06 % off: fine
+
+
+@pytest.mark.filterwarnings("ignore:no fast renderer available")
+def test_the_pygame_screen_shows_rgb_bit_planes_and_grey_unchanged(monkeypatch: pytest.MonkeyPatch) -> None:
+    pygame = pytest.importorskip("pygame")
+    from appliance.hardware.display import PygameScreen
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")  # no real display: SDL's off-screen driver
+    monkeypatch.delenv("SDL_VIDEO_DOUBLE_BUFFER", raising=False)  # restored after the test
+    screen = PygameScreen("dummy", 0, flip_at_scanout=True)
+    try:
+        width, height = screen.size
+        rng = np.random.default_rng(7)
+        rgb = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)  # every bit of every channel matters
+        grey = rng.integers(0, 256, (height, width), dtype=np.uint8)
+        screen.prepare([rgb, grey])
+        for index, want in ((0, rgb), (1, np.repeat(grey[:, :, None], 3, axis=2)), (-1, np.zeros_like(rgb))):
+            screen.show(index)
+            shown = pygame.surfarray.array3d(pygame.display.get_surface()).transpose(1, 0, 2)
+            np.testing.assert_array_equal(shown, want)
+            screen.flip()
+        with pytest.raises(ProjectorError, match=rf"image 0 is 64x32 but the display is {width}x{height}"):
+            screen.prepare([np.zeros((32, 64, 3), np.uint8)])
+    finally:
+        screen.close()

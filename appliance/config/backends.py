@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class _Strict(BaseModel):
@@ -81,6 +81,16 @@ class SimProjectorConfig(_Strict):
     type: Literal["sim"] = "sim"
 
 
+class VideoOutputConfig(_Strict):
+    """The display output wired to the projector's HDMI input (SDL through pygame)."""
+
+    output: str = Field("kmsdrm", description="SDL video driver (kmsdrm needs no desktop).")
+    display_index: int = Field(1, ge=0, le=8, description="Which display is the projector's HDMI input.")
+    refresh_hz: float = Field(
+        60.0, gt=1, le=500, description="Refresh rate of that display (Hz); must match video_frame_period_us."
+    )
+
+
 class LightCrafter4500Config(_Strict):
     """TI DLP LightCrafter 4500 (DLPC350) over USB HID."""
 
@@ -101,6 +111,26 @@ class LightCrafter4500Config(_Strict):
         0, ge=0, le=255,
         description="Flash source: flash image index holding the first packed image (see pack_video_frames).",
     )
+    video_output: VideoOutputConfig = Field(
+        default_factory=VideoOutputConfig,
+        description="Video source: the display that feeds the packed images to the projector's HDMI input.",
+    )
+    video_latency_frames: int = Field(
+        1, ge=0, le=4,
+        description="Video source: frames from an HDMI frame's arrival to the sequencer showing it (TI documents "
+        "one; confirm on the unit).",
+    )
+
+    @model_validator(mode="after")
+    def _video_frame_period_matches_refresh(self) -> LightCrafter4500Config:
+        frame_us = 1e6 / self.video_output.refresh_hz
+        if abs(self.video_frame_period_us - frame_us) > 0.01 * frame_us:
+            raise ValueError(
+                f"video_frame_period_us = {self.video_frame_period_us} disagrees with video_output.refresh_hz = "
+                f"{self.video_output.refresh_hz:g} (frames of {frame_us:.0f} µs) by more than 1 %: set "
+                f"video_frame_period_us to {round(frame_us)} or refresh_hz to {1e6 / self.video_frame_period_us:.6g}"
+            )
+        return self
 
 
 class DisplayProjectorConfig(_Strict):

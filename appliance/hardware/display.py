@@ -172,7 +172,7 @@ class Screen(Protocol):
     size: tuple[int, int]
 
     def prepare(self, images: list[npt.NDArray[np.uint8]]) -> None:
-        """Convert the (H, W) uint8 images into display surfaces once, before the sequence runs."""
+        """Convert (H, W) grey or (H, W, 3) RGB uint8 images into display surfaces once, before a sequence."""
         ...
 
     def show(self, index: int) -> None:
@@ -188,54 +188,109 @@ class Screen(Protocol):
         ...
 
 
-class _PygameScreen:
-    """A full-screen, vsync'd pygame window on one display."""
+class PygameScreen:
+    """A full-screen, vsync'd pygame window on one display.
 
-    def __init__(self, cfg: DisplayProjectorConfig) -> None:
+    ``pygame.SCALED`` is in the flags because it is pygame's only vsync'd path without OpenGL: it draws
+    into a surface of the requested size that each flip uploads to a texture and presents with an
+    ``SDL_Renderer`` (without SCALED or OPENGL, pygame ignores ``vsync``). The requested size is the
+    display's current mode and the window is checked to have it, so that renderer scales by exactly 1:
+    pixel values reach the output unchanged, which :meth:`prepare` relies on for bit-plane images.
+
+    Parameters
+    ----------
+    output : str
+        SDL video driver (``SDL_VIDEODRIVER``), unless the environment already names one.
+    display_index : int
+        Which display.
+    flip_at_scanout : bool
+        Make :meth:`flip` return when the presented frame starts to scan out, not one frame earlier:
+        with the ``kmsdrm`` driver SDL queues the page flip and returns unless ``SDL_VIDEO_DOUBLE_BUFFER``
+        is set (SDL 2 ``KMSDRM_GLES_SwapWindow``), so this sets it in the process environment.
+        Frame-accurate users (a DLPC350 video port) need it.
+    """
+
+    def __init__(self, output: str, display_index: int, *, flip_at_scanout: bool = False) -> None:
+        os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")  # no greeting on the service's stdout
         import pygame
 
         self._pg = pygame
-        if cfg.output and "SDL_VIDEODRIVER" not in os.environ:
-            os.environ["SDL_VIDEODRIVER"] = cfg.output
+        if output and "SDL_VIDEODRIVER" not in os.environ:
+            os.environ["SDL_VIDEODRIVER"] = output
+        if flip_at_scanout:
+            os.environ["SDL_VIDEO_DOUBLE_BUFFER"] = "1"
         try:
             pygame.display.init()
             sizes = pygame.display.get_desktop_sizes()
-            if cfg.display_index >= len(sizes):
+            if display_index >= len(sizes):
                 raise ProjectorError(
-                    f"display: display_index = {cfg.display_index}: only {len(sizes)} display(s) found "
+                    f"display: display_index = {display_index}: only {len(sizes)} display(s) found "
                     f"with SDL driver {os.environ.get('SDL_VIDEODRIVER')!r}; check the projector's cable"
                 )
-            width, height = sizes[cfg.display_index]
+            width, height = sizes[display_index]
             self.size = (int(width), int(height))
             flags = pygame.FULLSCREEN | pygame.SCALED | pygame.NOFRAME
-            self._screen = pygame.display.set_mode(self.size, flags, display=cfg.display_index, vsync=1)
+            self._screen = pygame.display.set_mode(self.size, flags, display=display_index, vsync=1)
+            window = tuple(int(v) for v in pygame.display.get_window_size())
+            if window != self.size or self._screen.get_size() != self.size:
+                raise ProjectorError(
+                    f"display: the window on display {display_index} is {window[0]}x{window[1]} but the display "
+                    f"mode is {width}x{height}: SDL would rescale every image; check the display's mode"
+                )
             pygame.mouse.set_visible(False)
         except pygame.error as exc:
             pygame.display.quit()
             raise ProjectorError(
-                f"display: cannot open display {cfg.display_index} with SDL driver {cfg.output!r}: {exc}; "
+                f"display: cannot open display {display_index} with SDL driver {output!r}: {exc}; "
                 "check that no desktop holds the DRM device and the user is in the 'video' group"
             ) from exc
+        except ProjectorError:
+            pygame.display.quit()
+            raise
         self._surfaces: list[Any] = []
 
     def prepare(self, images: list[npt.NDArray[np.uint8]]) -> None:
-        self._surfaces = [
-            self._pg.surfarray.make_surface(np.repeat(img.T[:, :, None], 3, axis=2)).convert()
-            for img in images
-        ]
+        """Convert the images to display surfaces; pixel values are copied unchanged (no scaling).
+
+        Raises
+        ------
+        ProjectorError
+            If an image is not (H, W) or (H, W, 3) uint8, or its size differs from the display's.
+        """
+        surfaces = []
+        for i, img in enumerate(images):
+            if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+                raise ProjectorError(
+                    f"display: image {i} is {img.dtype} {img.shape}: must be (H, W) or (H, W, 3) uint8"
+                )
+            if (img.shape[1], img.shape[0]) != tuple(self.size):
+                raise ProjectorError(
+                    f"display: image {i} is {img.shape[1]}x{img.shape[0]} but the display is "
+                    f"{self.size[0]}x{self.size[1]}; images must match the display mode exactly (no scaling)"
+                )
+            rgb = np.repeat(img.T[:, :, None], 3, axis=2) if img.ndim == 2 else img.transpose(1, 0, 2)
+            surfaces.append(self._pg.surfarray.make_surface(np.ascontiguousarray(rgb)).convert())
+        self._surfaces = surfaces
 
     def show(self, index: int) -> None:
+        """Draw prepared image ``index`` (-1 = black) into the back buffer."""
         if index < 0:
             self._screen.fill((0, 0, 0))
         else:
             self._screen.blit(self._surfaces[index], (0, 0))
 
     def flip(self) -> None:
+        """Present the back buffer; block until the next vsync."""
         self._pg.display.flip()
         self._pg.event.pump()
 
     def close(self) -> None:
+        """Release the display."""
         self._pg.display.quit()
+
+
+def _pygame_screen(cfg: DisplayProjectorConfig) -> Screen:
+    return PygameScreen(cfg.output, cfg.display_index)
 
 
 class DisplayProjector:
@@ -276,7 +331,7 @@ class DisplayProjector:
         self.exposure_us = self.timing.frame_period_us if exposure_us is None else exposure_us
         self.timing.exposure_frames(self.exposure_us)  # refuse a banding exposure at construction
         self.on_trigger = on_trigger
-        self._factory: Callable[[DisplayProjectorConfig], Screen] = screen_factory or _PygameScreen
+        self._factory: Callable[[DisplayProjectorConfig], Screen] = screen_factory or _pygame_screen
         self._screen: Screen | None = None
         self._n_patterns = 0
         self._stop = threading.Event()
@@ -342,7 +397,7 @@ class DisplayProjector:
         async with self._lock:
             if self._screen is not None:
                 screen = self._screen
-                await asyncio.to_thread(_show_black, screen)
+                await asyncio.to_thread(show_black, screen)
 
     async def close(self) -> None:
         """Release the display; idempotent."""
@@ -357,7 +412,8 @@ class DisplayProjector:
         return self._screen
 
 
-def _show_black(screen: Screen) -> None:
+def show_black(screen: Screen) -> None:
+    """Draw black and flip."""
     screen.show(-1)
     screen.flip()
 

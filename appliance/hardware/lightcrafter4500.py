@@ -25,18 +25,38 @@ TRIG_OUT1/TRIG_OUT2 delays (``trigger_out1_delay_steps``) are written as raw reg
 step; on the DLPC350 the register's zero-delay point is not 0 (check the programmer's guide for your
 firmware; 0xBB is documented as 0 µs) and the fake accepts 0..0xD5.
 
-Video source: after :meth:`LightCrafter4500.load`, :attr:`LightCrafter4500.video_frames` holds the images
-that must be shown, one per VSYNC, on the projector's HDMI input (e.g. with the ``display`` backend).
+Video source: the backend shows the packed images itself, one per frame, on the display wired to the
+projector's HDMI input (``video_output``; a :class:`~appliance.hardware.display.Screen`, pygame by default).
 Flash source: the same packed images must already be in flash at indices ``flash_first_image`` onwards
-(program them with TI's GUI on a bench; the appliance never writes flash).
+(program them with TI's GUI on a bench; the appliance never writes flash); no display is opened.
+
+Video timing (:func:`video_flip_plan`, :meth:`LightCrafter4500.start`). Flip ``k`` presents the back buffer
+and returns at vsync ``V_k`` (the pygame screen makes SDL's kmsdrm driver wait for the page flip); the frame
+then crosses HDMI during ``[V_k, V_k+1)``. The DLPC350 displays at ``V_m`` the frame that arrived
+``L = video_latency_frames`` frames earlier, and a started sequencer begins at the first VSYNC after the start
+command. So, after a few black flips that locate the vsyncs (:data:`SYNC_FLIPS`) and counting flips from there,
+with ``s = max(L - 1, 0)``: image ``j`` goes out on flip ``s + 1 - L + j``; the start command (0x1A24 = 2) is sent
+right after flip ``s`` returns, from the flip thread (the backend's one worker thread, which owns the USB link),
+and must complete within half a frame; the sequencer then shows image ``j`` at ``V_(s+1+j)``. ``L + 1`` black
+flips end the sequence, so start() returns when the last image has been displayed. For L = 1: image ``j`` on
+flip ``j``, start after flip 0. A missed vsync (a flip interval over 1.5 frames), a flip under half a frame
+(no vsync) or a late start command puts the patterns out of step: start() stops the sequencer, shows black and
+raises.
+
+The one-frame latency is TI's documented video-input-to-display delay, not measured on this appliance: confirm
+it on a real unit (camera frames captured on TRIG_OUT1 against the expected patterns) and set
+``video_latency_frames`` if it differs.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import functools
+import importlib.util
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -46,9 +66,10 @@ from typing import Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.backends import LightCrafter4500Config
+from appliance.config.backends import LightCrafter4500Config, VideoOutputConfig
 from appliance.errors import BackendUnavailableError, PatternError, ProjectorError
 from appliance.hardware import dlpc350 as proto
+from appliance.hardware.display import DisplayTiming, PygameScreen, Screen, show_black
 from appliance.hardware.dlpc350 import Cmd, Led, LutEntry, Trigger
 from appliance.patterns.render import render_frame
 from appliance.patterns.sequence import BlackFrame, GrayFrame, PhaseFrame, Sequence, WhiteFrame
@@ -67,6 +88,10 @@ USB_TIMEOUT_MS = 1000
 WAKE_S = 2.0
 VALIDATE_POLL_S = 0.01
 VALIDATE_TIMEOUT_S = 2.0
+SYNC_FLIPS = 3
+"""Video source: black flips before the sequence's own, to locate the vsyncs (the start command is timed from them)."""
+flip_clock_ns: Callable[[], int] = time.monotonic_ns
+"""Clock of the flip and start-command times (CLOCK_MONOTONIC, ns); tests drive it from a virtual display."""
 
 _UDEV_HINT = (
     'add a udev rule: SUBSYSTEM=="usb", ATTR{idVendor}=="0451", ATTR{idProduct}=="6401", '
@@ -178,6 +203,58 @@ def pack_video_frames(
 
 def _with_insert_black(e: LutEntry) -> LutEntry:
     return LutEntry(e.pattern, e.bit_depth, e.led, e.trigger, e.invert, True, e.buffer_swap, e.trig_out_prev)
+
+
+@dataclass(frozen=True)
+class VideoFlipPlan:
+    """What each flip of a video-source sequence presents, and when the sequencer is started.
+
+    Attributes
+    ----------
+    images : list of int
+        Index of the packed image drawn before each flip (-1 = black).
+    start_after_flip : int
+        The start command is sent right after this flip returns.
+    in_step_until : int
+        Every flip up to this one (the last image's flip, or the start flip if later) must follow the previous
+        one by exactly one frame.
+    """
+
+    images: list[int]
+    start_after_flip: int
+    in_step_until: int
+
+
+def video_flip_plan(n_images: int, latency_frames: int, sync_flips: int = 0) -> VideoFlipPlan:
+    """The flips that show ``n_images`` packed images to a DLPC350 with ``latency_frames`` of input latency.
+
+    After ``sync_flips`` black flips, and counting flips from there: image ``j`` goes out on flip
+    ``s + 1 - L + j`` with ``s = max(L - 1, 0)``, the start command right after flip ``s``, then ``L + 1``
+    black frames (see the module docstring).
+
+    Parameters
+    ----------
+    n_images : int
+        Packed images of the sequence (>= 1).
+    latency_frames : int
+        Frames from an HDMI frame's arrival to the sequencer showing it (>= 0).
+    sync_flips : int
+        Black flips first (>= 0).
+
+    Returns
+    -------
+    VideoFlipPlan
+        Flip indices count every flip, the black ones first included.
+    """
+    if n_images < 1 or latency_frames < 0 or sync_flips < 0:
+        raise ProjectorError(
+            f"video_flip_plan: n_images = {n_images}, latency_frames = {latency_frames}, sync_flips = "
+            f"{sync_flips}: need >= 1, >= 0, >= 0"
+        )
+    start = sync_flips + max(latency_frames - 1, 0)
+    first = start + 1 - latency_frames  # the flip that presents image 0
+    images = [-1] * first + list(range(n_images)) + [-1] * (latency_frames + 1)
+    return VideoFlipPlan(images, start, max(first + n_images - 1, start))
 
 
 # --- USB ----------------------------------------------------------------------------------------------
@@ -350,6 +427,20 @@ class LightCrafter4500:
         kernel-driver methods) to use instead of searching the bus.
     usb_backend : object, optional
         A pyusb backend for the search (tests: :class:`~appliance.hardware.fake_dlpc350.FakeUsbBackend`).
+    screen_factory : callable, optional
+        Video source: makes the :class:`~appliance.hardware.display.Screen` on the projector's HDMI input from
+        ``config.video_output`` (default: pygame); tests pass a fake. Never called for the flash source.
+
+    Attributes
+    ----------
+    flip_times_ns : list of int
+        Video source: CLOCK_MONOTONIC time at which each flip of the last start() returned (ns).
+    start_flip : int
+        Video source: index in ``flip_times_ns`` of the flip after which the start command was sent (-1 = not
+        sent).
+    start_delay_us : float or None
+        Video source: time from that flip's vsync (estimated from all flips before it) to the start command's
+        reply (µs).
     """
 
     def __init__(
@@ -359,16 +450,24 @@ class LightCrafter4500:
         name: str = "projector",
         device: Any = None,
         usb_backend: Any = None,
+        screen_factory: Callable[[VideoOutputConfig], Screen] | None = None,
     ) -> None:
         _require_pyusb()
         self.name = name
         self.config = config
         self._device = device
         self._usb_backend = usb_backend
+        self._screen_factory = screen_factory
         self._link: _Link | None = None
+        self._screen: Screen | None = None
         self._executor: ThreadPoolExecutor | None = None
+        self._prepared_images = 0
+        self._stopping = threading.Event()
         self.packing: VideoPacking | None = None
         self.last_status: LightCrafterStatus | None = None
+        self.flip_times_ns: list[int] = []
+        self.start_flip = -1
+        self.start_delay_us: float | None = None
 
     @property
     def where(self) -> str:
@@ -389,15 +488,46 @@ class LightCrafter4500:
     # --- Projector protocol -------------------------------------------------------------------------
 
     async def open(self) -> None:
-        """Find the device, claim it, wake it from standby, check its health and stop any sequence."""
+        """Find the device, claim it, wake it from standby, check its health and stop any sequence.
+
+        With the video source, also open the display on the projector's HDMI input and show black. Every
+        USB and display call runs in the backend's one worker thread (SDL wants its window used from one
+        thread; the USB link is never used concurrently).
+        """
         if self._link is not None:
             return
+        factory = self._screen_factory
+        if self.config.source == "video" and factory is None:
+            if importlib.util.find_spec("pygame") is None:
+                raise BackendUnavailableError(
+                    f"{self.where}: source: video shows the patterns on the projector's HDMI input with pygame "
+                    "(SDL2), which is not installed: install it with: pip install pygame (or use source: flash)"
+                )
+            factory = _pygame_screen
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"lcr4500-{self.name}")
         try:
             await self._run(self._open_sync)
+            if self.config.source == "video":
+                assert factory is not None
+                await self._run(self._open_screen_sync, factory)
         except BaseException:
-            await self._shutdown_executor()
+            try:
+                await self._run(self._abandon_sync)
+            finally:
+                await self._shutdown_executor()
             raise
+
+    def _open_screen_sync(self, factory: Callable[[VideoOutputConfig], Screen]) -> None:
+        self._screen = factory(self.config.video_output)
+        show_black(self._screen)
+
+    def _abandon_sync(self) -> None:
+        """Undo a partial open: close the display, release the USB device."""
+        try:
+            self._close_screen_sync()
+        finally:
+            if self._link is not None:
+                self._link.release()
 
     def _open_sync(self) -> None:
         dev = (
@@ -424,9 +554,28 @@ class LightCrafter4500:
             raise
 
     async def load(self, sequence: Sequence) -> None:
-        """Configure the pattern sequence (documented DLPC350 order) and validate it on the device."""
-        self.packing = self._plan(sequence)
-        await self._run(self._load_sync, self.packing)
+        """Configure the pattern sequence (documented DLPC350 order) and validate it on the device.
+
+        With the video source, the packed images are then converted for the display; their size must be the
+        display's mode exactly (each colour bit is a pattern bit plane: nothing may rescale them).
+        """
+        packing = self._plan(sequence)
+        screen = self._screen
+        if screen is not None and packing.images:
+            height, width = packing.images[0].shape[:2]
+            if (width, height) != tuple(screen.size):
+                raise ProjectorError(
+                    f"{self.where}: the packed images are {width}x{height} but the display on the HDMI input "
+                    f"(video_output.display_index = {self.config.video_output.display_index}) is "
+                    f"{screen.size[0]}x{screen.size[1]}: generate the sequence at the display's size and set the "
+                    "display mode to the projector's native size (nothing was sent to the projector)"
+                )
+        self._prepared_images = 0
+        self.packing = packing
+        await self._run(self._load_sync, packing)
+        if screen is not None:
+            await self._run(screen.prepare, packing.images)
+            self._prepared_images = len(packing.images)
 
     def _plan(self, sequence: Sequence) -> VideoPacking:
         cfg = self.config
@@ -512,8 +661,97 @@ class LightCrafter4500:
             )
 
     async def start(self) -> None:
-        """Start the validated sequence and check that the sequencer runs without errors."""
-        self.last_status = await self._run(self._start_sync)
+        """Start the validated sequence and check that the sequencer runs without errors.
+
+        Flash source: start and return. Video source: show the packed images frame by frame in step with the
+        sequencer (module docstring) and return when the last one has been displayed.
+
+        Raises
+        ------
+        ProjectorError
+            Video source: a missed vsync or a late start command put the patterns out of step (the sequencer
+            is stopped and the display shows black), or the DLPC350 reports a problem after the sequence.
+        """
+        if self.config.source != "video":
+            self.last_status = await self._run(self._start_sync)
+            return
+        screen = self._screen
+        if screen is None or self._executor is None:
+            raise ProjectorError(f"{self.where}: not open; call open() first")
+        if not self._prepared_images:
+            raise ProjectorError(f"{self.where}: no sequence loaded (load() not called or it failed); load one")
+        self._stopping.clear()
+        self.last_status = await self._run(self._present_sync, screen, self._prepared_images)
+
+    def _present_sync(self, screen: Screen, n_images: int) -> LightCrafterStatus:
+        link = self._require_link()
+        cfg = self.config
+        timing = DisplayTiming(cfg.video_output.refresh_hz, cfg.video_latency_frames, 1)
+        plan = video_flip_plan(n_images, cfg.video_latency_frames, SYNC_FLIPS)
+        self.flip_times_ns, self.start_flip, self.start_delay_us = [], -1, None
+        try:
+            link.transact(Cmd.SEQUENCE_CONTROL, b"\x00")  # stopped (not paused): the start begins at entry 0
+            problem = self._flip_sequence(screen, link, plan, timing)
+        except BaseException:
+            self._stop_and_black(link, screen)
+            raise
+        if problem is not None:
+            self._stop_and_black(link, screen)
+            raise ProjectorError(
+                f"{link.where}: {problem}: the patterns went out of step with the projector's sequencer, so "
+                "this scan's frames are not the expected patterns; the sequence was stopped. Scan again; if it "
+                "recurs, reduce the system load (other processes, CPU frequency scaling) or check the display's "
+                f"refresh rate (video_output.refresh_hz = {cfg.video_output.refresh_hz:g})"
+            )
+        status = self._status_sync()
+        if status.problems:
+            raise ProjectorError(f"{link.where}: after the sequence: {status.describe()}; reload the sequence")
+        return status
+
+    def _flip_sequence(
+        self, screen: Screen, link: _Link, plan: VideoFlipPlan, timing: DisplayTiming
+    ) -> str | None:
+        """Run the flips of ``plan``; the first timing problem found, or None."""
+        frame_ns = timing.frame_period_us * 1e3
+        times = self.flip_times_ns
+        for k, image in enumerate(plan.images):
+            if self._stopping.is_set():
+                return None
+            screen.show(image)
+            screen.flip()
+            times.append(flip_clock_ns())
+            if 0 < k <= plan.in_step_until:
+                interval_ns = times[-1] - times[-2]
+                if timing.dropped_flips(times[-2:]):
+                    return (
+                        f"missed vsync: flip {k} came {interval_ns / 1e3:.0f} µs after the previous one "
+                        f"(frames of {frame_ns / 1e3:.0f} µs)"
+                    )
+                if interval_ns < frame_ns / 2:
+                    return (
+                        f"flip {k} came {interval_ns / 1e3:.0f} µs after the previous one, under half a frame "
+                        f"({frame_ns / 1e3:.0f} µs): the display does not wait for vsync or runs faster than "
+                        "refresh_hz"
+                    )
+            if k == plan.start_after_flip:
+                link.transact(Cmd.SEQUENCE_CONTROL, b"\x02")
+                done_ns = flip_clock_ns()
+                # This flip's vsync: the earliest estimate from all flips so far (a thread can wake late after
+                # a vsync, never early), so a late wake-up counts against the half-frame budget.
+                vsync_ns = min(t + (k - i) * frame_ns for i, t in enumerate(times))
+                self.start_flip = k
+                self.start_delay_us = (done_ns - vsync_ns) / 1e3
+                if done_ns - vsync_ns > frame_ns / 2:
+                    return (
+                        f"the start command completed {self.start_delay_us:.0f} µs after the vsync, over half a "
+                        f"frame ({frame_ns / 2e3:.0f} µs), so the sequencer may have started a frame late"
+                    )
+        return None
+
+    def _stop_and_black(self, link: _Link, screen: Screen) -> None:
+        with contextlib.suppress(ProjectorError):
+            link.transact(Cmd.SEQUENCE_CONTROL, b"\x00")
+        show_black(screen)
 
     def _start_sync(self) -> LightCrafterStatus:
         link = self._require_link()
@@ -524,18 +762,36 @@ class LightCrafter4500:
         return status
 
     async def stop(self) -> None:
-        """Stop the sequence (the projector stays awake)."""
+        """Stop the sequence and, with the video source, show black (the projector stays awake)."""
+        self._stopping.set()  # ends a running video presentation at its next frame
         if self._link is not None:
-            await self._run(self._require_link().transact, int(Cmd.SEQUENCE_CONTROL), b"\x00")
+            await self._run(self._stop_sync)
+
+    def _stop_sync(self) -> None:
+        try:
+            self._require_link().transact(Cmd.SEQUENCE_CONTROL, b"\x00")
+        finally:
+            if self._screen is not None:
+                show_black(self._screen)
 
     async def close(self) -> None:
-        """Stop, put the projector in standby and release the USB device; idempotent."""
-        if self._link is None or self._executor is None:
+        """Stop, put the projector in standby, release the USB device and the display; idempotent."""
+        if self._executor is None:
             return
+        self._stopping.set()
         try:
-            await self._run(self._close_sync)
+            if self._link is not None:
+                await self._run(self._close_sync)
         finally:
-            await self._shutdown_executor()
+            try:
+                await self._run(self._close_screen_sync)
+            finally:
+                await self._shutdown_executor()
+
+    def _close_screen_sync(self) -> None:
+        screen, self._screen, self._prepared_images = self._screen, None, 0
+        if screen is not None:
+            screen.close()
 
     async def _shutdown_executor(self) -> None:
         executor, self._executor, self._link = self._executor, None, None
@@ -572,6 +828,10 @@ class LightCrafter4500:
         if self._link is None:
             raise ProjectorError(f"{self.where}: not open; call open() first")
         return self._link
+
+
+def _pygame_screen(cfg: VideoOutputConfig) -> Screen:
+    return PygameScreen(cfg.output, cfg.display_index, flip_at_scanout=True)
 
 
 def probe_lightcrafter(usb_backend: Any = None) -> str:
