@@ -582,6 +582,27 @@ def test_video_source_shows_each_packed_image_on_the_vsync_the_sequencer_expects
     assert starts_and_stops.count(b"\x02") == 2
 
 
+def test_no_hdmi_signal_is_reported_before_any_pattern_is_shown(fake: FakeDLPC350) -> None:
+    lc, displays, seq, starts = _video_lc(fake)
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        try:
+            fake.video_locked = False  # cable out, or the wrong display_index
+            mark = len(displays.made[0].scanned)
+            with pytest.raises(ProjectorError, match=r"no video signal is locked .*video_output.display_index = 1"):
+                await lc.start()
+            assert set(displays.made[0].scanned[mark:]) <= {-1} and starts == []  # only black, never started
+            fake.video_locked = True
+            await lc.start()
+            assert len(starts) == 1
+        finally:
+            await lc.close()
+
+    asyncio.run(go())
+
+
 def test_a_missed_vsync_is_an_error_and_the_next_start_is_in_step(fake: FakeDLPC350) -> None:
     lc, displays, seq, starts = _video_lc(fake)
 

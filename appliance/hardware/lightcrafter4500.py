@@ -88,6 +88,8 @@ USB_TIMEOUT_MS = 1000
 WAKE_S = 2.0
 VALIDATE_POLL_S = 0.01
 VALIDATE_TIMEOUT_S = 2.0
+VIDEO_LOCKED_BIT = 1 << 3
+"""0x1A0C main status: external video locked (the DLPC350 sees a stable HDMI input)."""
 SYNC_FLIPS = 3
 """Video source: black flips before the sequence's own, to locate the vsyncs (the start command is timed from them)."""
 flip_clock_ns: Callable[[], int] = time.monotonic_ns
@@ -691,6 +693,13 @@ class LightCrafter4500:
         self.flip_times_ns, self.start_flip, self.start_delay_us = [], -1, None
         try:
             link.transact(Cmd.SEQUENCE_CONTROL, b"\x00")  # stopped (not paused): the start begins at entry 0
+            if not link.read1(Cmd.MAIN_STATUS) & VIDEO_LOCKED_BIT:
+                raise ProjectorError(
+                    f"{link.where}: no video signal is locked on the projector's HDMI input, so the packed "
+                    f"patterns cannot reach it; check the cable and that video_output.display_index = "
+                    f"{cfg.video_output.display_index} is the output wired to the projector, running at "
+                    f"{cfg.video_output.refresh_hz:g} Hz"
+                )
             problem = self._flip_sequence(screen, link, plan, timing)
         except BaseException:
             self._stop_and_black(link, screen)
