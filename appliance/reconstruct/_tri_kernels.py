@@ -955,16 +955,6 @@ def organised_from_depth(depth, tx, ty, step, rwc, cwc, to_world, out):  # type:
         mx = np.empty(w, np.float64)
         my = np.empty(w, np.float64)
         _ray_row(tx, ty, r, step, mx, my)
-        for c in range(w):
-            z = np.float64(depth[r, c])
-            px = z * mx[c]
-            py = z * my[c]
-            if to_world:
-                out[r, c, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
-                out[r, c, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
-                out[r, c, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
-            else:
-                out[r, c, 0] = px
-                out[r, c, 1] = py
-                out[r, c, 2] = z
+        for c in range(w):  # NaN depth: NaN point
+            _store_point(out, r, c, np.float64(depth[r, c]), mx[c], my[c], -np.inf, np.inf, to_world, rwc, cwc)
     return out
