@@ -55,7 +55,8 @@ def probe_aravis(address: str) -> str:
 def discover_aravis() -> list[str]:
     """GigE Vision / USB3 Vision device discovery: BROADCASTS on every network interface.
 
-    Only ``scan3d devices --discover`` calls this, on a person's explicit request; tests never do.
+    Only ``scan3d devices --discover`` calls this, on a person's explicit request; the one test that does runs
+    it inside a private network namespace whose only interface is loopback.
 
     Returns
     -------
@@ -68,7 +69,7 @@ def discover_aravis() -> list[str]:
         aravis, _glib = load_aravis()
     except BackendUnavailableError as exc:
         return [f"unavailable: {exc}"]
-    aravis.update_device_list()  # the broadcast; user-requested only (never in tests, which use a namespace)
+    aravis.update_device_list()  # the broadcast; user-requested (a test: only inside its own namespace)
     out = []
     for i in range(aravis.get_n_devices()):
         out.append(
