@@ -53,7 +53,8 @@ def _cmd_validate(a: argparse.Namespace) -> int:
 def _cmd_run(a: argparse.Namespace) -> int:
     from appliance.service.daemon import run_service
 
-    return run_service(a.config, control_socket=a.control_socket, scans=a.scans, stdin_button=a.stdin_button)
+    return run_service(a.config, control_socket=a.control_socket, scans=a.scans, stdin_button=a.stdin_button,
+                       ground_truth=a.ground_truth)
 
 
 def _cmd_status(a: argparse.Namespace) -> int:
@@ -160,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--control-socket", type=Path, default=None, help="override service.control_socket")
     sp.add_argument("--scans", type=int, default=None, help="exit after this many scans (testing, demos)")
     sp.add_argument("--stdin-button", action="store_true", help="Enter on standard input presses the button")
+    sp.add_argument("--ground-truth", action="store_true",
+                    help="virtual rig: log each scan's error against ground truth (a demonstration aid)")
 
     for name, fn, help_ in (("status", _cmd_status, "show the appliance's state"),
                             ("trigger", _cmd_trigger, "start a scan")):

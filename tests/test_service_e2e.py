@@ -12,6 +12,7 @@ import datetime as dt
 import gc
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -482,6 +483,7 @@ def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
             "--stdin-button",
             "--scans",
             "2",
+            "--ground-truth",
         ],
         cwd=REPO,
         stdin=subprocess.PIPE,
@@ -512,4 +514,11 @@ def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert len(list((tmp_path / "share").rglob("*.json"))) == 2
+    clouds = sorted((tmp_path / "share").rglob("*.ply"))
+    assert len(clouds) == 2 and len(list((tmp_path / "share").rglob("*.json"))) == 2
+    assert proc.stdout is not None
+    log = proc.stdout.read()
+    for cloud in clouds:  # each scan says where its cloud went and how far it is from the truth
+        assert f"share: {cloud}" in log or f"share: {cloud.relative_to(REPO)}" in log, log[-2000:]
+    errors = re.findall(r"error against ground truth: (\d+) points: RMS ([0-9.]+) mm", log)
+    assert len(errors) == 2 and all(int(n) > 1000 and float(rms) < 0.5 for n, rms in errors), errors

@@ -91,7 +91,7 @@ def write_ply(
 
     def _write(f: BinaryIO) -> None:
         f.write(header)
-        f.write(rec.tobytes())
+        f.write(rec.data.cast("B"))  # the records' own bytes, no copy
 
     return write_atomic(path, _write)
 

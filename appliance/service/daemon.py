@@ -109,16 +109,20 @@ class Service:
         Enter on standard input presses the button.
     notifier : SdNotifier, optional
         sd_notify sender (from ``$NOTIFY_SOCKET`` when None).
+    ground_truth : bool
+        On a virtual rig, log each scan's error against the rig's ground truth (after its files are
+        written, off the event loop; a demonstration aid, not for production).
     """
 
     def __init__(self, config_path: Path, cfg: AppConfig | None = None, *, control_socket: Path | None = None,
                  scans: int | None = None, stdin_button: bool = False,
-                 notifier: SdNotifier | None = None) -> None:
+                 notifier: SdNotifier | None = None, ground_truth: bool = False) -> None:
         self.config_path = Path(config_path)
         self.cfg = cfg if cfg is not None else load_config(self.config_path)
         self.socket_override = control_socket
         self.max_scans = scans
         self.stdin_button = stdin_button
+        self.ground_truth = ground_truth
         self.notifier = notifier if notifier is not None else SdNotifier.from_env()
         self.board = StatusBoard(self.cfg.serial, str(self.config_path))
         self.board.config_loaded_utc = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
@@ -647,9 +651,16 @@ class Service:
         b.add_scan(rec)
         b.share = await loop.run_in_executor(self._write_ex, self.writer.status)
         await loop.run_in_executor(self._write_ex, self._save_state)
-        log.info("scan %s: %d points, %s, %.0f ms trigger to file", scan_id, len(result.cloud),
-                 outcome.location, timings["trigger_to_file_ms"])
+        log.info("scan %s: %d points, %.0f ms trigger to file; %s: %s", scan_id, len(result.cloud),
+                 timings["trigger_to_file_ms"], outcome.location, outcome.files[0] if outcome.files else "-")
         b.set_state(self._idle_state(), "ready")
+        virtual = getattr(self.rig, "virtual", None)
+        if self.ground_truth and virtual is not None:  # after "ready": a demonstration aid, off the loop
+            from appliance.sim.accuracy import compare_to_ground_truth
+
+            report = await loop.run_in_executor(
+                self._write_ex, compare_to_ground_truth, result.cloud, virtual, list(cfg.cameras))
+            log.info("scan %s: error against ground truth: %s", scan_id, report.line())
         return rec
 
     # --- persistent state (scan counter, last scans) --------------------------------------------
@@ -765,7 +776,7 @@ class Service:
 
 
 def run_service(config: Path, *, control_socket: Path | None = None, scans: int | None = None,
-                stdin_button: bool = False) -> int:
+                stdin_button: bool = False, ground_truth: bool = False) -> int:
     """Run the service in the foreground until SIGTERM (or ``scans`` scans); returns the exit status.
 
     Parameters
@@ -778,6 +789,8 @@ def run_service(config: Path, *, control_socket: Path | None = None, scans: int 
         Exit 0 after this many successful scans.
     stdin_button : bool
         Enter on standard input presses the (simulated) button.
+    ground_truth : bool
+        On a virtual rig, log each scan's error against ground truth.
     """
     cfg = load_config(config)
     if cfg.service.numba_cache_dir is not None:
@@ -785,7 +798,8 @@ def run_service(config: Path, *, control_socket: Path | None = None, scans: int 
     stdin = stdin_button or bool(getattr(cfg.trigger, "stdin", False))
 
     async def main() -> int:
-        service = Service(config, cfg, control_socket=control_socket, scans=scans, stdin_button=stdin)
+        service = Service(config, cfg, control_socket=control_socket, scans=scans, stdin_button=stdin,
+                          ground_truth=ground_truth)
         return await service.run()
 
     return asyncio.run(main())
