@@ -10,12 +10,18 @@ import numpy.typing as npt
 from appliance.output.atomic import write_bytes_atomic
 from appliance.reconstruct.types import PointCloud
 
+PERCENTILE_SAMPLES = 100_000
+"""The colour range (1st to 99th percentile of depth) is taken from about this many evenly spaced points."""
+
 
 def depth_image(cloud: PointCloud, camera: int, shape: tuple[int, int]) -> npt.NDArray[np.float32]:
     """Organised depth (world z, mm) of the points of one camera; NaN where no point. Shape ``shape`` (H, W)."""
     img = np.full(shape, np.nan, np.float32)
-    sel = cloud.camera == camera
-    img[cloud.row[sel], cloud.col[sel]] = cloud.xyz[sel, 2]
+    if len(cloud) and cloud.camera[0] == camera and not np.any(cloud.camera != camera):
+        img[cloud.row, cloud.col] = cloud.xyz[:, 2]  # one camera (the common case): no selection copies
+    else:
+        sel = cloud.camera == camera
+        img[cloud.row[sel], cloud.col[sel]] = cloud.xyz[sel, 2]
     return img
 
 
@@ -37,7 +43,8 @@ def render_preview(
 
     finite = np.concatenate([d[np.isfinite(d)] for d in depths]) if depths else np.zeros(0, np.float32)
     if finite.size:
-        lo, hi = (float(v) for v in np.percentile(finite, [1, 99]))
+        sample = finite[:: max(1, finite.size // PERCENTILE_SAMPLES)]  # a colour range needs no exact percentile
+        lo, hi = (float(v) for v in np.percentile(sample, [1, 99]))
     else:
         lo, hi = 0.0, 1.0
     if hi - lo < 1e-3:
