@@ -248,6 +248,70 @@ class MdnsConfig(_Strict):
                       "control socket is local).")
 
 
+_LISTEN_RE = r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}$"
+
+
+class HttpConfig(_Strict):
+    """HTTP API and status page (aiohttp); off unless ``listen`` is set."""
+
+    listen: str | None = Field(None, pattern=_LISTEN_RE, description="HOST:PORT to serve the API and status page "
+                               "on, e.g. '127.0.0.1:8080' or '0.0.0.0:8080'; null: off.")
+    token_file: Path | None = Field(None, description="File holding the bearer token every write (POST) needs; "
+                                    "unset: writes are refused.")
+    max_request_kb: int = Field(16, ge=1, le=1024, description="Largest request accepted (KiB).")
+    rate_per_s: float = Field(20.0, gt=0, le=1000, description="Requests per second per client address "
+                              "(bursts of twice this); beyond it: 429.")
+    max_event_clients: int = Field(16, ge=1, le=256, description="Concurrent /api/events streams.")
+
+
+class MqttConfig(_Strict):
+    """MQTT client (aiomqtt): state, scans and a trigger command on a broker."""
+
+    enabled: bool = Field(False, description="Connect to the broker.")
+    host: str = Field("127.0.0.1", min_length=1, description="Broker host name or address.")
+    port: int = Field(1883, ge=1, le=65535, description="Broker port (8883 is usual with TLS).")
+    username: str | None = Field(None, description="User name at the broker; none: anonymous.")
+    password_file: Path | None = Field(None, description="File holding the broker password.")
+    tls: bool = Field(False, description="Connect with TLS (system CA store, host name checked).")
+    ca_file: Path | None = Field(None, description="CA bundle for TLS instead of the system store.")
+    topic_prefix: str = Field("scan3d/{serial}", min_length=1, max_length=200,
+                              description="Topic prefix; {serial} is replaced by the appliance serial.")
+    keepalive_s: int = Field(30, ge=5, le=3600, description="MQTT keep-alive (s).")
+    reconnect_max_s: float = Field(30.0, ge=0.1, le=3600, description="Longest wait between reconnects (s).")
+    queue_max: int = Field(100, ge=1, le=10000, description="Scan messages kept while the broker is away; "
+                           "the oldest are dropped beyond it.")
+
+
+OpcUaPolicy = Literal["None", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt"]
+
+
+class OpcUaConfig(_Strict):
+    """OPC UA server (asyncua): the Scanner object; anonymous read-only, Trigger for a user."""
+
+    enabled: bool = Field(False, description="Serve OPC UA.")
+    endpoint: str = Field("opc.tcp://127.0.0.1:4840/scan3d", pattern=r"^opc\.tcp://[^/\s]+:[0-9]{1,5}(/\S*)?$",
+                          description="Endpoint URL to listen on, e.g. opc.tcp://0.0.0.0:4840/scan3d.")
+    username: str | None = Field(None, min_length=1, description="The user allowed to call Trigger; unset: "
+                                 "Trigger is disabled (anonymous clients only read).")
+    password_file: Path | None = Field(None, description="File holding that user's password.")
+    security_policies: tuple[OpcUaPolicy, ...] = Field(
+        ("None",), min_length=1, description="Offered security policies; the Basic256Sha256 ones need "
+        "certificate_file and private_key_file.")
+    certificate_file: Path | None = Field(None, description="Server certificate (DER or PEM).")
+    private_key_file: Path | None = Field(None, description="Server private key (PEM).")
+
+    @model_validator(mode="after")
+    def _keys(self) -> OpcUaConfig:
+        if (self.username is None) != (self.password_file is None):
+            raise ValueError("service.opcua.username and password_file go together; set both (or neither: "
+                             "Trigger disabled)")
+        if any(p != "None" for p in self.security_policies) and (
+                self.certificate_file is None or self.private_key_file is None):
+            raise ValueError("service.opcua.security_policies: Basic256Sha256 needs certificate_file and "
+                             "private_key_file; set them or use ['None']")
+        return self
+
+
 class ServiceConfig(_Strict):
     control_socket: Path = Field(Path("out/control.sock"), description="Unix socket for scan3d status/trigger.")
     state_directory: Path = Field(Path("out/state"), description="State files (last scans, counters).")
@@ -262,6 +326,9 @@ class ServiceConfig(_Strict):
     stop_grace_s: float = Field(20.0, ge=0, le=600, description="On SIGTERM, let a running scan finish this "
                                 "long before aborting it (s).")
     mdns: MdnsConfig = Field(default_factory=MdnsConfig)
+    http: HttpConfig = Field(default_factory=HttpConfig)
+    mqtt: MqttConfig = Field(default_factory=MqttConfig)
+    opcua: OpcUaConfig = Field(default_factory=OpcUaConfig)
 
 
 # --- calibration and verification ---------------------------------------------------------------------
