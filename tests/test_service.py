@@ -26,6 +26,9 @@ from appliance.output.atomic import TMP_PREFIX
 from appliance.patterns.sequence import gray_code_sequence
 from appliance.reconstruct.types import PointCloud
 from appliance.service import daemon as D
+from appliance.service import publish as publish_mod
+from appliance.service import rig as rig_mod
+from appliance.service import writing as writing_mod
 from appliance.service.client import format_status, status_command
 from appliance.service.control import request
 from appliance.service.notify import SdNotifier
@@ -187,9 +190,9 @@ def share_files(tmp: Path) -> list[str]:
 
 @pytest.fixture(autouse=True)
 def fast(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(D, "RETRY_FIRST_S", 0.05)
-    monkeypatch.setattr(D, "SPOOL_RETRY_S", 0.05)
-    monkeypatch.setattr(D, "REFUSED_BLINK_S", 0.05)
+    monkeypatch.setattr(rig_mod, "RETRY_FIRST_S", 0.05)
+    monkeypatch.setattr(writing_mod, "SPOOL_RETRY_S", 0.05)
+    monkeypatch.setattr(publish_mod, "REFUSED_BLINK_S", 0.05)
 
 
 # --- tests -----------------------------------------------------------------------------------------------

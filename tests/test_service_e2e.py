@@ -31,6 +31,8 @@ from appliance.output import share as S
 from appliance.output.atomic import TMP_PREFIX
 from appliance.output.ply import read_ply_vertices
 from appliance.service import daemon as D
+from appliance.service import rig as rig_mod
+from appliance.service import writing as writing_mod
 from appliance.service.control import request
 from appliance.service.state import Phase, State
 
@@ -207,8 +209,8 @@ async def scan_once(svc: D.Service) -> dict[str, Any]:
 
 @pytest.fixture(autouse=True)
 def fast(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(D, "RETRY_FIRST_S", 0.1)
-    monkeypatch.setattr(D, "SPOOL_RETRY_S", 0.1)
+    monkeypatch.setattr(rig_mod, "RETRY_FIRST_S", 0.1)
+    monkeypatch.setattr(writing_mod, "SPOOL_RETRY_S", 0.1)
 
 
 # --- the button on the serial controller's firmware (pty), files on the share, mDNS from another process ---

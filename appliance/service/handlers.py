@@ -1,0 +1,56 @@
+"""What the control socket's commands do: ``status``, ``last_error``, ``reload``, ``trigger`` (``wait``)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from typing import TYPE_CHECKING, Any
+
+from appliance.errors import ApplianceError
+from appliance.hardware.base import TriggerEvent
+
+if TYPE_CHECKING:
+    from appliance.service.daemon import Service
+
+COMMANDS = ("status", "trigger", "reload", "last_error")
+
+
+class ControlHandlers:
+    """The control socket's request handler for one service."""
+
+    def __init__(self, svc: Service) -> None:
+        self.svc = svc
+
+    async def handle(self, req: dict[str, Any]) -> dict[str, Any]:
+        """Answer one request (a dict with a ``cmd`` string)."""
+        cmd = req["cmd"]
+        if cmd == "status":
+            return {"ok": True, "status": await self.svc.status_async()}
+        if cmd == "last_error":
+            err = self.svc.board.last_error
+            return {"ok": True, "last_error": asdict(err) if err is not None else None}
+        if cmd == "reload":
+            return await self._reload()
+        if cmd == "trigger":
+            return await self._trigger(req)
+        return {"ok": False, "error": f"unknown command {cmd!r}; use {', '.join(COMMANDS[:-1])} or {COMMANDS[-1]}"}
+
+    async def _reload(self) -> dict[str, Any]:
+        watcher = self.svc.watcher
+        if watcher is None:
+            return {"ok": False, "error": "not started"}
+        ok, msg = await watcher.reload("control socket")
+        return {"ok": ok, "error": msg} if not ok else {"ok": True}
+
+    async def _trigger(self, req: dict[str, Any]) -> dict[str, Any]:
+        ev = TriggerEvent("control", time.monotonic_ns(), str(req.get("detail", "")))
+        outcome, job = self.svc.request_scan(ev)
+        if job is None:
+            return {"ok": False, "result": outcome, "error": f"trigger {outcome}"}
+        if not req.get("wait"):
+            return {"ok": True, "result": outcome}
+        try:
+            rec = await job.done
+        except ApplianceError as exc:
+            return {"ok": False, "result": outcome, "error": str(exc)}
+        return {"ok": rec.ok, "result": outcome, "scan": asdict(rec), **({"error": rec.error} if not rec.ok else {})}

@@ -1,0 +1,191 @@
+"""The scan job queue: triggers accepted, queued or refused (``service.busy_policy``), and the worker that runs
+one scan after another: capture and reconstruction on the rig, then the files through the writer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as dt
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from appliance.errors import ApplianceError, OutputError
+from appliance.hardware.base import TriggerEvent
+from appliance.output.share import WriteOutcome, estimate_scan_bytes
+from appliance.service.state import ScanRecord, State
+
+if TYPE_CHECKING:
+    from appliance.service.daemon import Service
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Job:
+    """One accepted trigger; ``done`` resolves with its scan's record."""
+
+    event: TriggerEvent
+    done: asyncio.Future[ScanRecord] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+
+
+def _today(when: dt.datetime) -> str:
+    return f"{when:%Y-%m-%d}"
+
+
+class ScanJobs:
+    """The queue of accepted triggers and the scan worker of one service."""
+
+    def __init__(self, svc: Service) -> None:
+        self.svc = svc
+        self.queue: deque[Job] = deque()
+        self.ready = asyncio.Event()
+        self.current: asyncio.Task[ScanRecord] | None = None
+
+    def request(self, event: TriggerEvent) -> tuple[str, Job | None]:
+        """Accept, queue or refuse a trigger; returns (``started``/``queued``/``refused: why``, job)."""
+        svc = self.svc
+        b = svc.board
+        b.count("triggers")
+        if svc.stopping:
+            why = "the service is stopping"
+        elif svc.scanner is None:
+            why = f"not ready ({b.state}: {b.detail})"
+        elif b.busy or self.queue:
+            if svc.cfg.service.busy_policy == "queue" and len(self.queue) < svc.cfg.service.queue_max:
+                job = Job(event)
+                self.queue.append(job)
+                b.queue_length = len(self.queue)
+                b.count("triggers_queued")
+                log.info("trigger from %s queued (%d waiting)", event.source, len(self.queue))
+                self.ready.set()
+                return "queued", job
+            why = f"busy ({b.state})" + (f", queue full ({len(self.queue)})" if self.queue else "")
+        else:
+            job = Job(event)
+            self.queue.append(job)
+            self.ready.set()
+            return "started", job
+        b.count("triggers_refused")
+        log.warning("trigger from %s refused: %s", event.source, why)
+        svc.publisher.blink_refused()
+        return f"refused: {why}", None
+
+    def drop_queued(self, why: str) -> None:
+        """Fail every queued (not started) job with ``why``."""
+        for job in self.queue:
+            if not job.done.done():
+                job.done.set_exception(ApplianceError(why))
+        self.queue.clear()
+        self.svc.board.queue_length = 0
+
+    async def worker(self) -> None:
+        """Run queued scans one after another (until cancelled)."""
+        svc = self.svc
+        while True:
+            await self.ready.wait()
+            self.ready.clear()
+            while self.queue and svc.scanner is not None and not svc.stopping:
+                job = self.queue.popleft()
+                svc.board.queue_length = len(self.queue)
+                async with svc.scan_lock:
+                    self.current = asyncio.get_running_loop().create_task(self._scan(job.event))
+                    try:
+                        record = await asyncio.shield(self.current)
+                    except asyncio.CancelledError:
+                        me = asyncio.current_task()
+                        if not self.current.done() or (me is not None and me.cancelling()):
+                            raise  # the worker itself is cancelled, not (only) the scan
+                        record = ScanRecord("", "", job.event.source, False, error="aborted (stopping)")
+                    finally:
+                        self.current = None
+                if not job.done.done():
+                    job.done.set_result(record)
+                if svc.max_scans is not None and svc.successful_scans >= svc.max_scans:
+                    log.info("%d scans done (--scans); stopping", svc.successful_scans)
+                    svc.request_stop()
+
+    async def _scan(self, event: TriggerEvent) -> ScanRecord:
+        from appliance.scan import scan_metadata
+
+        svc = self.svc
+        out = svc.output
+        scanner, cfg, b = svc.scanner, svc.cfg, svc.board
+        shapes = [(m.height, m.width) for n, m in scanner.calibration.devices.items() if n in cfg.cameras]
+        need = estimate_scan_bytes(shapes, normals=cfg.output.normals, preview=cfg.output.preview)
+        problem = await out.call(out.writer.storage_problem, need)
+        started = dt.datetime.now(dt.UTC)
+        if problem:
+            b.count("triggers_refused")
+            b.count("scans_failed")
+            b.error("disk", f"scan refused: {problem}")
+            svc.publisher.blink_refused()
+            rec = ScanRecord("", started.isoformat(), event.source, False, error=f"refused: {problem}")
+            b.add_scan(rec)
+            return rec
+        out.counter += 1
+        from appliance.output.scanfiles import make_scan_id
+
+        scan_id = make_scan_id(cfg.serial, out.counter, started)
+        svc.hardware.captured_count = 0
+        b.set_state(State.SCANNING, scan_id)
+        try:
+            result = await asyncio.wait_for(scanner.scan(), cfg.service.scan_timeout_s)
+        except Exception as exc:  # the service outlives any failed scan
+            if not isinstance(exc, (ApplianceError, TimeoutError)):
+                log.exception("scan %s: unexpected error", scan_id)
+            msg = str(exc) or f"scan took longer than service.scan_timeout_s = {cfg.service.scan_timeout_s:g}"
+            b.count("scans_failed")
+            b.error("scan", f"scan {scan_id} failed: {msg}")
+            rec = ScanRecord(scan_id, started.isoformat(), event.source, False, error=msg)
+            b.add_scan(rec)
+            b.set_state(svc.hardware.idle_state(), "ready")
+            if isinstance(exc, TimeoutError):
+                svc.hardware.changed.set()  # devices in an unknown state: reconnect
+            return rec
+        b.set_state(State.WRITING, scan_id)
+        meta = scan_metadata(scan_id, started.isoformat(), cfg, scanner, result)
+        meta.extra["trigger"] = {"source": event.source, "detail": event.detail}
+        t_w = time.perf_counter()
+        writer = out.writer
+        write = out.call(
+            lambda: writer.write_scan(_today(started), meta, result.cloud, list(result.shapes.values()),
+                                      normals=cfg.output.normals and result.cloud.normal is not None,
+                                      preview=cfg.output.preview))
+        try:
+            outcome: WriteOutcome = await asyncio.shield(write)  # a started write always completes
+        except OutputError as exc:
+            b.count("scans_failed")
+            b.error("disk", str(exc))
+            rec = ScanRecord(scan_id, started.isoformat(), event.source, False, len(result.cloud),
+                             error=str(exc))
+            b.add_scan(rec)
+            b.set_state(svc.hardware.idle_state(), "ready")
+            return rec
+        timings = dict(result.timings_ms)
+        timings["write_ms"] = (time.perf_counter() - t_w) * 1e3
+        timings["trigger_to_file_ms"] = (time.monotonic_ns() - event.t_monotonic_ns) / 1e6
+        rec = ScanRecord(scan_id, started.isoformat(), event.source, True, len(result.cloud),
+                         outcome.location, [str(p) for p in outcome.files],
+                         {k: round(v, 1) for k, v in timings.items()})
+        if outcome.location == "spool":
+            b.count("spooled")
+            b.error("share", f"scan {scan_id} spooled: {outcome.reason}")
+        svc.successful_scans += 1
+        b.counters["scans_done"] += 1
+        b.add_scan(rec)
+        b.share = await out.call(out.writer.status)
+        await out.call(out.save_state)
+        log.info("scan %s: %d points, %.0f ms trigger to file; %s: %s", scan_id, len(result.cloud),
+                 timings["trigger_to_file_ms"], outcome.location, outcome.files[0] if outcome.files else "-")
+        b.set_state(svc.hardware.idle_state(), "ready")
+        virtual = getattr(svc.rig, "virtual", None)
+        if svc.ground_truth and virtual is not None:  # after "ready": a demonstration aid, off the loop
+            from appliance.sim.accuracy import compare_to_ground_truth
+
+            report = await out.call(compare_to_ground_truth, result.cloud, virtual, list(cfg.cameras))
+            log.info("scan %s: error against ground truth: %s", scan_id, report.line())
+        return rec

@@ -1,0 +1,136 @@
+"""Publishing the service's state: systemd's STATUS line, the mDNS TXT record and the controller's lamps.
+
+Subscribed to the :class:`~appliance.service.state.StatusBoard`: every change of state is published, not just
+logged. Lamps: ready (idle), busy (scanning/processing/writing), fault (fault, or a short blink when a trigger
+is refused).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+from appliance import __version__
+from appliance.errors import ApplianceError
+from appliance.service.state import State, StatusBoard
+
+if TYPE_CHECKING:
+    from appliance.service.daemon import Service
+
+log = logging.getLogger(__name__)
+
+# Module-level so tests can shorten it.
+REFUSED_BLINK_S = 0.5  # the fault lamp blinks this long when a trigger is refused
+
+
+class Publisher:
+    """STATUS=, mDNS TXT and lamps of one service."""
+
+    def __init__(self, svc: Service) -> None:
+        self.svc = svc
+        self.announcer: Any = None
+        self._last_status = ""
+        self._blink_until = 0.0
+        self._lamps: tuple[bool, bool, bool] | None = None
+        self._lamp_task: asyncio.Task[None] | None = None
+        self._lamp_writes: set[asyncio.Task[Any]] = set()
+
+    def txt_record(self) -> dict[str, str]:
+        """The mDNS TXT record: state, scans done, last scan id, share location, version, serial."""
+        b, cfg = self.svc.board, self.svc.cfg
+        txt = {"txtvers": "1", "state": str(b.state), "scans": str(b.counters["scans_done"]),
+               "last": b.last_scan_id(), "share": str(cfg.output.directory), "version": __version__,
+               "serial": cfg.serial}
+        if b.state == State.FAULT and b.last_error is not None:
+            txt["fault"] = b.last_error.message[:120]
+        return txt
+
+    def publish(self, board: StatusBoard) -> None:
+        """The board changed: send what differs."""
+        line = board.one_line()
+        if line != self._last_status:
+            self._last_status = line
+            self.svc.notifier.status(line)
+        if self.announcer is not None:
+            self.announcer.set_txt(self.txt_record())
+        self.set_lamps()
+
+    def reset_lamps(self) -> None:
+        """Forget what the lamps show (a new trigger device): the next change sets all three."""
+        self._lamps = None
+
+    def set_lamps(self) -> None:
+        """Show ready/busy/fault on the trigger device's lamps (when it has any)."""
+        rig = self.svc.rig
+        trig = rig.trigger if rig is not None else None
+        fn = getattr(trig, "set_leds", None) or getattr(trig, "set_lamps", None)
+        if fn is None:
+            return
+        b = self.svc.board
+        blink = time.monotonic() < self._blink_until
+        lamps = (b.state == State.IDLE, b.busy, b.state == State.FAULT or blink)
+        if lamps == self._lamps:
+            return
+        self._lamps = lamps
+        try:
+            res = fn(*lamps)
+        except ApplianceError as exc:
+            log.debug("lamps: %s", exc)
+            return
+        if asyncio.iscoroutine(res):
+            task = asyncio.get_running_loop().create_task(res)
+            self._lamp_writes.add(task)
+            task.add_done_callback(self._lamp_written)
+
+    def _lamp_written(self, task: asyncio.Task[Any]) -> None:
+        self._lamp_writes.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.debug("lamps: %s", task.exception())
+
+    def blink_refused(self) -> None:
+        """Blink the fault lamp for :data:`REFUSED_BLINK_S` (a refused trigger)."""
+        self._blink_until = time.monotonic() + REFUSED_BLINK_S
+        self.set_lamps()
+
+        async def unblink() -> None:
+            await asyncio.sleep(REFUSED_BLINK_S)
+            self.set_lamps()
+
+        if self._lamp_task is None or self._lamp_task.done():
+            self._lamp_task = asyncio.get_running_loop().create_task(unblink())
+
+    async def start_mdns(self) -> None:
+        """Announce the service over mDNS (when enabled); a failure is published, never raised."""
+        m = self.svc.cfg.service.mdns
+        if not m.enabled:
+            return
+        from appliance.output.mdns import MdnsAnnouncer
+
+        try:
+            ann = MdnsAnnouncer(m)
+            await ann.start(self.txt_record())
+        except (OSError, ApplianceError) as exc:
+            self.svc.board.error("mdns", f"mDNS announcement on {list(m.interfaces)} failed: {exc}")
+            log.error("mDNS disabled: %s", exc)
+            return
+        self.announcer = ann
+        ann.set_txt(self.txt_record())  # what changed while it was probing
+
+    async def stop_mdns(self) -> None:
+        """Withdraw the mDNS announcement."""
+        if self.announcer is not None:
+            ann, self.announcer = self.announcer, None
+            try:
+                await ann.close()
+            except Exception as exc:  # withdrawing is best effort (the network may be gone)
+                log.debug("mDNS close: %s", exc)
+
+    async def close(self) -> None:
+        """Stop mDNS and the lamp tasks."""
+        await self.stop_mdns()
+        tasks = [t for t in (self._lamp_task, *self._lamp_writes) if t is not None]
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)

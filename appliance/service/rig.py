@@ -1,0 +1,230 @@
+"""The rig as the service sees it: connect (build, open, warm the kernels), retry with backoff while it is
+absent or failing, rebuild it when the configuration changes it, and turn the trigger device's presses into
+scan requests.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from appliance.errors import ApplianceError
+from appliance.hardware.base import Camera, CameraInfo, FrameCallback
+from appliance.service.state import DeviceStatus, Phase, State
+
+if TYPE_CHECKING:
+    from appliance.service.daemon import Service
+
+log = logging.getLogger(__name__)
+
+# Module-level so tests can shorten it.
+RETRY_FIRST_S = 1.0  # first wait before reconnecting hardware; doubles up to service.retry_max_s
+
+
+class WatchedCamera:
+    """Wraps a camera: remembers what it said at open and reports when its frames are all in."""
+
+    def __init__(self, cam: Camera, on_captured: Callable[[], None]) -> None:
+        self.cam = cam
+        self.name = cam.name
+        self.info: CameraInfo | None = None
+        self._on_captured = on_captured
+
+    async def open(self) -> CameraInfo:
+        self.info = await self.cam.open()
+        return self.info
+
+    async def arm(self, n_frames: int, out: Any, on_frame: FrameCallback | None = None) -> None:
+        await self.cam.arm(n_frames, out, on_frame)
+
+    async def wait_frames(self, timeout_s: float) -> None:
+        try:
+            await self.cam.wait_frames(timeout_s)
+        finally:
+            self._on_captured()
+
+    async def close(self) -> None:
+        await self.cam.close()
+
+
+class RigManager:
+    """Connects the rig of one service and keeps it connected."""
+
+    def __init__(self, svc: Service) -> None:
+        self.svc = svc
+        self.changed = asyncio.Event()  # set: close and rebuild the rig (new configuration, lost devices)
+        self.captured_count = 0
+        self._trigger_task: asyncio.Task[None] | None = None
+
+    def devices_from_config(self) -> None:
+        """Every configured device, not connected yet."""
+        cfg = self.svc.cfg
+        devs = {f"camera:{n}": DeviceStatus("camera", n, c.type) for n, c in cfg.cameras.items()}
+        devs["projector"] = DeviceStatus("projector", "projector", cfg.projector.type)
+        devs["trigger"] = DeviceStatus("trigger", "trigger", cfg.trigger.type)
+        self.svc.board.devices = devs
+
+    def idle_state(self) -> State:
+        """``idle`` when every device is fine, else ``fault``."""
+        return State.IDLE if all(d.ok for d in self.svc.board.devices.values()) else State.FAULT
+
+    def on_camera_captured(self) -> None:
+        """A camera has all its frames: once all have, the scan is ``processing``."""
+        self.captured_count += 1
+        b = self.svc.board
+        if b.state == State.SCANNING and self.captured_count >= len(self.svc.cfg.cameras):
+            b.set_state(State.PROCESSING, b.detail)
+
+    async def connect(self) -> None:
+        """Build and open the rig, open the trigger, warm the kernels (under the scan lock)."""
+        svc = self.svc
+        loop = asyncio.get_running_loop()
+        cfg = svc.cfg
+        svc.board.set_state(State.STARTING, "connecting hardware", Phase.CONNECT)
+        rig, scanner, watched = await loop.run_in_executor(None, svc._make_scanner, cfg)
+        svc.rig = rig
+        svc.board.sequence = scanner.sequence.describe()
+        try:
+            await scanner.open()
+        except BaseException:
+            with contextlib.suppress(Exception):
+                await scanner.close()
+            raise
+        for n in cfg.cameras:
+            info = watched[n].info if n in watched else None
+            detail = (f"{info.model} {info.serial}, {info.width}x{info.height} {info.pixel_format}"
+                      if info is not None else "open")
+            svc.board.devices[f"camera:{n}"] = DeviceStatus("camera", n, cfg.cameras[n].type, True, detail)
+        svc.board.devices["projector"] = DeviceStatus("projector", "projector", cfg.projector.type, True,
+                                                      f"sequence loaded: {scanner.sequence.describe()}")
+        svc.scanner = scanner
+        await self._open_trigger()
+        svc.board.set_state(State.STARTING, "warming kernels", Phase.WARM)
+        t = time.perf_counter()
+        await scanner.warm_up()  # a discarded scan on the virtual rig, else a decode of blank frames
+        self.captured_count = 0
+        log.info("kernels warm in %.1f s", time.perf_counter() - t)
+
+    def _trigger_link(self, state: Any, reason: str) -> None:
+        """The trigger backend's link state changed (backends that reconnect by themselves report here)."""
+        b = self.svc.board
+        dev = b.devices.get("trigger")
+        if dev is None:
+            return
+        ok = getattr(state, "value", str(state)) == "ready"
+        if ok != dev.ok:
+            if not ok:
+                b.error("hardware", f"trigger {dev.backend}: {reason}")
+            dev.ok, dev.detail = ok, f"{getattr(state, 'value', state)}: {reason}"
+            if not b.busy and b.state in (State.IDLE, State.FAULT) and self.svc.scanner:
+                b.set_state(self.idle_state(), "ready" if ok else f"trigger: {reason}")
+
+    async def _open_trigger(self) -> None:
+        svc = self.svc
+        trig = svc.rig.trigger
+        kind = svc.cfg.trigger.type
+        if hasattr(trig, "on_state"):
+            trig.on_state = self._trigger_link
+        svc.publisher.reset_lamps()
+        try:
+            await trig.open()
+        except (ApplianceError, OSError) as exc:
+            svc.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, False, str(exc))
+            svc.board.error("hardware", f"trigger {kind}: {exc}")
+        else:
+            status = getattr(trig, "status", None)
+            detail = status() if callable(status) else "open"
+            svc.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, True, detail)
+        self._trigger_task = svc.spawn(self._trigger_loop(trig), "trigger")
+
+    async def close(self) -> None:
+        """Stop the trigger loop, close the trigger and the rig."""
+        svc = self.svc
+        if self._trigger_task is not None:
+            self._trigger_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._trigger_task
+            self._trigger_task = None
+        if svc.rig is not None:
+            with contextlib.suppress(Exception):
+                await svc.rig.trigger.close()
+        if svc.scanner is not None:
+            try:
+                await svc.scanner.close()
+            except Exception as exc:
+                log.warning("closing the rig: %s", exc)
+        svc.scanner = None
+
+    async def loop(self) -> None:
+        """Connect, retry with backoff on failure, rebuild on :attr:`changed` (runs until cancelled)."""
+        svc = self.svc
+        delay = RETRY_FIRST_S
+        failures = 0
+        while True:
+            self.devices_from_config()
+            try:
+                async with svc.scan_lock:
+                    await self.connect()
+            except Exception as exc:  # any failure to connect is a fault to retry, never the end
+                await self.close()
+                failures += 1
+                if not isinstance(exc, (ApplianceError, OSError)):
+                    log.exception("hardware: unexpected error")
+                for d in svc.board.devices.values():
+                    if not d.ok and d.detail == "not connected":
+                        d.detail = "not connected (see last error)"
+                if failures == 1:
+                    log.error("hardware: %s; retrying with backoff", exc)
+                svc.board.error("hardware", str(exc))
+                svc.board.set_state(State.FAULT, f"hardware: {exc}; retry in {delay:.0f} s", Phase.CONNECT)
+                svc.send_ready()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.changed.wait(), delay)
+                self.changed.clear()
+                delay = min(delay * 2, svc.cfg.service.retry_max_s)
+                continue
+            if failures:
+                log.info("hardware recovered after %d failed attempt(s)", failures)
+            failures, delay = 0, RETRY_FIRST_S
+            svc.board.set_state(self.idle_state(), "ready", Phase.READY)
+            svc.send_ready()
+            svc.jobs.ready.set()
+            await self.changed.wait()
+            self.changed.clear()
+            async with svc.scan_lock:
+                await self.close()
+
+    async def _trigger_loop(self, trig: Any) -> None:
+        svc = self.svc
+        delay = RETRY_FIRST_S
+        key = "trigger"
+        while True:
+            try:
+                event = await trig.next_event()
+            except (ApplianceError, OSError) as exc:
+                dev = svc.board.devices[key]
+                if dev.ok:
+                    log.error("trigger %s failed: %s; retrying with backoff", trig.name, exc)
+                    svc.board.error("hardware", f"trigger {trig.name}: {exc}")
+                dev.ok, dev.detail = False, str(exc)
+                if not svc.board.busy:
+                    svc.board.set_state(State.FAULT, f"trigger: {exc}")
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, svc.cfg.service.retry_max_s)
+                with contextlib.suppress(ApplianceError, OSError):
+                    await trig.close()
+                try:
+                    await trig.open()
+                except (ApplianceError, OSError) as exc2:
+                    dev.detail = str(exc2)
+                    continue
+                log.info("trigger %s recovered", trig.name)
+                dev.ok, dev.detail, delay = True, "open", RETRY_FIRST_S
+                if not svc.board.busy:
+                    svc.board.set_state(self.idle_state(), "ready")
+                continue
+            svc.request_scan(event)

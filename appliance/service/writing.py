@@ -1,0 +1,113 @@
+"""Writing and spooling: the scan files on the share (or the spool), the spool flush, the persistent state.
+
+Everything here touches files, so it runs in the one writer thread (``scan3d-writer``); the coroutines only
+hand work to it. The persistent state (``service-state.json`` in ``service.state_directory``) keeps the scan
+counter and the last scans across restarts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from appliance.config import AppConfig
+from appliance.errors import ApplianceError
+from appliance.output.atomic import write_bytes_atomic
+from appliance.output.share import ShareWriter, WriteOutcome
+from appliance.service.state import ScanRecord, StatusBoard
+
+if TYPE_CHECKING:
+    from appliance.service.daemon import Service
+
+log = logging.getLogger(__name__)
+
+# Module-level so tests can shorten it.
+SPOOL_RETRY_S = 2.0  # how often a non-empty spool is offered to the share
+STATE_FILE = "service-state.json"
+
+T = TypeVar("T")
+
+
+class ScanOutput:
+    """The share writer, its thread, the spool flush and the persistent state of one service."""
+
+    def __init__(self, svc: Service, cfg: AppConfig) -> None:
+        self.svc = svc
+        self.writer = ShareWriter(cfg.output)
+        self.counter = 0
+        self._ex = ThreadPoolExecutor(1, thread_name_prefix="scan3d-writer")
+
+    @property
+    def board(self) -> StatusBoard:
+        """The service's status board."""
+        return self.svc.board
+
+    async def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn(*args)`` in the writer thread."""
+        return await asyncio.get_running_loop().run_in_executor(self._ex, fn, *args)
+
+    def configure(self, old: AppConfig, new: AppConfig) -> None:
+        """A new configuration: a new share writer when the output section changed."""
+        if new.output != old.output:
+            self.writer = ShareWriter(new.output)
+
+    async def start(self) -> None:
+        """Load the persistent state, remove what a crash left half-written."""
+        self.load_state()
+        await self.call(self.writer.cleanup_incomplete)
+
+    async def spool_loop(self) -> None:
+        """Offer the spool to the share every :data:`SPOOL_RETRY_S` while not busy (runs until cancelled)."""
+        while True:
+            await asyncio.sleep(SPOOL_RETRY_S)
+            if self.board.busy:
+                continue
+            moved = await self.call(self._flush_spool)
+            if moved:
+                self.board.share = await self.call(self.writer.status)
+                self.board.changed()
+
+    def _flush_spool(self) -> list[WriteOutcome]:
+        if not self.writer.spool_entries():
+            return []
+        moved = self.writer.flush_spool()
+        dropped = self.writer.enforce_retention()
+        if dropped:
+            self.board.counters["spool_dropped"] += len(dropped)
+        return moved
+
+    # --- persistent state (scan counter, last scans) --------------------------------------------
+
+    def state_path(self) -> Path:
+        """``service-state.json`` in ``service.state_directory``."""
+        return Path(self.svc.cfg.service.state_directory) / STATE_FILE
+
+    def load_state(self) -> None:
+        """Read the scan counter and the last scans (a missing or broken file starts from zero)."""
+        try:
+            data = json.loads(self.state_path().read_text())
+            self.counter = int(data.get("counter", 0))
+            for r in data.get("last_scans", []):
+                self.board.last_scans.append(ScanRecord(**r))
+        except (OSError, ValueError, TypeError):
+            pass
+
+    def save_state(self) -> None:
+        """Write the scan counter and the last scans (atomically; a failure is logged)."""
+        path = self.state_path()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            data = {"counter": self.counter, "last_scans": [asdict(r) for r in self.board.last_scans]}
+            write_bytes_atomic(path, json.dumps(data).encode())
+        except (OSError, ApplianceError) as exc:
+            log.warning("state file %s: %s", path, exc)
+
+    def close(self) -> None:
+        """Wait for the writer thread to finish what it has and stop it."""
+        self._ex.shutdown(wait=True)
