@@ -147,13 +147,21 @@ def write_calibration(path: str | os.PathLike[str], calib: Calibration) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def read_calibration(path: str | os.PathLike[str]) -> Calibration:
+def read_calibration(
+    path: str | os.PathLike[str], projector_size: tuple[int, int] | None = None
+) -> Calibration:
     """Read a calibration file with ``cv2.FileStorage``.
+
+    Besides this project's layout, the flat ``caliInfo.yml`` layouts of SLMaster are imported, chosen by
+    the keys present (see :func:`read_slmaster`).
 
     Parameters
     ----------
     path : path-like
         The YAML file (see the module docstring for its layout).
+    projector_size : (width, height), optional
+        Projector size (px) for layouts that do not store it (SLMaster's monocular file); a scan
+        manifest's ``projector`` entry gives it.
 
     Returns
     -------
@@ -182,6 +190,9 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         raise CalibrationError(f"{path}: cannot be opened by cv2.FileStorage")
     try:
         root = fs.root()
+        keys = set(root.keys())
+        if SLMASTER_CAMERA_KEYS <= keys:
+            return read_slmaster(path, root, projector_size)
         devices: dict[str, CameraModel] = {}
         for name in root.keys():
             node = root.getNode(name)
@@ -258,3 +269,73 @@ def _read_device(path: Path, name: str, node: Any) -> CameraModel:
         return CameraModel(name, k, dist, int(size[0]), int(size[1]), r, t, rms)
     except CalibrationError as e:
         raise CalibrationError(f"{path}: {e}") from e
+
+
+# --------------------------------------------------------------------------------------------------
+# SLMaster caliInfo.yml (flat matrices; imported, never written)
+# --------------------------------------------------------------------------------------------------
+
+SLMASTER_CAMERA_KEYS = frozenset({"M1", "D1", "S"})
+"""Top-level keys that mark SLMaster's flat ``caliInfo.yml`` layout."""
+SLMASTER_NAMES = ("L", "R")
+"""Device names given to SLMaster's left (reference) and right cameras; the projector is ``projector``."""
+
+
+def read_slmaster(path: Path, root: Any, projector_size: tuple[int, int] | None = None) -> Calibration:
+    """Import an SLMaster ``caliInfo.yml`` (an open ``cv2.FileStorage`` root).
+
+    Layouts (lengths in mm; ``S`` = [width, height] of the cameras):
+
+    * monocular: ``M1, D1`` (camera ``L``), ``M4, D4`` (projector), ``Rlp, Tlp`` with
+      ``X_P = Rlp X_C + Tlp``. The projector size is not stored: ``projector_size`` gives it.
+    * binocular: ``M1, D1`` (camera ``L``), ``M2, D2`` (camera ``R``), ``Rlr, Tlr`` with
+      ``X_R = Rlr X_L + Tlr``. Rectification entries (``R1, P1, ...``) are not needed and ignored.
+
+    The left camera is the world frame. Reprojection RMS is not stored (NaN).
+
+    Raises
+    ------
+    CalibrationError
+        Naming the file and the key when an entry is missing or malformed.
+    """
+    keys = set(root.keys())
+
+    def mat(key: str, shape: tuple[int, ...] | None) -> npt.NDArray[np.float64]:
+        arr = _numbers(path, "caliInfo", key, root.getNode(key))
+        if shape is not None and arr.size != int(np.prod(shape)):
+            raise CalibrationError(f"{path}: {key}: has {arr.size} values: must be {shape} (SLMaster layout)")
+        if not np.all(np.isfinite(arr)):
+            raise CalibrationError(f"{path}: {key}: holds non-finite values {arr.ravel().tolist()}")
+        return arr.reshape(shape) if shape is not None else arr.ravel()
+
+    size = mat("S", (2,))
+    w, h = round(float(size[0])), round(float(size[1]))
+
+    def device(name: str, k: str, d: str, width: int, height: int,
+               r: npt.NDArray[np.float64] | None = None, t: npt.NDArray[np.float64] | None = None) -> CameraModel:
+        if r is not None and (not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0):
+            raise CalibrationError(f"{path}: the rotation of {name} is not a rotation matrix (R R^T != I)")
+        dist = mat(d, None)
+        try:
+            return CameraModel(name, mat(k, (3, 3)), dist, width, height,
+                               np.eye(3) if r is None else r, np.zeros(3) if t is None else t)
+        except CalibrationError as e:
+            raise CalibrationError(f"{path}: {e}") from e
+
+    devices = {SLMASTER_NAMES[0]: device(SLMASTER_NAMES[0], "M1", "D1", w, h)}
+    if {"M2", "D2", "Rlr", "Tlr"} <= keys:
+        devices[SLMASTER_NAMES[1]] = device(SLMASTER_NAMES[1], "M2", "D2", w, h, mat("Rlr", (3, 3)), mat("Tlr", (3,)))
+    if {"M4", "D4", "Rlp", "Tlp"} <= keys:
+        if projector_size is None:
+            raise CalibrationError(
+                f"{path}: SLMaster layout with a projector (M4, Rlp, Tlp) but no projector size: the file does "
+                "not store it; give it (the scan manifest's projector entry, e.g. 1920x1080 for a DLP4710)"
+            )
+        pw, ph = (int(v) for v in projector_size)
+        devices[PROJECTOR_NAME] = device(PROJECTOR_NAME, "M4", "D4", pw, ph, mat("Rlp", (3, 3)), mat("Tlp", (3,)))
+    if len(devices) == 1:
+        raise CalibrationError(
+            f"{path}: SLMaster layout with camera M1 only: needs M2, D2, Rlr, Tlr (second camera) or M4, D4, "
+            "Rlp, Tlp (projector)"
+        )
+    return Calibration(devices)

@@ -46,6 +46,8 @@ class Manifest:
         ``images[camera][i]``: the image of frame ``i`` (absolute path).
     stacks : dict or None
         ``stacks[camera]``: a ``.npy`` array (frames, height, width) (absolute path).
+    bit_depth : int or None
+        Significant bits of the pixel values (8..16); None: the data type's own (8 for uint8, 16 for uint16).
     """
 
     path: Path
@@ -53,6 +55,13 @@ class Manifest:
     cameras: tuple[str, ...]
     images: dict[str, tuple[Path, ...]] | None = None
     stacks: dict[str, Path] | None = None
+    bit_depth: int | None = None
+
+    def bits_of(self, stack: FrameStack) -> int:
+        """Significant bits of ``stack`` (this manifest's ``bit_depth``, else its dtype's)."""
+        if self.bit_depth is not None:
+            return self.bit_depth
+        return 8 if stack.dtype == np.uint8 else 16
 
     def load_stack(self, camera: str) -> FrameStack:
         """Load every frame of ``camera`` as one array.
@@ -66,9 +75,41 @@ class Manifest:
                 f"{self.path}: camera {camera!r} is not in this manifest (it has {list(self.cameras)})"
             )
         if self.stacks is not None:
-            return _load_npy(self.stacks[camera], len(self.sequence), self.path)
-        assert self.images is not None
-        return load_images(self.images[camera], self.path)
+            stack = _load_npy(self.stacks[camera], len(self.sequence), self.path)
+        else:
+            assert self.images is not None
+            stack = load_images(self.images[camera], self.path)
+        check_bit_depth(stack, self.bits_of(stack), f"{self.path}: camera {camera!r}")
+        return stack
+
+
+def check_bit_depth(stack: FrameStack, bits: int, where: str) -> None:
+    """Refuse a stack whose values do not fit ``bits`` significant bits, or whose dtype cannot hold them.
+
+    Raises
+    ------
+    ManifestError
+        Naming ``where``, the bit depth, the offending value and frame, and the fix.
+    """
+    if stack.dtype == np.uint8:
+        if bits != 8:
+            raise ManifestError(
+                f"{where}: bit_depth = {bits} but the frames are 8-bit (uint8); remove bit_depth or store the "
+                "frames as 16-bit images"
+            )
+        return
+    if bits >= 16:
+        return
+    top = (1 << bits) - 1
+    peaks = stack.reshape(stack.shape[0], -1).max(axis=1)
+    bad = np.flatnonzero(peaks > top)
+    if bad.size:
+        i = int(bad[0])
+        raise ManifestError(
+            f"{where}: bit_depth = {bits} but frame {i} holds the value {int(peaks[i])} (> {top}, the largest "
+            f"{bits}-bit value); give the frames' real bit depth (or none for full 16-bit data) or shift the "
+            "values down"
+        )
 
 
 def _load_npy(path: Path, n_frames: int, manifest: Path) -> FrameStack:
@@ -224,9 +265,17 @@ def read_manifest(path: str | Path) -> Manifest:
         raise ManifestError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(doc, dict):
         raise ManifestError(f"{path}: must be a YAML mapping with projector, cameras and frames")
-    unknown = set(doc) - {"projector", "cameras", "frames", "stacks"}
+    unknown = set(doc) - {"projector", "cameras", "frames", "stacks", "bit_depth"}
     if unknown:
-        raise ManifestError(f"{path}: unknown top-level key(s) {sorted(unknown)}")
+        raise ManifestError(
+            f"{path}: unknown top-level key(s) {sorted(unknown)}; allowed: projector, cameras, frames, stacks, "
+            "bit_depth"
+        )
+    bit_depth = doc.get("bit_depth")
+    if bit_depth is not None and (
+        isinstance(bit_depth, bool) or not isinstance(bit_depth, int) or not 8 <= bit_depth <= 16
+    ):
+        raise ManifestError(f"{path}: bit_depth = {bit_depth!r}: must be an integer from 8 to 16 (bits)")
     root = path.parent
     proj = doc.get("projector")
     if not isinstance(proj, dict) or "width" not in proj or "height" not in proj:
@@ -258,8 +307,10 @@ def read_manifest(path: str | Path) -> Manifest:
     if stacks_doc is not None:
         if not isinstance(stacks_doc, dict) or set(stacks_doc) != set(cameras):
             raise ManifestError(f"{path}: stacks: must map every camera {cameras} to a .npy file")
-        return Manifest(path, seq, tuple(cameras), stacks={c: root / str(stacks_doc[c]) for c in cameras})
-    return Manifest(path, seq, tuple(cameras), images={c: tuple(v) for c, v in images.items()})
+        return Manifest(path, seq, tuple(cameras), stacks={c: root / str(stacks_doc[c]) for c in cameras},
+                        bit_depth=bit_depth)
+    return Manifest(path, seq, tuple(cameras), images={c: tuple(v) for c, v in images.items()},
+                    bit_depth=bit_depth)
 
 
 def write_manifest(
@@ -269,8 +320,12 @@ def write_manifest(
     *,
     images: Mapping[str, list[str] | tuple[str, ...]] | None = None,
     stacks: Mapping[str, str] | None = None,
+    bit_depth: int | None = None,
 ) -> Path:
-    """Write a manifest; ``images``/``stacks`` hold paths relative to the manifest's folder."""
+    """Write a manifest; ``images``/``stacks`` hold paths relative to the manifest's folder.
+
+    ``bit_depth`` (8..16), when given, is written as the top-level ``bit_depth`` (significant bits).
+    """
     path = Path(path)
     if (images is None) == (stacks is None):
         raise ManifestError(f"{path}: give exactly one of images= or stacks=")
@@ -284,6 +339,8 @@ def write_manifest(
         "projector": {"width": sequence.width, "height": sequence.height},
         "cameras": list(cameras),
     }
+    if bit_depth is not None:
+        doc["bit_depth"] = int(bit_depth)
     if stacks is not None:
         doc["stacks"] = {c: str(stacks[c]) for c in cameras}
     doc["frames"] = frames
