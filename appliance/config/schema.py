@@ -237,6 +237,10 @@ class OutputConfig(_Strict):
     require_mount: bool = Field(
         False, description="The share counts as present only when output.directory is a mount point."
     )
+    share_timeout_s: float = Field(
+        10.0, gt=0, le=600, description="An operation on the share (stat, statvfs, one write of up to 4 MB, "
+        "fsync, rename, listing) that takes longer counts the share as away; scans spool (s)."
+    )
 
 
 class MdnsConfig(_Strict):
