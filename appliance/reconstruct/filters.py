@@ -12,7 +12,8 @@ import numpy as np
 import numpy.typing as npt
 
 from appliance.geometry.camera import CameraModel
-from appliance.reconstruct import _tri_kernels as K
+from appliance.reconstruct import _filter_kernels as K
+from appliance.reconstruct import _normal_kernels as NK
 from appliance.reconstruct.types import PointCloud
 
 F32 = npt.NDArray[np.float32]
@@ -168,7 +169,7 @@ def estimate_normals(
         if out.shape != xyz.shape:
             raise ValueError(f"out: {out.shape}: must be {xyz.shape}")
     eye = np.asarray(eye_mm, np.float64).reshape(3)
-    return K.normals(xyz, eye, int(radius_px), float(max_distance_mm), int(min_points), out)  # type: ignore[no-any-return]
+    return NK.normals(xyz, eye, int(radius_px), float(max_distance_mm), int(min_points), out)  # type: ignore[no-any-return]
 
 
 def to_point_cloud(

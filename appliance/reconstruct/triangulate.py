@@ -37,7 +37,7 @@ import numpy.typing as npt
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 from appliance.geometry.rays import ROW_TABLE_STEP, RayTable
-from appliance.reconstruct import _tri_kernels as K
+from appliance.reconstruct import _procam_kernels as K
 from appliance.reconstruct.types import DecodedMaps, PointCloud
 
 F32 = npt.NDArray[np.float32]

@@ -1,0 +1,187 @@
+"""numba kernels of the cloud filters and the organised -> cloud step (private; see ``filters.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from appliance.reconstruct._geom_kernels import NAN32 as _NAN
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def filter_depth(xyz, rz, tz, zmin, zmax):  # type: ignore[no-untyped-def]
+    """NaN every point whose depth ``rz . p + tz`` is outside [zmin, zmax]; returns how many."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    removed = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            z = rz[0] * xyz[r, c, 0] + rz[1] * xyz[r, c, 1] + rz[2] * xyz[r, c, 2] + tz
+            if z == z and not (z >= zmin and z <= zmax):
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                n += 1
+        removed[r] = n
+    return removed.sum()
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def filter_quality(xyz, quality, min_quality):  # type: ignore[no-untyped-def]
+    """NaN every valid point whose quality is below ``min_quality`` (or NaN); returns how many."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    removed = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            if xyz[r, c, 2] == xyz[r, c, 2] and not quality[r, c] >= min_quality:
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                n += 1
+        removed[r] = n
+    return removed.sum()
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def isolated_keep(xyz, min_nb, max_jump, keep):  # type: ignore[no-untyped-def]
+    """keep[r, c] = valid point with >= ``min_nb`` of its 8 neighbours valid and nearer than ``max_jump``."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    j2 = max_jump * max_jump
+    for r in prange(h):
+        for c in range(w):
+            x = xyz[r, c, 0]
+            y = xyz[r, c, 1]
+            z = xyz[r, c, 2]
+            if z != z:
+                keep[r, c] = False
+                continue
+            n = 0
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= h:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
+                        continue
+                    ex = xyz[rr, cc, 0] - x
+                    ey = xyz[rr, cc, 1] - y
+                    ez = xyz[rr, cc, 2] - z
+                    if ex * ex + ey * ey + ez * ez < j2:  # NaN neighbours compare false
+                        n += 1
+            keep[r, c] = n >= min_nb
+    return keep
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def apply_keep(xyz, keep):  # type: ignore[no-untyped-def]
+    """NaN the valid points where ``keep`` is False; returns how many."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    removed = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            if not keep[r, c] and xyz[r, c, 2] == xyz[r, c, 2]:
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                n += 1
+        removed[r] = n
+    return removed.sum()
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def row_counts(xyz):  # type: ignore[no-untyped-def]
+    """Number of valid points in every row."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    counts = np.zeros(h + 1, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            if xyz[r, c, 2] == xyz[r, c, 2]:
+                n += 1
+        counts[r + 1] = n
+    return counts
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def compact(xyz, quality, intensity, nrm, starts, o_xyz, o_row, o_col, o_q, o_i, o_n):  # type: ignore[no-untyped-def]
+    """Copy the valid points of the organised arrays into the cloud arrays (rows start at ``starts``)."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    has_n = nrm.shape[0] == h
+    for r in prange(h):
+        k = starts[r]
+        for c in range(w):
+            if xyz[r, c, 2] != xyz[r, c, 2]:
+                continue
+            o_xyz[k, 0] = xyz[r, c, 0]
+            o_xyz[k, 1] = xyz[r, c, 1]
+            o_xyz[k, 2] = xyz[r, c, 2]
+            o_row[k] = r
+            o_col[k] = c
+            o_q[k] = quality[r, c]
+            o_i[k] = intensity[r, c]
+            if has_n:
+                o_n[k, 0] = nrm[r, c, 0]
+                o_n[k, 1] = nrm[r, c, 1]
+                o_n[k, 2] = nrm[r, c, 2]
+            k += 1
+
+# Neighbour counting visits each pair of neighbouring pixels once (4 pairs per pixel: right, and the three
+# below) and credits both ends; every loop runs over whole rows with non-negative indices, so it vectorises.
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _near(px, py, pz, qx, qy, qz, j2, e):  # type: ignore[no-untyped-def]
+    """e[c] = 1 where points p[c] and q[c] are nearer than sqrt(j2), else 0 (NaN compares false)."""
+    for c in range(e.shape[0]):
+        ex = qx[c] - px[c]
+        ey = qy[c] - py[c]
+        ez = qz[c] - pz[c]
+        e[c] = np.int32(ex * ex + ey * ey + ez * ez < j2)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _add2(n, a, b):  # type: ignore[no-untyped-def]
+    for c in range(n.shape[0]):
+        n[c] += a[c] + b[c]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _add1(n, a):  # type: ignore[no-untyped-def]
+    for c in range(n.shape[0]):
+        n[c] += a[c]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def pairs_in_row(p, j2, e, n):  # type: ignore[no-untyped-def]
+    """Credit both pixels of every near horizontal pair of padded row p (3, W + 2) to n (W + 2,)."""
+    w = p.shape[1] - 2
+    # e[k]: padded columns k and k + 1 (the pads are NaN: pairs with them never count)
+    _near(p[0, 0 : w + 1], p[1, 0 : w + 1], p[2, 0 : w + 1], p[0, 1 : w + 2], p[1, 1 : w + 2], p[2, 1 : w + 2],
+          j2, e[: w + 1])  # fmt: skip
+    _add2(n[1 : w + 1], e[0:w], e[1 : w + 1])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def pairs_between_rows(p, q, j2, e, np_, nq):  # type: ignore[no-untyped-def]
+    """Credit every near pair (p column c, q column c + off), off = -1, 0, 1, to np_ and nq (padded)."""
+    w = p.shape[1] - 2
+    for off in range(-1, 2):
+        a = 1 + off
+        _near(p[0, 1 : w + 1], p[1, 1 : w + 1], p[2, 1 : w + 1], q[0, a : a + w], q[1, a : a + w],
+              q[2, a : a + w], j2, e[:w])  # fmt: skip
+        _add1(np_[1 : w + 1], e[:w])
+        _add1(nq[a : a + w], e[:w])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def keep_row(pz, n, min_nb, out):  # type: ignore[no-untyped-def]
+    """out = the depths of row pz kept by the neighbour count n; returns how many."""
+    kept = np.int64(0)
+    for c in range(out.shape[0]):
+        z = pz[c]
+        k = (z == z) & (n[c] >= min_nb)
+        out[c] = z if k else np.float32(np.nan)
+        kept += np.int64(k)
+    return kept

@@ -1,0 +1,422 @@
+"""numba kernels of camera-projector triangulation (private; see ``triangulate.py``).
+
+Ray / light-surface (one coded axis) through the code-line table, ray-ray (both axes), and the fused depth
+path: triangulate + neighbour filter to a depth map, then emit the kept points.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from appliance.reconstruct._filter_kernels import keep_row, pairs_between_rows, pairs_in_row
+from appliance.reconstruct._geom_kernels import NAN32 as _NAN
+from appliance.reconstruct._geom_kernels import distort_jac, ray_row, store_point
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def code_line_table(c_grid, code_grid, kmat, d, epi, axis):  # type: ignore[no-untyped-def]
+    """Solve, for every epipolar line ``c`` and projector code, the undistorted coordinate on that line.
+
+    Axis 0 (columns): the line passes through (0, c) and the epipole; returns x where the distorted column
+    equals the code. Axis 1 (rows): through (c, 0); returns y where the distorted row equals the code.
+    """
+    nc = c_grid.shape[0]
+    nu = code_grid.shape[0]
+    out = np.full((nc, nu), np.nan, dtype=np.float32)
+    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
+    fy, cy = kmat[1, 1], kmat[1, 2]
+    for j in range(nc):
+        c = c_grid[j]
+        if axis == 0:
+            p0x, p0y = 0.0, c
+            dx, dy = epi[0] - epi[2] * p0x, epi[1] - epi[2] * p0y
+            if abs(dx) < 1e-12:
+                continue
+            dy /= dx
+            dx = 1.0
+        else:
+            p0x, p0y = c, 0.0
+            dx, dy = epi[0] - epi[2] * p0x, epi[1] - epi[2] * p0y
+            if abs(dy) < 1e-12:
+                continue
+            dx /= dy
+            dy = 1.0
+        for i in range(nu):
+            target = code_grid[i]
+            if axis == 0:
+                t = (target - cx - sk * p0y) / (fx + sk * dy)
+            else:
+                t = (target - cy) / fy
+            ok = False
+            for _ in range(30):
+                x = p0x + t * dx
+                y = p0y + t * dy
+                xd, yd, j11, j12, j21, j22 = distort_jac(x, y, d)
+                if axis == 0:
+                    g = fx * xd + sk * yd + cx - target
+                    dg = (fx * j11 + sk * j21) * dx + (fx * j12 + sk * j22) * dy
+                else:
+                    g = fy * yd + cy - target
+                    dg = fy * (j21 * dx + j22 * dy)
+                if dg == 0.0:
+                    break
+                step = g / dg
+                t -= step
+                if abs(step) < 1e-13:
+                    ok = True
+                    break
+            if ok and abs(t) < 5.0:
+                out[j, i] = t
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def epipolar_intercepts(norm, rcp, tcp, c0, inv_dc, axis, min_sin):  # type: ignore[no-untyped-def]
+    """Per camera pixel: fractional index of its epipolar line in the code-line table (NaN if ill-posed)."""
+    h, w = norm.shape[0], norm.shape[1]
+    out = np.empty((h, w), dtype=np.float32)
+    for r in prange(h):
+        for col in range(w):
+            mx = np.float64(norm[r, col, 0])
+            my = np.float64(norm[r, col, 1])
+            bx = rcp[0, 0] * mx + rcp[0, 1] * my + rcp[0, 2]
+            by = rcp[1, 0] * mx + rcp[1, 1] * my + rcp[1, 2]
+            bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+            # homogeneous epipolar line l = T x B in the projector's normalised plane
+            l1 = tcp[1] * bz - tcp[2] * by
+            l2 = tcp[2] * bx - tcp[0] * bz
+            l3 = tcp[0] * by - tcp[1] * bx
+            nrm = math.sqrt(l1 * l1 + l2 * l2)
+            if axis == 0:
+                ok = nrm > 0 and abs(l2) >= min_sin * nrm
+                c = -l3 / l2 if ok else np.nan
+            else:
+                ok = nrm > 0 and abs(l1) >= min_sin * nrm
+                c = -l3 / l1 if ok else np.nan
+            out[r, col] = (c - c0) * inv_dc
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def tri_plane(code, mask, norm, cidx, table, code0, rcp, tcp, rwc, cwc, to_world, zmin, zmax, axis, out):  # type: ignore[no-untyped-def]
+    """Ray / light-surface intersection for one coded axis, organised output (NaN where invalid)."""
+    h, w = code.shape[0], code.shape[1]
+    nc, nu = table.shape[0], table.shape[1]
+    a0 = 0 if axis == 0 else 1
+    tc = tcp[2]
+    ta = tcp[a0]
+    for r in prange(h):
+        for col in range(w):
+            cu = code[r, col]
+            ci = cidx[r, col]
+            fu = np.float64(cu) - code0
+            fc = np.float64(ci)
+            valid = mask[r, col] and fu >= 0.0 and fc >= 0.0 and fu < nu - 1 and fc < nc - 1
+            if not valid:  # also false for NaN codes / lines
+                out[r, col, 0] = _NAN
+                out[r, col, 1] = _NAN
+                out[r, col, 2] = _NAN
+                continue
+            iu = int(fu)
+            ic = int(fc)
+            tu = fu - iu
+            tcf = fc - ic
+            q00 = table[ic, iu]
+            q01 = table[ic, iu + 1]
+            q10 = table[ic + 1, iu]
+            q11 = table[ic + 1, iu + 1]
+            q0 = q00 + tu * (q01 - q00)
+            q1 = q10 + tu * (q11 - q10)
+            q = q0 + tcf * (q1 - q0)
+            mx = np.float64(norm[r, col, 0])
+            my = np.float64(norm[r, col, 1])
+            ba = rcp[a0, 0] * mx + rcp[a0, 1] * my + rcp[a0, 2]
+            bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+            den = ba - bz * q
+            z = (tc * q - ta) / den if den != 0.0 else np.nan
+            store_point(out, r, col, z if tc + z * bz > 0.0 else np.nan, mx, my, zmin, zmax, to_world, rwc, cwc)
+    return out
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def tri_ray(u, v, mask, norm, und, origin, kmat, d, rcp, tcp, rwc, cwc, to_world, zmin, zmax, out):  # type: ignore[no-untyped-def]
+    """Ray-ray triangulation: the point on the camera ray nearest (in projector px) to the coded ray."""
+    h, w = u.shape[0], u.shape[1]
+    for r in prange(h):
+        for col in range(w):
+            mx = np.float64(norm[r, col, 0])
+            my = np.float64(norm[r, col, 1])
+            z = _z_ray(u[r, col], v[r, col], mx, my, und, origin, kmat, d, rcp, tcp) if mask[r, col] else np.nan
+            store_point(out, r, col, z, mx, my, zmin, zmax, to_world, rwc, cwc)
+    return out
+
+# --- fused depth path -----------------------------------------------------------------------------------
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz):  # type: ignore[no-untyped-def]
+    """Per pixel of a row: fractional epipolar-line index (NaN if ill-posed) and the ray's coefficients."""
+    a0 = 0 if axis == 0 else 1
+    for c in range(mx.shape[0]):
+        x = mx[c]
+        y = my[c]
+        bxc = rcp[0, 0] * x + rcp[0, 1] * y + rcp[0, 2]
+        byc = rcp[1, 0] * x + rcp[1, 1] * y + rcp[1, 2]
+        bzc = rcp[2, 0] * x + rcp[2, 1] * y + rcp[2, 2]
+        l1 = tcp[1] * bzc - tcp[2] * byc
+        l2 = tcp[2] * bxc - tcp[0] * bzc
+        l3 = tcp[0] * byc - tcp[1] * bxc
+        la = l2 if a0 == 0 else l1
+        ok = (la * la >= min_sin * min_sin * (l1 * l1 + l2 * l2)) & (la != 0.0)
+        fc[c] = (-l3 / la - c_lo) * inv_dc if ok else np.nan
+        ba[c] = bxc if a0 == 0 else byc
+        bz[c] = bzc
+
+
+# Depth on the light surfaces in three loops over a row: two vectorise, the table gather between them is
+# a short scalar loop (one long loop with the branches and the gather stays scalar and is ~2x slower).
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_cells(code, mask, fc, nc, nu, code0, cell, tu, tv):  # type: ignore[no-untyped-def]
+    """Flat index of each pixel's table cell (-1: undecoded or off the table) and its bilinear weights."""
+    for c in range(code.shape[0]):
+        fu = np.float64(code[c]) - code0
+        f = fc[c]
+        ok = mask[c] & (fu >= 0.0) & (f >= 0.0) & (fu < nu - 1) & (f < nc - 1)  # false for NaN too
+        fu = fu if ok else 0.0
+        f = f if ok else 0.0
+        iu = np.int32(fu)
+        ic = np.int32(f)
+        tu[c] = fu - iu
+        tv[c] = f - ic
+        cell[c] = ic * np.int32(nu) + iu if ok else np.int32(-1)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_gather(flat, nu, cell, tu, tv, q):  # type: ignore[no-untyped-def]
+    """Bilinear interpolation of the code-line table at each pixel's cell (NaN where none)."""
+    for c in range(cell.shape[0]):
+        k = cell[c]
+        if k < 0:
+            q[c] = np.nan
+            continue
+        q00 = np.float64(flat[k])
+        q01 = np.float64(flat[k + 1])
+        q10 = np.float64(flat[k + nu])
+        q11 = np.float64(flat[k + nu + 1])
+        a = q00 + tu[c] * (q01 - q00)
+        b = q10 + tu[c] * (q11 - q10)
+        q[c] = a + tv[c] * (b - a)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _plane_depth(q, ba, bz, tc, ta, zmin, zmax, pz):  # type: ignore[no-untyped-def]
+    """Depth where the ray meets the light surface through normalised coordinate q (NaN: out of range)."""
+    for c in range(q.shape[0]):
+        qq = q[c]
+        z = (tc * qq - ta) / (ba[c] - bz[c] * qq)
+        good = (z >= zmin) & (z <= zmax) & (tc + z * bz[c] > 0.0)  # NaN and inf fail
+        pz[c] = z if good else np.nan
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-untyped-def]
+    """Depth of the ray (mx, my, 1) nearest (projector px) to the projector ray of (cu, cv); NaN if none."""
+    hp, wp = und.shape[0], und.shape[1]
+    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
+    fy, cy = kmat[1, 1], kmat[1, 2]
+    fu = np.float64(cu) - origin
+    fv = np.float64(cv) - origin
+    if not (fu >= 0.0 and fv >= 0.0 and fu < wp - 1 and fv < hp - 1):
+        return np.nan
+    iu = int(fu)
+    iv = int(fv)
+    tu = fu - iu
+    tv = fv - iv
+    a = und[iv, iu, 0] + tu * (und[iv, iu + 1, 0] - und[iv, iu, 0])
+    b = und[iv + 1, iu, 0] + tu * (und[iv + 1, iu + 1, 0] - und[iv + 1, iu, 0])
+    xn = np.float64(a + tv * (b - a))
+    a = und[iv, iu, 1] + tu * (und[iv, iu + 1, 1] - und[iv, iu, 1])
+    b = und[iv + 1, iu, 1] + tu * (und[iv + 1, iu + 1, 1] - und[iv + 1, iu, 1])
+    yn = np.float64(a + tv * (b - a))
+    # one Newton step on the distortion model removes the table's interpolation error
+    xd, yd, j11, j12, j21, j22 = distort_jac(xn, yn, d)
+    eu = np.float64(cu) - (fx * xd + sk * yd + cx)
+    ev = np.float64(cv) - (fy * yd + cy)
+    ex = (eu - sk * ev / fy) / fx
+    ey = ev / fy
+    det = j11 * j22 - j12 * j21
+    if det != 0.0:
+        xn += (j22 * ex - j12 * ey) / det
+        yn += (j11 * ey - j21 * ex) / det
+    bx = rcp[0, 0] * mx + rcp[0, 1] * my + rcp[0, 2]
+    by = rcp[1, 0] * mx + rcp[1, 1] * my + rcp[1, 2]
+    bz = rcp[2, 0] * mx + rcp[2, 1] * my + rcp[2, 2]
+    a1 = fx * (bx - xn * bz)
+    b1 = fx * (xn * tcp[2] - tcp[0])
+    a2 = fy * (by - yn * bz)
+    b2 = fy * (yn * tcp[2] - tcp[1])
+    nn = a1 * a1 + a2 * a2
+    z = (a1 * b1 + a2 * b2) / nn if nn > 0.0 else np.nan
+    return z if tcp[2] + z * bz > 0.0 else np.nan
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _depth_row(  # type: ignore[no-untyped-def]
+    r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
+    axis, zmin, zmax, mx, my, fc, ba, bz, scratch, scratch_i, p,
+):
+    """Camera-frame point of every pixel of row ``r`` into the padded rows ``p`` (3, W + 2) (NaN: none)."""
+    w = mx.shape[0]
+    ray_row(tx, ty, r, step, mx, my)
+    px = p[0, 1 : w + 1]
+    py = p[1, 1 : w + 1]
+    pz = p[2, 1 : w + 1]
+    if ray:
+        ur = u[r]
+        vr = v[r]
+        mr = mask[r]
+        for c in range(w):
+            z = np.nan
+            if mr[c]:
+                z = _z_ray(ur[c], vr[c], mx[c], my[c], und, origin, kmat, d, rcp, tcp)
+            pz[c] = z if (z >= zmin and z <= zmax) else np.nan
+    else:
+        nc, nu = table.shape[0], table.shape[1]
+        cell, tu, tv, q = scratch_i[0], scratch[0], scratch[1], scratch[2]
+        _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz)
+        _plane_cells(u[r] if axis == 0 else v[r], mask[r], fc, nc, nu, code0, cell, tu, tv)
+        _plane_gather(table.reshape(nc * nu), nu, cell, tu, tv, q)
+        _plane_depth(q, ba, bz, tcp[2], tcp[0] if axis == 0 else tcp[1], zmin, zmax, pz)
+    _scale_rays(pz, mx, my, px, py)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _scale_rays(pz, mx, my, px, py):  # type: ignore[no-untyped-def]
+    for c in range(pz.shape[0]):
+        z = np.float64(pz[c])
+        px[c] = z * mx[c]
+        py[c] = z * my[c]
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def depth_filtered(  # type: ignore[no-untyped-def]
+    u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
+    axis, zmin, zmax, min_nb, jump, nchunks, nthreads, depth, counts,
+):
+    """Triangulate to camera-frame depth (H, W) and drop points with < ``min_nb`` near neighbours (NaN).
+
+    ``counts[r + 1]`` receives the number of kept points of row r. Each chunk of rows keeps the points of
+    two rows (padded with a NaN column each side) in a small ring, so no organised cloud is written.
+    """
+    h, w = depth.shape[0], depth.shape[1]
+    j2 = np.float32(jump * jump)
+    counts[0] = 0
+    nthreads = min(nthreads, nchunks)
+    for t in prange(nthreads):  # thread t takes chunks t, t + nthreads, ...: valid pixels cluster in rows
+        mx = np.empty(w, np.float64)
+        my = np.empty(w, np.float64)
+        fc = np.empty(w, np.float64)
+        ba = np.empty(w, np.float64)
+        bz = np.empty(w, np.float64)
+        scratch = np.empty((3, w), np.float64)
+        scratch_i = np.empty((1, w), np.int32)
+        ring = np.full((2, 3, w + 2), np.nan, np.float32)  # (slot, x/y/z, padded column)
+        nb = np.zeros((2, w + 2), np.int32)
+        e = np.empty(w + 1, np.int32)
+        for ch in range(t, nchunks, nthreads):
+            r0 = ch * h // nchunks
+            r1 = (ch + 1) * h // nchunks
+            _depth_chunk(r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
+                         origin, kmat, d, rcp, tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, scratch,
+                         scratch_i, ring, nb, e, depth, counts)  # fmt: skip
+    return counts
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _depth_chunk(  # type: ignore[no-untyped-def]
+    r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp,
+    tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, scratch, scratch_i, ring, nb, e, depth, counts,
+):
+    """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter).
+
+    ``ring`` (2, 3, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts;
+    row r - 1 is complete once the pairs it shares with row r are counted.
+    """
+    h, w = depth.shape[0], depth.shape[1]
+    for r in range(r0 - 1, r1 + 1):
+        s = (r - r0 + 1) % 2
+        p = ring[s]
+        if r < 0 or r >= h:
+            p.fill(np.nan)
+        else:
+            _depth_row(r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
+                       origin, kmat, d, rcp, tcp, axis, zmin, zmax, mx, my, fc, ba, bz, scratch, scratch_i,
+                       p)  # fmt: skip
+        if min_nb > 0:
+            nb[s].fill(0)
+            pairs_in_row(p, j2, e, nb[s])
+            if r > r0 - 1:
+                pairs_between_rows(ring[1 - s], p, j2, e, nb[1 - s], nb[s])
+        if r - 1 >= r0:
+            counts[r] = keep_row(ring[1 - s][2, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, depth[r - 1])
+    return counts
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def emit_points(  # type: ignore[no-untyped-def]
+    depth, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads,
+    o_xyz, o_row, o_col, o_q, o_i,
+):  # fmt: skip
+    """Write the points of a depth map (world frame) and their pixel data at ``starts[r]`` per row."""
+    h, w = depth.shape[0], depth.shape[1]
+    has_i = intensity.shape[0] == h
+    nthreads = min(nthreads, nchunks)
+    for t in prange(nthreads):  # round-robin chunks: points cluster in rows
+        mx = np.empty(w, np.float64)
+        my = np.empty(w, np.float64)
+        for ch in range(t, nchunks, nthreads):
+            for r in range(ch * h // nchunks, (ch + 1) * h // nchunks):
+                if starts[r + 1] == starts[r]:
+                    continue
+                ray_row(tx, ty, r, step, mx, my)
+                _emit_row(r, depth[r], mx, my, quality[r], intensity[r] if has_i else intensity[0], has_i,
+                          rwc, cwc, to_world, starts[r], o_xyz, o_row, o_col, o_q, o_i)  # fmt: skip
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _emit_row(r, dr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i):  # type: ignore[no-untyped-def]
+    for c in range(dr.shape[0]):
+        z = np.float64(dr[c])
+        if z != z:
+            continue
+        px = z * mx[c]
+        py = z * my[c]
+        if to_world:
+            o_xyz[k, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
+            o_xyz[k, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
+            o_xyz[k, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+        else:
+            o_xyz[k, 0] = px
+            o_xyz[k, 1] = py
+            o_xyz[k, 2] = z
+        o_row[k] = r
+        o_col[k] = c
+        o_q[k] = qr[c]
+        o_i[k] = ir[c] if has_i else 0
+        k += 1
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def organised_from_depth(depth, tx, ty, step, rwc, cwc, to_world, out):  # type: ignore[no-untyped-def]
+    """Organised world-frame cloud (H, W, 3) of a depth map (NaN where depth is NaN)."""
+    h, w = depth.shape[0], depth.shape[1]
+    for r in prange(h):
+        mx = np.empty(w, np.float64)
+        my = np.empty(w, np.float64)
+        ray_row(tx, ty, r, step, mx, my)
+        for c in range(w):  # NaN depth: NaN point
+            store_point(out, r, c, np.float64(depth[r, c]), mx[c], my[c], -np.inf, np.inf, to_world, rwc, cwc)
+    return out
