@@ -5,6 +5,7 @@ A watcher of the target folder never sees a partial file: it sees nothing, then 
 
 from __future__ import annotations
 
+import errno
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -63,9 +64,28 @@ def write_bytes_atomic(path: Path, data: bytes) -> Path:
 
 
 def fsync_dir(folder: Path) -> None:
-    """fsync a directory so a rename in it is durable."""
+    """fsync a directory so a rename, a new file or a new folder in it is durable.
+
+    A filesystem that cannot fsync a directory (EINVAL or ENOTSUP, e.g. some network filesystems, which
+    commit names at once) is accepted as it is.
+    """
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP):
+            raise
     finally:
         os.close(fd)
+
+
+def mkdir_synced(folder: Path) -> bool:
+    """Create ``folder`` (its parent must exist) and fsync the parent; False when it was already there."""
+    try:
+        folder.mkdir()
+    except FileExistsError:
+        if folder.is_dir():
+            return False
+        raise
+    fsync_dir(folder.parent)
+    return True

@@ -1,14 +1,22 @@
-"""The three files of one scan: cloud (PLY), sidecar (JSON) and preview (PNG)."""
+"""The three files of one scan: cloud (PLY), sidecar (JSON) and preview (PNG).
+
+:func:`scan_file_contents` renders them in memory (the PLY as its header and a view of its records, no copy),
+so the share writer can put them on the share through its deadlines; :func:`write_scan_files` writes them
+into a local folder.
+"""
 
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
-from appliance.output.ply import write_ply
-from appliance.output.preview import write_preview
-from appliance.output.sidecar import ScanMetadata, write_sidecar
+from appliance.output.atomic import write_atomic
+from appliance.output.ply import cloud_to_records, ply_bytes_header
+from appliance.output.preview import depth_image, render_preview
+from appliance.output.sidecar import ScanMetadata
 from appliance.reconstruct.types import PointCloud
 
 
@@ -25,10 +33,81 @@ class ScanFiles:
         return [p for p in (self.cloud, self.preview, self.sidecar) if p is not None]
 
 
+@dataclass(frozen=True)
+class FileContent:
+    """One file of a scan, rendered: its name and its bytes in pieces (written one after the other)."""
+
+    name: str
+    pieces: tuple[bytes | memoryview, ...]
+
+    @property
+    def size(self) -> int:
+        """Length of the file (bytes)."""
+        return sum(memoryview(p).nbytes for p in self.pieces)
+
+    def sha256(self) -> str:
+        """Hex SHA-256 of the content."""
+        h = hashlib.sha256()
+        for p in self.pieces:
+            h.update(p)
+        return h.hexdigest()
+
+    def write_to(self, f: BinaryIO) -> None:
+        """Write the pieces into the open binary file ``f``."""
+        for p in self.pieces:
+            f.write(p)
+
+
 def make_scan_id(serial: str, counter: int, when: dt.datetime | None = None) -> str:
     """``YYYYmmdd-HHMMSS-<serial>-<counter>`` (UTC), unique per appliance."""
     when = when or dt.datetime.now(dt.UTC)
     return f"{when:%Y%m%d-%H%M%S}-{serial}-{counter:06d}"
+
+
+def scan_file_contents(
+    meta: ScanMetadata,
+    cloud: PointCloud,
+    shapes: list[tuple[int, int]],
+    *,
+    normals: bool = False,
+    preview: bool = True,
+) -> list[FileContent]:
+    """Render the files of one scan in memory: cloud, preview (when ``preview``), sidecar last.
+
+    Parameters
+    ----------
+    meta : ScanMetadata
+        The sidecar's content; its ``files`` is filled in here.
+    cloud : PointCloud
+        The points (N of them, mm, world frame).
+    shapes : list of (int, int)
+        (H, W) of each camera (px), for the preview's tiles.
+    normals, preview : bool
+        Normals in the PLY; a preview PNG.
+
+    Returns
+    -------
+    list of FileContent
+        ``<scan-id>.ply``, ``<scan-id>.png`` (optional) and ``<scan-id>.json``, in that order. The PLY's
+        records are a view of one packed array (N records), not a copy.
+    """
+    import cv2
+
+    sid = meta.scan_id
+    camera_field = bool(len(cloud)) and bool((cloud.camera != cloud.camera[0]).any())
+    rec = cloud_to_records(cloud, camera_field=camera_field, normals=normals)
+    header = ply_bytes_header(cloud, rec.dtype, [f"scan3d scan {sid}", "units mm"])
+    out = [FileContent(f"{sid}.ply", (header, rec.data.cast("B")))]
+    meta.files = {"cloud": f"{sid}.ply", "sidecar": f"{sid}.json"}
+    if preview:
+        depths = [depth_image(cloud, i, s) for i, s in enumerate(shapes)]
+        ok, buf = cv2.imencode(".png", render_preview(depths, sid))
+        if not ok:  # pragma: no cover - cv2 encodes any uint8 BGR image
+            raise RuntimeError("PNG encoding failed")
+        out.append(FileContent(f"{sid}.png", (buf.tobytes(),)))
+        meta.files["preview"] = f"{sid}.png"
+    out.append(FileContent(f"{sid}.json", (meta.to_json().encode(),)))
+    return out
 
 
 def write_scan_files(
@@ -40,19 +119,11 @@ def write_scan_files(
     normals: bool = False,
     preview: bool = True,
 ) -> ScanFiles:
-    """Write cloud, preview and sidecar (in that order, each atomically) into ``folder``.
+    """Write cloud, preview and sidecar (in that order, each atomically) into the local ``folder``.
 
     The sidecar comes last, so a watcher that keys on ``.json`` finds the cloud complete.
     """
     folder.mkdir(parents=True, exist_ok=True)
-    cloud_path = folder / f"{meta.scan_id}.ply"
-    preview_path = folder / f"{meta.scan_id}.png" if preview else None
-    sidecar_path = folder / f"{meta.scan_id}.json"
-    write_ply(cloud_path, cloud, normals=normals, comments=[f"scan3d scan {meta.scan_id}", "units mm"])
-    if preview_path is not None:
-        write_preview(preview_path, cloud, shapes, title=meta.scan_id)
-    meta.files = {"cloud": cloud_path.name, "sidecar": sidecar_path.name}
-    if preview_path is not None:
-        meta.files["preview"] = preview_path.name
-    write_sidecar(sidecar_path, meta)
-    return ScanFiles(cloud_path, sidecar_path, preview_path)
+    contents = scan_file_contents(meta, cloud, shapes, normals=normals, preview=preview)
+    paths = [write_atomic(folder / c.name, c.write_to) for c in contents]
+    return ScanFiles(paths[0], paths[-1], paths[1] if preview else None)
