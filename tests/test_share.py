@@ -19,6 +19,7 @@ from appliance.output.atomic import TMP_PREFIX
 from appliance.output.ply import read_ply_vertices
 from appliance.output.sidecar import ScanMetadata
 from appliance.reconstruct.types import PointCloud
+from share_watch import DirWatch
 
 SHAPES = [(24, 32)]
 
@@ -112,17 +113,25 @@ def test_share_away_spools_then_moves_over_in_order(dirs: SimpleNamespace) -> No
     assert [e.name.split("-", 1)[1] for e in w.spool_entries()] == [meta(i).scan_id for i in (2, 3, 4)]
     assert w.flush_spool() == []  # still away: nothing moves
     dirs.away.rename(dirs.share)
+    folder = dirs.share / "2026-01-01"
+    watch = DirWatch(folder)  # the kernel's record of what appeared on the share, in order
     moved = w.flush_spool()
     assert [m.scan_id for m in moved] == [meta(i).scan_id for i in (2, 3, 4)]
-    folder = dirs.share / "2026-01-01"
     for i in (1, 2, 3, 4):
         np.testing.assert_array_equal(xyz(folder / f"{meta(i).scan_id}.ply"), cloud(seed=i).xyz)
         assert (folder / f"{meta(i).scan_id}.json").is_file() and (
             folder / f"{meta(i).scan_id}.png"
         ).is_file()
-    # the sidecars arrived in scan order (each moved after its cloud, scans oldest first)
-    mtimes = [(folder / f"{meta(i).scan_id}.json").stat().st_mtime_ns for i in (2, 3, 4)]
-    assert mtimes == sorted(mtimes)
+    # the sidecars appeared in scan order, each after its cloud and preview (a rename keeps the mtime, so
+    # the order is taken from inotify's record of the renames, not from timestamps)
+    assert watch.appeared(".json") == [meta(i).scan_id for i in (2, 3, 4)]
+    assert watch.appeared(".ply") == [meta(i).scan_id for i in (2, 3, 4)]
+    assert watch.partial_moments() == []
+    log = [n for kind, n in watch.poll() if kind == "+"]
+    for i in (2, 3, 4):
+        sid = meta(i).scan_id
+        assert log.index(f"{sid}.json") > max(log.index(f"{sid}.ply"), log.index(f"{sid}.png"))
+    watch.close()
     assert w.spool_entries() == [] and no_temp_files(dirs.share, dirs.spool)
 
 
@@ -210,3 +219,138 @@ def test_require_mount(dirs: SimpleNamespace) -> None:
     w = writer(dirs, require_mount=True)
     assert "mount point" in w.share_problem()
     assert w.write_scan("2026-01-01", meta(1), cloud(), SHAPES).location == "spool"
+
+
+# --- spool entries after crashes: idempotent moves, quarantine ----------------------------------------------
+
+
+def spool_two_scans(dirs: SimpleNamespace) -> tuple[S.ShareWriter, list[Path]]:
+    """Scans 1 and 2 spooled while the share is away; the share back (with today's folder)."""
+    w = writer(dirs)
+    dirs.share.rename(dirs.away)
+    for i in (1, 2):
+        assert w.write_scan("2026-01-01", meta(i), cloud(seed=i), SHAPES).location == "spool"
+    dirs.away.rename(dirs.share)
+    (dirs.share / "2026-01-01").mkdir()
+    return w, w.spool_entries()
+
+
+def assert_complete_on_share(dirs: SimpleNamespace, i: int) -> None:
+    folder = dirs.share / "2026-01-01"
+    sid = meta(i).scan_id
+    np.testing.assert_array_equal(xyz(folder / f"{sid}.ply"), cloud(seed=i).xyz)
+    assert json.loads((folder / f"{sid}.json").read_text())["scan_id"] == sid
+    assert (folder / f"{sid}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_spool_entry_moved_half_way_is_finished_not_blocking(dirs: SimpleNamespace) -> None:
+    """A crash between the per-file renames of a move left the cloud on the share and the rest in the spool.
+
+    The old mover renamed the files one by one and stopped for good at the missing source ("stays in the
+    spool"), so every later scan spooled behind it.
+    """
+    w, entries = spool_two_scans(dirs)
+    sid = meta(1).scan_id
+    os.rename(entries[0] / f"{sid}.ply", dirs.share / "2026-01-01" / f"{sid}.ply")  # the crash's state
+    moved = w.flush_spool()
+    assert [m.scan_id for m in moved] == [meta(1).scan_id, meta(2).scan_id]
+    assert w.spool_entries() == [] and w.quarantined == 0
+    for i in (1, 2):
+        assert_complete_on_share(dirs, i)
+    assert w.write_scan("2026-01-01", meta(3), cloud(seed=3), SHAPES).location == "share"
+    assert no_temp_files(dirs.share, dirs.spool)
+
+
+def test_spool_entry_already_on_the_share_counts_as_moved(dirs: SimpleNamespace) -> None:
+    """A crash after the sidecar's rename, before the entry was removed: nothing is written twice."""
+    w, entries = spool_two_scans(dirs)
+    folder = dirs.share / "2026-01-01"
+    for p in entries[0].iterdir():
+        if p.name != S.ENTRY_FILE:
+            (folder / p.name).write_bytes(p.read_bytes())
+    inodes = {p.name: p.stat().st_ino for p in folder.iterdir()}
+    watch = DirWatch(folder)
+    moved = w.flush_spool()
+    assert [m.scan_id for m in moved] == [meta(1).scan_id, meta(2).scan_id]
+    assert {p.name: p.stat().st_ino for p in folder.iterdir() if p.name in inodes} == inodes  # untouched
+    assert watch.appeared(".json") == [meta(2).scan_id]  # only scan 2 was written
+    watch.close()
+    for i in (1, 2):
+        assert_complete_on_share(dirs, i)
+
+
+def test_spool_entry_with_a_different_file_on_the_share_is_overwritten(dirs: SimpleNamespace) -> None:
+    w, _ = spool_two_scans(dirs)
+    sid = meta(1).scan_id
+    (dirs.share / "2026-01-01" / f"{sid}.ply").write_bytes(b"ply\nsomething else\n")
+    assert len(w.flush_spool()) == 2
+    assert_complete_on_share(dirs, 1)
+
+
+@pytest.mark.parametrize("damage", ["empty entry.json", "binary entry.json", "file changed", "file gone"])
+def test_broken_spool_entry_is_quarantined_and_the_queue_goes_on(
+    dirs: SimpleNamespace, damage: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``entry.json`` lost its content (written without fsync before a power cut), or a file of the entry
+    changed or went missing: the old writer stopped at it for good; now it goes to quarantine, one line."""
+    w, entries = spool_two_scans(dirs)
+    sid = meta(1).scan_id
+    if damage == "empty entry.json":
+        (entries[0] / S.ENTRY_FILE).write_bytes(b"")
+    elif damage == "binary entry.json":
+        (entries[0] / S.ENTRY_FILE).write_bytes(b"\xff\xfe\x00garbage")
+    elif damage == "file changed":
+        with open(entries[0] / f"{sid}.ply", "r+b") as f:
+            f.seek(-4, os.SEEK_END)
+            f.write(b"XXXX")
+    else:
+        (entries[0] / f"{sid}.png").unlink()
+    caplog.set_level("WARNING", logger="appliance.output.share")
+    moved = w.flush_spool()
+    assert [m.scan_id for m in moved] == [meta(2).scan_id]
+    assert_complete_on_share(dirs, 2)
+    assert w.spool_entries() == [] and w.quarantined == 1
+    assert (dirs.spool / S.QUARANTINE_DIR / entries[0].name).is_dir()
+    lines = [r.getMessage() for r in caplog.records if "quarantined" in r.getMessage()]
+    assert len(lines) == 1 and entries[0].name in lines[0] and "\n" not in lines[0]
+    folder = dirs.share / "2026-01-01"
+    assert not (folder / f"{sid}.json").exists()
+    assert not (folder / f"{sid}.ply").exists() and no_temp_files(dirs.share)  # nothing of it is visible
+    assert w.status()["spool_quarantined"] == 1
+
+
+def test_spool_folder_without_entry_json_is_quarantined_at_start(dirs: SimpleNamespace) -> None:
+    w, entries = spool_two_scans(dirs)
+    (entries[0] / S.ENTRY_FILE).unlink()
+    assert w.cleanup_incomplete() == 0
+    assert w.spool_entries() == [entries[1]] and w.quarantined == 1
+    assert [m.scan_id for m in w.flush_spool()] == [meta(2).scan_id]
+
+
+def test_spool_entry_json_names_sizes_and_checksums(dirs: SimpleNamespace) -> None:
+    w, entries = spool_two_scans(dirs)
+    info = json.loads((entries[0] / S.ENTRY_FILE).read_text())
+    assert info["day"] == "2026-01-01" and info["scan_id"] == meta(1).scan_id
+    assert [f["name"] for f in info["files"]] == [f"{meta(1).scan_id}{s}" for s in (".ply", ".png", ".json")]
+    import hashlib
+
+    for f in info["files"]:
+        data = (entries[0] / f["name"]).read_bytes()
+        assert f["size"] == len(data) and f["sha256"] == hashlib.sha256(data).hexdigest()
+
+
+def test_share_out_of_inodes_is_not_available(dirs: SimpleNamespace, monkeypatch: pytest.MonkeyPatch) -> None:
+    real = S.STATVFS
+
+    def few_inodes(path: str) -> object:
+        st = real(path)
+        if path.startswith(str(dirs.share)):
+            return SimpleNamespace(f_bavail=st.f_bavail, f_frsize=st.f_frsize, f_files=1000, f_favail=3)
+        return st
+
+    monkeypatch.setattr(S, "STATVFS", few_inodes)
+    w = writer(dirs)
+    assert "out of inodes" in w.share_problem()
+    out = w.write_scan("2026-01-01", meta(1), cloud(), SHAPES)
+    assert out.location == "spool" and "inodes" in out.reason
+    assert not w.status()["available"]
