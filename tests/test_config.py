@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from appliance.config import load_config, parse_config
+from appliance.config.loader import check_files
 from appliance.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -57,3 +61,75 @@ def test_cross_field_rules() -> None:
 def test_missing_file() -> None:
     with pytest.raises(ConfigError, match="cannot be read"):
         load_config("/nonexistent/appliance.yaml")
+
+
+@pytest.mark.parametrize(
+    ("data", "wanted"),
+    [
+        (b"", "not a YAML mapping (empty)"),
+        (b"# all commented out\n\n", "not a YAML mapping (empty)"),
+        (b"\x00\x01\x02\x03PK\x03\x04", "not a YAML mapping (binary data"),
+        (b"serial: caf\xe9\n", "not a YAML mapping (not UTF-8 text: byte 0xe9 at offset 11)"),
+        (b"- cameras\n- output\n", ":1: not a YAML mapping (a list)"),
+        (b"just words\n", ":1: not a YAML mapping (a single string)"),
+        (b"[" * 20000, "nested too deeply"),
+        (b"serial: \x07\n", "not valid YAML"),
+    ],
+    ids=["empty", "comments", "binary", "latin1", "list", "string", "deep", "control-char"],
+)
+def test_files_that_are_not_a_mapping_are_one_line_errors(tmp_path: Path, data: bytes, wanted: str) -> None:
+    path = tmp_path / "appliance.yaml"
+    path.write_bytes(data)
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    msg = str(exc.value)
+    assert msg.startswith(f"{path}") and wanted in msg and "\n" not in msg, msg
+
+
+def validate(path: Path) -> tuple[int, str]:
+    r = subprocess.run(
+        [sys.executable, "-m", "appliance", "validate-config", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    return r.returncode, r.stdout + r.stderr
+
+
+def test_validate_config_refuses_binary_and_empty_files_in_one_line(tmp_path: Path) -> None:
+    for name, data in (("empty.yaml", b""), ("binary.yaml", b"\xff\xd8\xff\xe0\x00\x10JFIF\x00")):
+        path = tmp_path / name
+        path.write_bytes(data)
+        rc, out = validate(path)
+        assert rc == 1 and "Traceback" not in out, out
+        assert out.strip().count("\n") == 0 and "not a YAML mapping" in out, out
+
+
+def test_validate_config_checks_the_files_it_names(tmp_path: Path) -> None:
+    (tmp_path / "share").mkdir()
+    cal = tmp_path / "calibration.yaml"
+    doc = {
+        "calibration_file": str(cal),
+        "virtual_rig": {"scene": [{"type": "mesh", "path": "part.ply"}]},
+        "output": {"directory": str(tmp_path / "share"), "spool_directory": str(tmp_path / "share" / "spool")},
+    }
+    path = tmp_path / "appliance.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    rc, out = validate(path)
+    assert rc == 1 and "Traceback" not in out, out
+    assert f"calibration_file = '{cal}': does not exist" in out
+    assert f"virtual_rig.scene.0.path = '{tmp_path / 'part.ply'}': does not exist" in out
+    assert "output.spool_directory" in out and "is inside the share" in out
+    cal.write_text("%YAML:1.0\n")
+    (tmp_path / "part.ply").write_text("ply\n")
+    doc["output"]["spool_directory"] = str(tmp_path / "spool")
+    path.write_text(yaml.safe_dump(doc))
+    rc, out = validate(path)
+    assert rc == 0 and ": valid." in out, out
+
+
+def test_check_files_finds_the_spool_equal_to_the_share(tmp_path: Path) -> None:
+    cfg = parse_config(f"output: {{directory: {tmp_path}/s, spool_directory: {tmp_path}/s/}}\n", "a.yaml")
+    (problem,) = check_files(cfg, "a.yaml")
+    assert "is the share" in problem

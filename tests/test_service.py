@@ -81,6 +81,17 @@ class FakeScanner:
 
     async def scan(self) -> Any:
         await asyncio.sleep(self.plan.scan_s)
+        fail = getattr(self.plan, "fail", None)
+        if fail is not None:
+            raise fail
+        wedge = getattr(self.plan, "wedge", None)
+        if wedge is not None:  # a driver call that hangs in its thread and ignores cancellation
+            fut = asyncio.get_running_loop().run_in_executor(None, wedge.wait)
+            while not fut.done():
+                try:
+                    await asyncio.shield(fut)
+                except asyncio.CancelledError:
+                    continue
         self.scans += 1
         rng = np.random.default_rng(self.scans)
         n = 40
@@ -148,9 +159,16 @@ def write_config(tmp: Path, **service: Any) -> Path:
     return path
 
 
-def make(tmp: Path, scan_s: float = 0.02, open_failures: int = 0, **service: Any) -> FakeService:
-    plan = SimpleNamespace(scan_s=scan_s, open_failures=open_failures, warmed=0, closed=0)
-    return FakeService(write_config(tmp, **service), plan=plan, notifier=RecordingNotifier())
+def make(
+    tmp: Path,
+    scan_s: float = 0.02,
+    open_failures: int = 0,
+    notifier: SdNotifier | None = None,
+    plan: dict[str, Any] | None = None,
+    **service: Any,
+) -> FakeService:
+    p = SimpleNamespace(scan_s=scan_s, open_failures=open_failures, warmed=0, closed=0, **(plan or {}))
+    return FakeService(write_config(tmp, **service), plan=p, notifier=notifier or RecordingNotifier())
 
 
 async def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0) -> None:

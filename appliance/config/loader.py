@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -105,18 +106,35 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
     ConfigError
         With one ``file:line: key.path = value: rule`` line per problem.
     """
+    if "\x00" in text:
+        raise ConfigError(f"{source}: not a YAML mapping (binary data: a NUL character at offset "
+                          f"{text.index(chr(0))}); restore the file from config/appliance.yaml or a backup")
     try:
         root = yaml.compose(text)
         doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
         where = f"{source}:{mark.line + 1}" if mark is not None else source
-        problem = getattr(exc, "problem", None) or str(exc)
+        problem = " ".join(str(exc.problem or exc).split())
         raise ConfigError(f"{where}: not valid YAML: {problem}; check indentation and quoting") from exc
+    except yaml.YAMLError as exc:  # e.g. a reader error: a character YAML does not allow
+        problem = " ".join(str(exc).split())
+        raise ConfigError(f"{source}: not valid YAML: {problem}; remove the character or restore the file") from exc
+    except RecursionError as exc:
+        raise ConfigError(f"{source}: not valid YAML: nested too deeply; a configuration is a few levels of "
+                          "sections") from exc
     if doc is None:
-        doc = {}
+        raise ConfigError(f"{source}: not a YAML mapping (empty); start from config/appliance.yaml "
+                          "(every option with its default)")
     if not isinstance(doc, dict):
-        raise ConfigError(f"{source}:1: the configuration must be a YAML mapping of sections")
+        kind = {list: "a list", str: "a single string", int: "a number", float: "a number",
+                bool: "a boolean"}.get(type(doc), type(doc).__name__)
+        raise ConfigError(f"{source}:1: not a YAML mapping ({kind}); the configuration is sections such as "
+                          "'cameras:' and 'output:' (see config/appliance.yaml)")
+    bad_keys = [k for k in doc if not isinstance(k, str)]
+    if bad_keys:
+        raise ConfigError(f"{source}:1: top-level key {bad_keys[0]!r} is not a name; sections are names such "
+                          "as 'cameras' and 'output'")
     try:
         cfg = AppConfig.model_validate(doc)
     except ValidationError as exc:
@@ -144,7 +162,69 @@ def load_config(path: str | Path) -> AppConfig:
     """Read and validate a configuration file (see :func:`parse_config`)."""
     p = Path(path)
     try:
-        text = p.read_text()
+        data = p.read_bytes()
     except OSError as exc:
         raise ConfigError(f"{p}: cannot be read ({exc.strerror}); check the path or pass --config FILE") from exc
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        kind = "binary data" if b"\x00" in data else "not UTF-8 text"
+        raise ConfigError(f"{p}: not a YAML mapping ({kind}: byte 0x{data[exc.start]:02x} at offset {exc.start}); "
+                          "save the file as UTF-8 text") from exc
     return parse_config(text, str(p), p.parent)
+
+
+def _readable_file(path: Path) -> str:
+    """'' when ``path`` is a file this process can read, else why not."""
+    try:
+        with open(path, "rb") as f:
+            f.read(1)
+    except IsADirectoryError:
+        return "is a folder, not a file"
+    except FileNotFoundError:
+        return "does not exist"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    return ""
+
+
+def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
+    """What can be checked about a valid configuration without hardware: the files it names and its folders.
+
+    Parameters
+    ----------
+    cfg : AppConfig
+        A configuration that passed :func:`parse_config`.
+    source : str
+        The file name used in messages.
+
+    Returns
+    -------
+    list of str
+        One ``file: key = value: problem; fix`` line per problem (empty when all is well): the calibration file
+        present and readable, every mesh of the virtual scene present, the spool folder neither the share nor
+        inside it (nor the share inside the spool).
+    """
+    problems = []
+    if cfg.calibration_file is not None:
+        why = _readable_file(cfg.calibration_file)
+        if why:
+            problems.append(f"{source}: calibration_file = '{cfg.calibration_file}': {why}; run scan3d calibrate "
+                            "or fix the path (relative paths are from the service's working folder)")
+    for i, obj in enumerate(cfg.virtual_rig.scene):
+        path = getattr(obj, "path", None)
+        if obj.type == "mesh" and path is not None:
+            why = _readable_file(path)
+            if why:
+                problems.append(f"{source}: virtual_rig.scene.{i}.path = '{path}': {why}; fix the path (relative "
+                                "to the configuration file)")
+    share = Path(os.path.abspath(cfg.output.directory))
+    spool = Path(os.path.abspath(cfg.output.spool_directory))
+    if share == spool or share in spool.parents or spool in share.parents:
+        relation = ("is the share" if share == spool else
+                    "is inside the share" if share in spool.parents else "contains the share")
+        problems.append(f"{source}: output.spool_directory = '{cfg.output.spool_directory}' {relation} "
+                        f"(output.directory = '{cfg.output.directory}'); the spool must be a separate local "
+                        "folder (e.g. /var/lib/scan3d/spool), or watchers see spooled scans and a share that is "
+                        "away takes the spool with it")
+    return problems

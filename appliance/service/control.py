@@ -2,7 +2,7 @@
 
 Each request is one JSON object on one line, ``{"cmd": "status"}``; each reply is one JSON object on one line
 with ``"ok": true|false``. Commands: ``status``, ``trigger`` (``"wait": true`` replies when the scan is done),
-``reload``, ``last_error``. A connection may send several requests; a malformed line gets an error reply.
+``reload``, ``ping``, ``last_error``. A connection may send several requests; a malformed line gets an error reply.
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 Handler = Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
 MAX_LINE = 64 * 1024
 SOCKET_MODE = 0o660
+REPLY_GRACE_S = 2.0  # at close, requests in progress get this long to send their reply
+ALIVE_TIMEOUT_S = 0.5  # a socket file that accepts no connection within this is stale
 
 
 class ControlServer:
@@ -43,6 +45,7 @@ class ControlServer:
         self.handler = handler
         self._server: asyncio.Server | None = None
         self._clients: set[asyncio.Task[Any]] = set()
+        self._busy: set[asyncio.Task[Any]] = set()  # connections with a request in progress
 
     async def start(self) -> None:
         """Bind and listen.
@@ -58,7 +61,7 @@ class ControlServer:
             if not stat.S_ISSOCK(p.lstat().st_mode):
                 raise ApplianceError(f"control socket {p}: a file that is not a socket is there; remove it "
                                      "or set service.control_socket elsewhere")
-            if _socket_alive(p):
+            if await _socket_alive(p):
                 raise ApplianceError(f"control socket {p}: another scan3d service answers there; stop it "
                                      "(systemctl stop scan3d) or use --control-socket")
             p.unlink()
@@ -81,14 +84,25 @@ class ControlServer:
                     break
                 if not line.strip():
                     continue
-                await _reply(writer, await self._dispatch(line))
+                if task is not None:
+                    self._busy.add(task)
+                reply = await self._dispatch(line)
+                await _reply(writer, reply)
+                if task is not None:
+                    self._busy.discard(task)
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
+        except asyncio.CancelledError:  # the service is stopping: a request in progress gets a reply
+            if task is not None and task in self._busy:
+                with contextlib.suppress(ConnectionError, OSError, RuntimeError):
+                    writer.write(json.dumps({"ok": False, "error": "the service is stopping"}).encode() + b"\n")
+            # and end normally: a cancelled connection task makes asyncio log a CancelledError traceback
         finally:
             if task is not None:
                 self._clients.discard(task)
+                self._busy.discard(task)
             writer.close()
-            with contextlib.suppress(ConnectionError, OSError):
+            with contextlib.suppress(ConnectionError, OSError, asyncio.CancelledError):
                 await writer.wait_closed()
 
     async def _dispatch(self, line: bytes) -> dict[str, Any]:
@@ -96,6 +110,8 @@ class ControlServer:
             request = json.loads(line)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             return {"ok": False, "error": f"not a JSON line: {exc}"}
+        except RecursionError:
+            return {"ok": False, "error": "not a JSON request: nested too deeply; send one flat JSON object"}
         if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
             return {"ok": False, "error": 'a request is a JSON object with a "cmd" string'}
         try:
@@ -109,9 +125,13 @@ class ControlServer:
         return reply
 
     async def close(self) -> None:
-        """Stop listening, end the connections, remove the socket file."""
+        """Stop listening, let requests in progress reply (up to :data:`REPLY_GRACE_S`), end the connections,
+        remove the socket file."""
         if self._server is not None:
             self._server.close()
+            busy = set(self._busy)
+            if busy:
+                await asyncio.wait(busy, timeout=REPLY_GRACE_S)
             for t in list(self._clients):
                 t.cancel()
             if self._clients:
@@ -128,16 +148,16 @@ async def _reply(writer: asyncio.StreamWriter, reply: dict[str, Any]) -> None:
     await writer.drain()
 
 
-def _socket_alive(path: Path) -> bool:
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(0.5)
+async def _socket_alive(path: Path) -> bool:
     try:
-        s.connect(str(path))
-        return True
-    except OSError:
+        async with asyncio.timeout(ALIVE_TIMEOUT_S):
+            _, writer = await asyncio.open_unix_connection(str(path))
+    except (OSError, TimeoutError):
         return False
-    finally:
-        s.close()
+    writer.close()
+    with contextlib.suppress(OSError):
+        await writer.wait_closed()
+    return True
 
 
 def request(path: Path, req: dict[str, Any], timeout_s: float = 10.0) -> dict[str, Any]:

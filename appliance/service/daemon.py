@@ -21,31 +21,58 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import functools
 import logging
 import os
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from appliance.config import AppConfig, load_config
 from appliance.hardware.base import TriggerEvent
 from appliance.output.share import ShareWriter
 from appliance.service.control import ControlServer
 from appliance.service.handlers import ControlHandlers
+from appliance.service.health import HealthCheck
 from appliance.service.jobs import Job, ScanJobs
-from appliance.service.notify import SdNotifier, watchdog_interval_s
+from appliance.service.notify import SdNotifier
 from appliance.service.publish import Publisher
 from appliance.service.reload import ConfigWatcher
 from appliance.service.rig import RigManager, WatchedCamera
-from appliance.service.state import Phase, State, StatusBoard
+from appliance.service.state import Phase, ScanRecord, State, StatusBoard
 from appliance.service.writing import STATE_FILE, ScanOutput
 
 __all__ = ["STATE_FILE", "Service", "TriggerEvent", "run_service"]
 
 log = logging.getLogger(__name__)
+
+StateListener = Callable[[StatusBoard], None]
+ScanListener = Callable[[ScanRecord], None]
+
+
+class Extension(Protocol):
+    """Something that runs with the service (e.g. a line-integration face)."""
+
+    async def start(self) -> None: ...
+
+    async def apply(self, new: AppConfig) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+def rss_mb() -> float:
+    """This process's resident memory (MB), from /proc (0 where there is none)."""
+    try:
+        with open("/proc/self/statm", "rb") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return 0.0
+    return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
+
 
 # Sections whose change needs the rig rebuilt (everything else is applied in place).
 HARDWARE_KEYS = ("cameras", "projector", "trigger", "calibration_file", "sequence", "reconstruction",
@@ -100,6 +127,10 @@ class Service:
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self._ready_sent = False
+        self._scan_listeners: list[ScanListener] = []
+        self.health = HealthCheck(self)
+        self.exit_status = 0
+        self._extensions: list[Extension] = []
 
     # --- the public surface ----------------------------------------------------------------------
 
@@ -122,21 +153,59 @@ class Service:
         """Accept, queue or refuse a trigger; returns (``started``/``queued``/``refused: why``, job)."""
         return self.jobs.request(event)
 
+    def status(self) -> dict[str, Any]:
+        """What ``scan3d status --json`` shows (the share as last seen; :meth:`status_async` looks again)."""
+        snap = self.board.snapshot()
+        snap["control_socket"] = str(self.socket_path)
+        snap["rss_mb"] = rss_mb()
+        return snap
+
+    def subscribe(self, on_state: StateListener | None = None, on_scan: ScanListener | None = None) -> None:
+        """Follow the service: ``on_state(board)`` after every change, ``on_scan(record)`` after every finished
+        (or failed) scan. Listeners run on the event loop and must not block; one that raises is logged."""
+        if on_state is not None:
+            self.board.subscribe(on_state)
+        if on_scan is not None:
+            self._scan_listeners.append(on_scan)
+
+    def unsubscribe(self, on_state: StateListener | None = None, on_scan: ScanListener | None = None) -> None:
+        """Stop calling the listeners given to :meth:`subscribe`."""
+        if on_state is not None:
+            self.board.unsubscribe(on_state)
+        if on_scan is not None and on_scan in self._scan_listeners:
+            self._scan_listeners.remove(on_scan)
+
+    def add_extension(self, ext: Extension) -> None:
+        """Run ``ext`` with the service: ``start()`` once the control socket is up, ``apply(cfg)`` after each
+        applied reload, ``close()`` at shutdown (before the control socket closes). Call before :meth:`run`."""
+        self._extensions.append(ext)
+
+    def scan_finished(self, record: ScanRecord) -> None:
+        """Tell the scan listeners (called by the scan worker)."""
+        for fn in list(self._scan_listeners):
+            try:
+                fn(record)
+            except Exception:  # a broken listener must not stop the service
+                log.exception("scan listener %r failed", fn)
+
     def txt_record(self) -> dict[str, str]:
         """The mDNS TXT record (see :meth:`Publisher.txt_record`)."""
         return self.publisher.txt_record()
 
     async def status_async(self) -> dict[str, Any]:
         """What ``scan3d status --json`` shows, with a fresh look at the share."""
-        snap = self.board.snapshot()
+        snap = self.status()
         snap["share"] = await self.output.call(self.writer.status)
-        snap["control_socket"] = str(self.socket_path)
         return snap
 
     # --- lifecycle -------------------------------------------------------------------------------
 
     async def run(self) -> int:
-        """Run until SIGTERM/SIGINT (or ``scans`` done); returns the exit status (0)."""
+        """Run until SIGTERM/SIGINT (or ``scans`` done); returns the exit status.
+
+        0 after a requested stop; 1 when a part of the service ended unexpectedly (state ``fault`` with the
+        reason; systemd's ``Restart=on-failure`` starts it again).
+        """
         loop = asyncio.get_running_loop()
         self._install_signals(loop)
         self.board.subscribe(self.publisher.publish)
@@ -144,21 +213,23 @@ class Service:
         await self.output.start()
         self.control = ControlServer(self.socket_path, self.handlers.handle)
         await self.control.start()
-        self.spawn(self.publisher.start_mdns(), "mdns")  # probing takes ~2 s: never delays the start
+        self.spawn(self.publisher.start_mdns(), "mdns", critical=False)  # probing takes ~2 s: never delays the start
         self.watcher = ConfigWatcher(self.config_path, self._apply_config, self._config_rejected,
                                      self.cfg.service.config_poll_s)
-        self.spawn(self._watchdog_loop(), "watchdog")
+        self.spawn(self.health.run(), "health")
         self.spawn(self.watcher.run(), "config-watcher")
         self.spawn(self.output.spool_loop(), "spool")
         self.spawn(self.hardware.loop(), "hardware")
         self.spawn(self.jobs.worker(), "scan-worker")
+        for ext in self._extensions:
+            await ext.start()
         if self.stdin_button:
             self._start_stdin_reader(loop)
         try:
             await self._stop.wait()
         finally:
             await self._shutdown()
-        return 0
+        return self.exit_status
 
     def request_stop(self) -> None:
         """Begin a clean shutdown (what SIGTERM does)."""
@@ -172,22 +243,43 @@ class Service:
 
     def _sighup(self) -> None:
         if self.watcher is not None:
-            self.spawn(self.watcher.reload("SIGHUP"), "reload")
+            self.spawn(self.watcher.reload("SIGHUP"), "reload", critical=False)
 
-    def spawn(self, coro: Any, name: str) -> asyncio.Task[Any]:
-        """Run ``coro`` as a task of the service (cancelled at shutdown)."""
+    def spawn(self, coro: Any, name: str, *, critical: bool = True) -> asyncio.Task[Any]:
+        """Run ``coro`` as a task of the service (cancelled at shutdown).
+
+        A critical task runs for the life of the service: if it ends other than by cancellation, the service
+        reports ``fault`` with the reason and stops with exit status 1 (see :meth:`fail`).
+        """
         task = asyncio.get_running_loop().create_task(coro, name=f"scan3d-{name}")
         self._tasks.append(task)
-        task.add_done_callback(self._task_done)
+        task.add_done_callback(functools.partial(self._task_done, critical))
         return task
 
-    def _task_done(self, task: asyncio.Task[Any]) -> None:
+    def _task_done(self, critical: bool, task: asyncio.Task[Any]) -> None:
         with contextlib.suppress(ValueError):
             self._tasks.remove(task)
-        if not task.cancelled() and task.exception() is not None:
-            exc = task.exception()
-            log.error("task %s failed: %r", task.get_name(), exc, exc_info=exc)
-            self.board.error("service", f"internal task {task.get_name()} failed: {exc!r}")
+        if task.cancelled():
+            return  # only the service cancels its tasks
+        exc = task.exception()
+        name = task.get_name()
+        if not critical:
+            if exc is not None:
+                log.error("task %s failed: %r", name, exc, exc_info=exc)
+                self.board.error("service", f"internal task {name} failed: {exc!r}")
+            return
+        if self.stopping and exc is None:
+            return
+        self.fail(f"internal task {name} " + (f"failed: {exc!r}" if exc is not None else "ended unexpectedly"),
+                  exc)
+
+    def fail(self, reason: str, exc: BaseException | None = None) -> None:
+        """A part of the service is gone: publish ``fault`` with ``reason``, stop, exit with status 1."""
+        log.critical("%s; stopping with exit status 1 (systemd restarts the service)", reason, exc_info=exc)
+        self.exit_status = 1
+        self.board.error("service", reason)
+        self.board.set_state(State.FAULT, reason)
+        self.request_stop()
 
     def send_ready(self) -> None:
         """``READY=1`` to systemd, once (ready for triggers, or in fault but up)."""
@@ -196,7 +288,8 @@ class Service:
             self.notifier.ready(self.board.one_line())
 
     async def _shutdown(self) -> None:
-        self.board.set_state(State.STOPPING, "stopping", Phase.STOPPING)
+        if self.board.state != State.FAULT or self.exit_status == 0:
+            self.board.set_state(State.STOPPING, "stopping", Phase.STOPPING)
         self.notifier.stopping(self.board.one_line())
         self.jobs.drop_queued("the service is stopping; queued trigger dropped")
         current = self.jobs.current
@@ -207,30 +300,28 @@ class Service:
             if not done:
                 log.warning("stopping: scan not finished within %.0f s; aborting it (no file is written)",
                             grace)
+                self.jobs.abort_reason = (f"aborted: the service is stopping and the scan did not finish within "
+                                          f"service.stop_grace_s = {grace:g} s; no file was written")
                 current.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await current
+        self.jobs.abort_active(self.jobs.abort_reason)  # the waiting client gets its reply
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self.hardware.close()
         await self.publisher.close()
+        for ext in reversed(self._extensions):
+            try:
+                await ext.close()
+            except Exception:  # one extension must not keep the others (or the socket) open
+                log.exception("closing %r failed", ext)
         if self.control is not None:
             await self.control.close()
-        self.output.close()
+        await asyncio.to_thread(self.output.close)
         self.notifier.close()
         self.board.unsubscribe(self.publisher.publish)
         log.info("stopped after %d scans", self.board.counters["scans_done"])
-
-    # --- watchdog --------------------------------------------------------------------------------
-
-    async def _watchdog_loop(self) -> None:
-        interval = watchdog_interval_s()
-        if interval is None or not self.cfg.service.watchdog:
-            return
-        while True:  # pinged from the loop itself: a blocked loop stops the pings
-            self.notifier.watchdog()
-            await asyncio.sleep(interval)
 
     # --- hardware --------------------------------------------------------------------------------
 
@@ -277,6 +368,8 @@ class Service:
                 # say so at once: until the rig is rebuilt, the old one must not look ready
                 b.set_state(State.STARTING, "reconnecting for the new configuration", Phase.CONNECT)
                 self.hardware.changed.set()
+            for ext in self._extensions:
+                await ext.apply(new)
             b.changed()
 
     # --- stdin button ----------------------------------------------------------------------------

@@ -12,7 +12,7 @@ from appliance.hardware.base import TriggerEvent
 if TYPE_CHECKING:
     from appliance.service.daemon import Service
 
-COMMANDS = ("status", "trigger", "reload", "last_error")
+COMMANDS = ("status", "trigger", "reload", "ping", "last_error")
 
 
 class ControlHandlers:
@@ -26,6 +26,8 @@ class ControlHandlers:
         cmd = req["cmd"]
         if cmd == "status":
             return {"ok": True, "status": await self.svc.status_async()}
+        if cmd == "ping":  # the health check's probe: the socket and the loop answer
+            return {"ok": True, "pong": True}
         if cmd == "last_error":
             err = self.svc.board.last_error
             return {"ok": True, "last_error": asdict(err) if err is not None else None}

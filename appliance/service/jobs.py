@@ -5,6 +5,7 @@ one scan after another: capture and reconstruction on the rig, then the files th
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import logging
 import time
@@ -21,6 +22,10 @@ if TYPE_CHECKING:
     from appliance.service.daemon import Service
 
 log = logging.getLogger(__name__)
+
+# Module-level so tests can shorten them.
+HEARTBEAT_S = 1.0  # an idle worker shows it is alive this often
+WRITE_DEADLINE_S = 120.0  # a scan may take service.scan_timeout_s, its files this much longer
 
 
 @dataclass
@@ -44,6 +49,16 @@ class ScanJobs:
         self.queue: deque[Job] = deque()
         self.ready = asyncio.Event()
         self.current: asyncio.Task[ScanRecord] | None = None
+        self.active: Job | None = None  # taken from the queue, not finished (waiting for the lock included)
+        self.scan_id = ""  # of the running scan
+        self.abort_reason = "aborted (stopping)"
+        self.heartbeat = time.monotonic()  # the worker's last sign of life (idle: every HEARTBEAT_S)
+        self.deadline: float | None = None  # monotonic time by which the running job must be done
+
+    @property
+    def busy(self) -> bool:
+        """True while a job is queued, waiting for the scan lock or running (the hand-over included)."""
+        return bool(self.queue) or self.active is not None or self.svc.board.busy
 
     def request(self, event: TriggerEvent) -> tuple[str, Job | None]:
         """Accept, queue or refuse a trigger; returns (``started``/``queued``/``refused: why``, job)."""
@@ -52,9 +67,9 @@ class ScanJobs:
         b.count("triggers")
         if svc.stopping:
             why = "the service is stopping"
-        elif svc.scanner is None:
+        elif not svc.hardware.ready:
             why = f"not ready ({b.state}: {b.detail})"
-        elif b.busy or self.queue:
+        elif self.busy:
             if svc.cfg.service.busy_policy == "queue" and len(self.queue) < svc.cfg.service.queue_max:
                 job = Job(event)
                 self.queue.append(job)
@@ -63,7 +78,8 @@ class ScanJobs:
                 log.info("trigger from %s queued (%d waiting)", event.source, len(self.queue))
                 self.ready.set()
                 return "queued", job
-            why = f"busy ({b.state})" + (f", queue full ({len(self.queue)})" if self.queue else "")
+            state = b.state if b.busy else "a scan is starting"
+            why = f"busy ({state})" + (f", queue full ({len(self.queue)})" if self.queue else "")
         else:
             job = Job(event)
             self.queue.append(job)
@@ -82,33 +98,81 @@ class ScanJobs:
         self.queue.clear()
         self.svc.board.queue_length = 0
 
+    def abort_active(self, why: str) -> None:
+        """Resolve the job in hand (if any) as failed with ``why`` (shutdown: its client gets a reply)."""
+        job = self.active
+        if job is not None and not job.done.done():
+            job.done.set_result(ScanRecord(self.scan_id, "", job.event.source, False, error=why))
+
     async def worker(self) -> None:
-        """Run queued scans one after another (until cancelled)."""
+        """Run queued scans one after another (until cancelled); heartbeats while idle."""
         svc = self.svc
         while True:
-            await self.ready.wait()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.ready.wait(), HEARTBEAT_S)
             self.ready.clear()
-            while self.queue and svc.scanner is not None and not svc.stopping:
+            self.heartbeat = time.monotonic()
+            while self.queue and svc.hardware.ready and not svc.stopping:
                 job = self.queue.popleft()
                 svc.board.queue_length = len(self.queue)
-                async with svc.scan_lock:
-                    self.current = asyncio.get_running_loop().create_task(self._scan(job.event))
-                    try:
-                        record = await asyncio.shield(self.current)
-                    except asyncio.CancelledError:
-                        me = asyncio.current_task()
-                        if not self.current.done() or (me is not None and me.cancelling()):
-                            raise  # the worker itself is cancelled, not (only) the scan
-                        record = ScanRecord("", "", job.event.source, False, error="aborted (stopping)")
-                    finally:
-                        self.current = None
+                self.active = job
+                self.deadline = time.monotonic() + svc.cfg.service.scan_timeout_s + WRITE_DEADLINE_S
+                try:
+                    record = await self._run(job)
+                finally:
+                    self.active = None
+                    self.deadline = None
+                    self.heartbeat = time.monotonic()
+                if record is None:  # the rig went away while it waited: back in front, until it is back
+                    self.queue.appendleft(job)
+                    svc.board.queue_length = len(self.queue)
+                    break
                 if not job.done.done():
                     job.done.set_result(record)
+                svc.scan_finished(record)
                 if svc.max_scans is not None and svc.successful_scans >= svc.max_scans:
                     log.info("%d scans done (--scans); stopping", svc.successful_scans)
                     svc.request_stop()
 
-    async def _scan(self, event: TriggerEvent) -> ScanRecord:
+    async def _run(self, job: Job) -> ScanRecord | None:
+        """One job under the scan lock; None when the rig is not (or no longer) ready."""
+        svc = self.svc
+        async with svc.scan_lock:
+            if not svc.hardware.ready:  # a reload changed the rig while this job waited for the lock
+                log.info("trigger from %s waits: the rig is being reconnected", job.event.source)
+                return None
+            self.current = asyncio.get_running_loop().create_task(self._scan_guarded(job.event))
+            try:
+                return await asyncio.shield(self.current)
+            except asyncio.CancelledError:
+                me = asyncio.current_task()
+                if not self.current.done() or (me is not None and me.cancelling()):
+                    raise  # the worker itself is cancelled, not (only) the scan
+                return ScanRecord(self.scan_id, "", job.event.source, False, error=self.abort_reason)
+            finally:
+                self.current = None
+
+    async def _scan_guarded(self, event: TriggerEvent) -> ScanRecord:
+        """:meth:`_scan`, where any exception is a failed scan with its message and the state goes back to idle."""
+        self.scan_id = ""
+        started = dt.datetime.now(dt.UTC)
+        try:
+            return await self._scan(event, started)
+        except Exception as exc:  # the service outlives any failed scan, whatever failed
+            svc, b = self.svc, self.svc.board
+            if not isinstance(exc, ApplianceError):
+                log.exception("scan %s: unexpected error", self.scan_id or "(before start)")
+            msg = str(exc) or type(exc).__name__
+            what = f"scan {self.scan_id}" if self.scan_id else "scan"
+            b.count("scans_failed")
+            b.error("scan", f"{what} failed: {msg}")
+            rec = ScanRecord(self.scan_id, started.isoformat(), event.source, False, error=msg)
+            b.add_scan(rec)
+            b.set_state(svc.hardware.idle_state(), "ready")
+            return rec
+
+    async def _scan(self, event: TriggerEvent, started: dt.datetime) -> ScanRecord:
+        from appliance.output.scanfiles import make_scan_id
         from appliance.scan import scan_metadata
 
         svc = self.svc
@@ -117,7 +181,6 @@ class ScanJobs:
         shapes = [(m.height, m.width) for n, m in scanner.calibration.devices.items() if n in cfg.cameras]
         need = estimate_scan_bytes(shapes, normals=cfg.output.normals, preview=cfg.output.preview)
         problem = await out.call(out.writer.storage_problem, need)
-        started = dt.datetime.now(dt.UTC)
         if problem:
             b.count("triggers_refused")
             b.count("scans_failed")
@@ -126,10 +189,7 @@ class ScanJobs:
             rec = ScanRecord("", started.isoformat(), event.source, False, error=f"refused: {problem}")
             b.add_scan(rec)
             return rec
-        out.counter += 1
-        from appliance.output.scanfiles import make_scan_id
-
-        scan_id = make_scan_id(cfg.serial, out.counter, started)
+        scan_id = self.scan_id = make_scan_id(cfg.serial, await out.next_number(), started)
         svc.hardware.captured_count = 0
         b.set_state(State.SCANNING, scan_id)
         try:
@@ -178,7 +238,7 @@ class ScanJobs:
         b.counters["scans_done"] += 1
         b.add_scan(rec)
         b.share = await out.call(out.writer.status)
-        await out.call(out.save_state)
+        await out.save_state()
         log.info("scan %s: %d points, %.0f ms trigger to file; %s: %s", scan_id, len(result.cloud),
                  timings["trigger_to_file_ms"], outcome.location, outcome.files[0] if outcome.files else "-")
         b.set_state(svc.hardware.idle_state(), "ready")

@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 
 # Module-level so tests can shorten it: wait this long after a change so an editor finishes writing.
 SETTLE_S = 0.1
+IDLE_RECHECK_S = 1.0  # with polling off, look this often whether a reload turned it on
 
 Stamp = tuple[int, int, int] | None
 
@@ -71,19 +72,23 @@ class ConfigWatcher:
                 cfg = await loop.run_in_executor(None, load_config, self.path)
             except ConfigError as exc:
                 msg = str(exc)
-                log.error("configuration %s (%s) rejected; the last good one keeps running:\n%s",
-                          self.path, why, msg)
-                self.rejected(msg)
-                return False, msg
-            log.info("configuration %s reloaded (%s)", self.path, why)
-            await self.apply(cfg)
-            return True, ""
+            except Exception as exc:  # whatever the file holds, the watcher lives on
+                log.exception("loading %s", self.path)
+                msg = f"{self.path}: cannot be loaded ({exc!r}); fix the file"
+            else:
+                log.info("configuration %s reloaded (%s)", self.path, why)
+                await self.apply(cfg)
+                return True, ""
+            log.error("configuration %s (%s) rejected; the last good one keeps running:\n%s", self.path, why, msg)
+            self.rejected(msg)
+            return False, msg
 
     async def run(self) -> None:
-        """Poll until cancelled."""
-        if self.poll_s <= 0:
-            return
+        """Poll until cancelled (never returns by itself; with ``poll_s`` 0 it only waits for a new period)."""
         while True:
+            if self.poll_s <= 0:
+                await asyncio.sleep(IDLE_RECHECK_S)  # a reload may turn polling on
+                continue
             await asyncio.sleep(self.poll_s)
             if file_stamp(self.path) == self.stamp:
                 continue

@@ -58,6 +58,7 @@ class RigManager:
         self.svc = svc
         self.changed = asyncio.Event()  # set: close and rebuild the rig (new configuration, lost devices)
         self.captured_count = 0
+        self.connected = False  # connected and warm
         self._trigger_task: asyncio.Task[None] | None = None
 
     def devices_from_config(self) -> None:
@@ -67,6 +68,11 @@ class RigManager:
         devs["projector"] = DeviceStatus("projector", "projector", cfg.projector.type)
         devs["trigger"] = DeviceStatus("trigger", "trigger", cfg.trigger.type)
         self.svc.board.devices = devs
+
+    @property
+    def ready(self) -> bool:
+        """True when the rig is connected and current (no rebuild pending)."""
+        return self.connected and self.svc.scanner is not None and not self.changed.is_set()
 
     def idle_state(self) -> State:
         """``idle`` when every device is fine, else ``fault``."""
@@ -144,6 +150,7 @@ class RigManager:
     async def close(self) -> None:
         """Stop the trigger loop, close the trigger and the rig."""
         svc = self.svc
+        self.connected = False
         if self._trigger_task is not None:
             self._trigger_task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -180,6 +187,7 @@ class RigManager:
                 if failures == 1:
                     log.error("hardware: %s; retrying with backoff", exc)
                 svc.board.error("hardware", str(exc))
+                svc.jobs.drop_queued(f"scan not started: hardware: {exc}")
                 svc.board.set_state(State.FAULT, f"hardware: {exc}; retry in {delay:.0f} s", Phase.CONNECT)
                 svc.send_ready()
                 with contextlib.suppress(TimeoutError):
@@ -190,10 +198,12 @@ class RigManager:
             if failures:
                 log.info("hardware recovered after %d failed attempt(s)", failures)
             failures, delay = 0, RETRY_FIRST_S
+            self.connected = True
             svc.board.set_state(self.idle_state(), "ready", Phase.READY)
             svc.send_ready()
             svc.jobs.ready.set()
             await self.changed.wait()
+            self.connected = False  # not ready from here on, before the lock is taken
             self.changed.clear()
             async with svc.scan_lock:
                 await self.close()

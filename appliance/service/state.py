@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as dt
 import enum
 import logging
+import re
 import time
 from collections import deque
 from collections.abc import Callable
@@ -85,8 +86,39 @@ class ErrorRecord:
     advice: str
 
 
+_DEVICE_RE = re.compile(
+    r"\b(?:camera '[^']*' \((?P<cam>[\w-]+)|trigger (?P<trig>[\w-]+)|(?P<proj>projector|lightcrafter))", re.IGNORECASE)
+
+_CAMERA_ADVICE = {
+    "sim": "the virtual rig's simulated camera failed: a software fault, not a cable; look at the log "
+           "(journalctl -u scan3d -e); the next trigger tries again",
+    "aravis": "check the camera's power and network cable (ping its address; scan3d devices); the service "
+              "retries by itself",
+    "uvc": "check the camera's USB cable (ls /dev/video*; scan3d devices); the service retries by itself",
+}
+_TRIGGER_ADVICE = {
+    "serial": "check the trigger controller's USB cable (ls /dev/serial/by-id/); the service retries by itself",
+    "gpio": "check the button's wiring and trigger.chip / trigger.line (gpioinfo); the service retries by itself",
+    "sim": "the virtual rig's simulated button failed: a software fault, not a cable; look at the log "
+           "(journalctl -u scan3d -e)",
+}
+
+
+def _disk_advice(m: str) -> str:
+    if "read-only" in m or "errno 30" in m:
+        return ("the folder is on a read-only filesystem: remount it read-write (mount; dmesg for disk errors) "
+                "or point output.spool_directory / output.directory at a writable folder")
+    if "permission denied" in m or "errno 13" in m or "not writable" in m:
+        return ("the service user has no permission to write there: fix the folder's owner and mode (ls -ld; "
+                "chown scan3d) or the unit's ReadWritePaths=")
+    if "inode" in m:
+        return "the filesystem has no free inodes left (df -i): remove old files"
+    return "free space on the share / spool disk (df -h), or lower output.min_free_mb"
+
+
 def advice_for(where: str, message: str) -> str:
-    """What a person should do about an error (one line)."""
+    """What a person should do about an error (one line), by where it happened, the device and backend it
+    names (``camera 'left' (aravis, ...)``, ``trigger serial``) and the cause in the message."""
     m = message.lower()
     if where == "config":
         return ("fix the file (scan3d validate-config FILE shows the problem); the last good configuration "
@@ -95,13 +127,19 @@ def advice_for(where: str, message: str) -> str:
         return ("check that the share is mounted and writable (mount, df -h); scans are kept in the spool "
                 "and moved over automatically when it is back")
     if where == "disk":
-        return "free space on the share / spool disk (df -h), or lower output.min_free_mb"
-    if "serial" in m or "tty" in m or "trigger" in m:
-        return ("check the trigger controller's USB cable (ls /dev/serial/by-id/); "
-                "the service retries by itself")
-    if "camera" in m:
-        return "check the camera's power and cable (scan3d devices); the service retries by itself"
-    if "projector" in m or "lightcrafter" in m:
+        return _disk_advice(m)
+    found = _DEVICE_RE.search(message)
+    if found is not None:
+        if found["cam"] is not None:
+            return _CAMERA_ADVICE.get(found["cam"].lower(), "check the camera's power and cable (scan3d devices); "
+                                      "the service retries by itself")
+        if found["trig"] is not None:
+            return _TRIGGER_ADVICE.get(found["trig"].lower(), "check the trigger device and its cable "
+                                       "(scan3d devices); the service retries by itself")
+        if "(sim" in m or "projector sim" in m:
+            return "the virtual rig's simulated projector failed: a software fault; look at the log"
+        if "display" in m and "lightcrafter" not in m:
+            return "check the projector's video cable (HDMI/DP) and that its output is on; the service retries"
         return "check the projector's power and USB cable (scan3d devices); the service retries by itself"
     if where == "scan":
         return "look at the log (journalctl -u scan3d); the next trigger tries again"

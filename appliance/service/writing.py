@@ -11,7 +11,7 @@ import asyncio
 import json
 import logging
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -51,6 +51,10 @@ class ScanOutput:
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` in the writer thread."""
         return await asyncio.get_running_loop().run_in_executor(self._ex, fn, *args)
+
+    def submit(self, fn: Callable[[], T]) -> Future[T]:
+        """Hand ``fn()`` to the writer thread without waiting (the health check's probe)."""
+        return self._ex.submit(fn)
 
     def configure(self, old: AppConfig, new: AppConfig) -> None:
         """A new configuration: a new share writer when the output section changed."""
@@ -98,13 +102,22 @@ class ScanOutput:
         except (OSError, ValueError, TypeError):
             pass
 
-    def save_state(self) -> None:
-        """Write the scan counter and the last scans (atomically; a failure is logged)."""
+    async def next_number(self) -> int:
+        """The next scan number, persisted before it is used (a number is never reused, even after a kill)."""
+        self.counter += 1
+        await self.save_state()
+        return self.counter
+
+    async def save_state(self) -> None:
+        """Write the scan counter and the last scans (atomically, in the writer thread; a failure is logged)."""
+        data = {"counter": self.counter, "last_scans": [asdict(r) for r in self.board.last_scans]}
+        await self.call(self._write_state, json.dumps(data).encode())
+
+    def _write_state(self, data: bytes) -> None:
         path = self.state_path()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            data = {"counter": self.counter, "last_scans": [asdict(r) for r in self.board.last_scans]}
-            write_bytes_atomic(path, json.dumps(data).encode())
+            write_bytes_atomic(path, data)
         except (OSError, ApplianceError) as exc:
             log.warning("state file %s: %s", path, exc)
 
