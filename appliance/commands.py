@@ -177,6 +177,12 @@ def validate_config(path: Path) -> int:
     except ConfigError as exc:
         print(str(exc))
         return 1
+    from appliance.config.loader import check_files
+
+    problems = check_files(cfg, str(path))
+    if problems:
+        print("\n".join(problems))
+        return 1
     cams = ", ".join(f"{n} ({c.type})" for n, c in cfg.cameras.items())
     print(f"{path}: valid. cameras: {cams}; projector: {cfg.projector.type}; trigger: {cfg.trigger.type}; "
           f"sequence: {cfg.sequence.kind} {cfg.sequence.axes}")
