@@ -524,3 +524,55 @@ def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
         assert f"share: {cloud}" in log or f"share: {cloud.relative_to(REPO)}" in log, log[-2000:]
     errors = re.findall(r"error against ground truth: (\d+) points: RMS ([0-9.]+) mm", log)
     assert len(errors) == 2 and all(int(n) > 1000 and float(rms) < 0.5 for n, rms in errors), errors
+
+
+# --- scan numbers across a SIGKILL; the numba threading layer ------------------------------------------------
+
+
+def _number(scan_id: str) -> int:
+    return int(scan_id.rsplit("-", 1)[1])
+
+
+def test_scan_numbers_are_never_reused_after_a_sigkill(tmp_path: Path) -> None:
+    config = write_config(tmp_path, camera={"frame_delay_ms": 60})
+    first = ServiceProcess(config, tmp_path)
+    try:
+        st = first.wait_ready()
+        assert st["numba_threading_layer"] in ("omp", "tbb") and st["rss_mb"] > 0
+        done = request(first.sock, {"cmd": "trigger", "wait": True}, 120)["scan"]["scan_id"]
+        assert request(first.sock, {"cmd": "trigger"})["ok"]
+        killed = wait_for(
+            lambda: (s := first.status()).get("state") == "scanning" and s["detail"], 30, "second scan running"
+        )
+        first.proc.kill()  # SIGKILL in the middle of the scan: nothing gets to save anything
+        first.proc.wait(30)
+    finally:
+        if first.proc.poll() is None:
+            first.proc.kill()
+    assert _number(killed) == _number(done) + 1
+    (tmp_path / "sock").unlink(missing_ok=True)
+    second = ServiceProcess(config, tmp_path)
+    try:
+        second.wait_ready()
+        after = request(second.sock, {"cmd": "trigger", "wait": True}, 120)["scan"]["scan_id"]
+        assert second.stop() == 0
+    finally:
+        if second.proc.poll() is None:
+            second.proc.kill()
+    assert _number(after) > _number(killed), (done, killed, after)  # the killed scan's number is not reused
+    assert len(list((tmp_path / "share").rglob("*.json"))) == 2
+    no_partial_files(tmp_path / "share", tmp_path / "state")
+
+
+def test_an_unsafe_numba_threading_layer_is_refused_at_start(tmp_path: Path) -> None:
+    config = write_config(tmp_path)
+    svc = ServiceProcess(config, tmp_path, {"NUMBA_THREADING_LAYER": "workqueue"})
+    try:
+        rc = svc.proc.wait(180)
+    finally:
+        if svc.proc.poll() is None:
+            svc.proc.kill()
+    log = svc.log.read_text()
+    assert rc == 1, log
+    assert "numba threading layer is 'workqueue'" in log and "omp or tbb" in log
+    assert "Traceback" not in log

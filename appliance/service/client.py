@@ -48,7 +48,8 @@ def format_status(st: dict[str, Any]) -> str:
         head += f" [{st.get('phase')}]"
     if st.get("detail"):
         head += f" — {st['detail']}"
-    lines.append(f"{head}   (up {_uptime(float(st.get('uptime_s', 0)))})")
+    mem = f", RSS {float(st['rss_mb']):.0f} MB" if st.get("rss_mb") else ""
+    lines.append(f"{head}   (up {_uptime(float(st.get('uptime_s', 0)))}{mem})")
     cfg = st.get("config", {})
     lines.append(f"config    {cfg.get('path')} (loaded {cfg.get('loaded_utc')})")
     if cfg.get("error"):

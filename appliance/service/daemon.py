@@ -42,7 +42,7 @@ from appliance.service.jobs import Job, ScanJobs
 from appliance.service.notify import SdNotifier
 from appliance.service.publish import Publisher
 from appliance.service.reload import ConfigWatcher
-from appliance.service.rig import RigManager, WatchedCamera
+from appliance.service.rig import RigManager, WatchedCamera, select_threading_layer
 from appliance.service.state import Phase, ScanRecord, State, StatusBoard
 from appliance.service.writing import STATE_FILE, ScanOutput
 
@@ -72,6 +72,15 @@ def rss_mb() -> float:
     except (OSError, ValueError, IndexError):
         return 0.0
     return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
+
+
+def _threading_layer() -> str:
+    import numba
+
+    try:
+        return str(numba.threading_layer())
+    except ValueError:
+        return "(no parallel kernel run yet)"
 
 
 # Sections whose change needs the rig rebuilt (everything else is applied in place).
@@ -158,6 +167,7 @@ class Service:
         snap = self.board.snapshot()
         snap["control_socket"] = str(self.socket_path)
         snap["rss_mb"] = rss_mb()
+        snap["numba_threading_layer"] = _threading_layer()
         return snap
 
     def subscribe(self, on_state: StateListener | None = None, on_scan: ScanListener | None = None) -> None:
@@ -207,6 +217,7 @@ class Service:
         reason; systemd's ``Restart=on-failure`` starts it again).
         """
         loop = asyncio.get_running_loop()
+        select_threading_layer()
         self._install_signals(loop)
         self.board.subscribe(self.publisher.publish)
         self.board.set_state(State.STARTING, "loading configuration", Phase.LOAD_CONFIG)

@@ -25,6 +25,42 @@ log = logging.getLogger(__name__)
 RETRY_FIRST_S = 1.0  # first wait before reconnecting hardware; doubles up to service.retry_max_s
 
 
+SAFE_LAYERS = ("omp", "tbb")  # numba threading layers safe for parallel kernels launched from several threads
+
+
+class FatalError(ApplianceError):
+    """A problem no retry can fix: the service stops with exit status 1."""
+
+
+def select_threading_layer() -> None:
+    """Ask numba for a thread-safe threading layer (tbb, else omp) unless the operator chose one.
+
+    Kernels run concurrently (one decode thread per camera, the reconstruction): numba's ``workqueue`` layer
+    is not safe for that. Must run before the first parallel kernel of the process.
+    """
+    from numba import config
+
+    if str(config.THREADING_LAYER) == "default":
+        config.THREADING_LAYER = "threadsafe"
+
+
+def threading_layer_problem() -> str:
+    """'' when the numba threading layer in use is thread-safe; else what is wrong and what to do.
+
+    Only meaningful once a parallel kernel has run (after the warm-up).
+    """
+    import numba
+
+    try:
+        layer = numba.threading_layer()
+    except ValueError:
+        return ""  # no parallel kernel has run: nothing is unsafe yet
+    if layer in SAFE_LAYERS:
+        return ""
+    return (f"numba threading layer is {layer!r}, which is not safe with kernels running in several threads; "
+            "unset NUMBA_THREADING_LAYER (or set it to omp or tbb) and install libgomp1 (apt) or tbb (pip)")
+
+
 class WatchedCamera:
     """Wraps a camera: remembers what it said at open and reports when its frames are all in."""
 
@@ -111,7 +147,15 @@ class RigManager:
         await self._open_trigger()
         svc.board.set_state(State.STARTING, "warming kernels", Phase.WARM)
         t = time.perf_counter()
-        await scanner.warm_up()  # a discarded scan on the virtual rig, else a decode of blank frames
+        try:
+            await scanner.warm_up()  # a discarded scan on the virtual rig, else a decode of blank frames
+        except ValueError as exc:
+            if "threading layer" in str(exc):
+                raise FatalError(f"numba: {exc}; install libgomp1 (apt) or tbb (pip install tbb)") from exc
+            raise
+        problem = threading_layer_problem()
+        if problem:
+            raise FatalError(problem)
         self.captured_count = 0
         log.info("kernels warm in %.1f s", time.perf_counter() - t)
 
@@ -176,6 +220,10 @@ class RigManager:
             try:
                 async with svc.scan_lock:
                     await self.connect()
+            except FatalError as exc:
+                await self.close()
+                svc.fail(str(exc))
+                return
             except Exception as exc:  # any failure to connect is a fault to retry, never the end
                 await self.close()
                 failures += 1

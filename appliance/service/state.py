@@ -92,8 +92,8 @@ _DEVICE_RE = re.compile(
 _CAMERA_ADVICE = {
     "sim": "the virtual rig's simulated camera failed: a software fault, not a cable; look at the log "
            "(journalctl -u scan3d -e); the next trigger tries again",
-    "aravis": "check the camera's power and network cable (ping its address; scan3d devices); the service "
-              "retries by itself",
+    "aravis": "check the camera's power and cable (a network cable: ping its address; scan3d devices); the "
+              "service retries by itself",
     "uvc": "check the camera's USB cable (ls /dev/video*; scan3d devices); the service retries by itself",
 }
 _TRIGGER_ADVICE = {
