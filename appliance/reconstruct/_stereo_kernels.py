@@ -1,4 +1,10 @@
-"""numba kernels of camera-camera triangulation (private; see ``stereo.py``)."""
+"""numba kernels of camera-camera matching (private; see ``stereo.py``).
+
+Codes arrive on rectified rows in *level units*: the value ``k`` (an integer) is a level whose crossing is
+tabulated per row. For continuous (phase) codes a level is one projector pixel; for quantised (Gray-only)
+codes the levels are the boundaries between neighbouring stripes, so a stripe is the open interval
+``(k, k + 1)`` and its centre ``k + 0.5``.
+"""
 
 from __future__ import annotations
 
@@ -64,9 +70,47 @@ def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-
     return out
 
 
+# per-pixel outcome of the matcher (see stereo.STAGES for the words)
+ST_NONE = 0  # not decoded in the reference camera: not a candidate
+ST_OUTSIDE = 1  # outside the rows both cameras share
+ST_OWN = 2  # the code is not where it should be on its own row (ambiguous, edge, left-right check)
+ST_OTHER = 3  # the code is not found, or not consistently, on the other camera's row
+ST_EPIPOLAR = 4  # the (u, v) match lies too far off the epipolar line
+ST_DEPTH = 5  # behind the cameras or outside the depth range
+ST_THREE_VIEW = 6  # the point does not project onto its code in the projector
+ST_OK = 7
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def crossing_table(rect, code_offset, max_step, out):  # type: ignore[no-untyped-def]
-    """Per rectified row, the sub-pixel x where the code crosses each integer (NaN none, inf ambiguous)."""
+def to_levels(rect, lev0, inv_dl):  # type: ignore[no-untyped-def]
+    """In place: codes -> level units ``(c - lev0) * inv_dl``."""
+    hr, wr = rect.shape[0], rect.shape[1]
+    for y in prange(hr):
+        for x in range(wr):
+            rect[y, x] = (rect[y, x] - lev0) * inv_dl
+    return rect
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def step_histogram(rect, max_step, bins, out):  # type: ignore[no-untyped-def]
+    """Histogram (per row, summed by the caller) of |code step| between row neighbours, ``bins`` per level."""
+    hr, wr = rect.shape[0], rect.shape[1]
+    nb = out.shape[1]
+    for y in prange(hr):
+        for b in range(nb):
+            out[y, b] = 0
+        for x in range(wr - 1):
+            d = abs(np.float64(rect[y, x + 1]) - np.float64(rect[y, x]))
+            if d <= max_step:  # NaN compares false
+                b = int(d * bins)
+                if b < nb:
+                    out[y, b] += 1
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def level_crossings(rect, code_offset, max_step, out):  # type: ignore[no-untyped-def]
+    """Per rectified row, the sub-pixel x where the code crosses each level (NaN none, inf crossed twice)."""
     hr, wr = rect.shape[0], rect.shape[1]
     nk = out.shape[1]
     for y in prange(hr):
@@ -79,9 +123,7 @@ def crossing_table(rect, code_offset, max_step, out):  # type: ignore[no-untyped
                 continue
             lo = min(ua, ub)
             hi = max(ua, ub)
-            k0 = math.ceil(lo)
-            k1 = math.ceil(hi)
-            for k in range(k0, k1):
+            for k in range(math.ceil(lo), math.ceil(hi)):
                 idx = k + code_offset
                 if idx < 0 or idx >= nk:
                     continue
@@ -93,12 +135,117 @@ def crossing_table(rect, code_offset, max_step, out):  # type: ignore[no-untyped
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _fit_line(tab, y, k, sy, sk, half, max_res):  # type: ignore[no-untyped-def]
+    """Robust local line fit at (y, k) over the entries (y + d sy, k + d sk), |d| <= half."""
+    hr, nk = tab.shape[0], tab.shape[1]
+    x0 = np.float64(tab[y, k])
+    a = x0
+    b = 0.0
+    for it in range(2):
+        s1 = 0.0
+        sd = 0.0
+        sdd = 0.0
+        sx = 0.0
+        sdx = 0.0
+        for d in range(-half, half + 1):
+            yy = y + d * sy
+            kk = k + d * sk
+            if yy < 0 or yy >= hr or kk < 0 or kk >= nk:
+                continue
+            x = np.float64(tab[yy, kk])
+            if not math.isfinite(x):
+                continue
+            if it == 1 and abs(x - (a + b * d)) > max_res:
+                continue
+            s1 += 1.0
+            sd += d
+            sdd += d * d
+            sx += x
+            sdx += d * x
+        det = s1 * sdd - sd * sd
+        if s1 < 3.0 or det < 1e-9:
+            return x0
+        a = (sx * sdd - sd * sdx) / det
+        b = (s1 * sdx - sd * sx) / det
+        if it == 0 and abs(x0 - a) > max_res:
+            return x0
+    return a
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def smooth_crossings(tab, half, along_rows, max_res, out):  # type: ignore[no-untyped-def]
+    """Local line fit of each crossing over ``2 half + 1`` neighbouring levels (or rows, ``along_rows``).
+
+    Quantised codes put every crossing within half a pixel of its true place, independently from level to
+    level and row to row where stripes and pixel grid are not aligned: the fit averages that out (run once
+    along levels, once along rows: a separable plane fit). Entries more than ``max_res`` px off a first fit
+    are left out of a second; a centre that is itself such an outlier stays raw. Ambiguous (inf) and
+    missing (NaN) entries are copied.
+    """
+    hr, nk = tab.shape[0], tab.shape[1]
+    sy = 1 if along_rows else 0
+    sk = 1 - sy
+    for y in prange(hr):
+        for k in range(nk):
+            x0 = tab[y, k]
+            out[y, k] = _fit_line(tab, y, k, sy, sk, half, max_res) if math.isfinite(x0) else x0
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def box_mean(src, radius, max_span, scratch, out):  # type: ignore[no-untyped-def]
+    """Separable (2r+1)^2 box mean of a quantised code map where the whole window is valid and spans at
+    most ``max_span`` codes per axis pass (no edge inside); NaN elsewhere. ``scratch`` is (H, W)."""
+    h, w = src.shape[0], src.shape[1]
+    n = 2 * radius + 1
+    for y in prange(h):
+        for x in range(w):
+            scratch[y, x] = _NAN
+            if x < radius or x + radius >= w:
+                continue
+            s = 0.0
+            lo = np.inf
+            hi = -np.inf
+            ok = True
+            for d in range(-radius, radius + 1):
+                c = np.float64(src[y, x + d])
+                if not math.isfinite(c):
+                    ok = False
+                    break
+                s += c
+                lo = min(lo, c)
+                hi = max(hi, c)
+            if ok and hi - lo <= max_span:
+                scratch[y, x] = s / n
+    for y in prange(h):
+        for x in range(w):
+            out[y, x] = _NAN
+            if y < radius or y + radius >= h:
+                continue
+            s = 0.0
+            lo = np.inf
+            hi = -np.inf
+            ok = True
+            for d in range(-radius, radius + 1):
+                c = np.float64(scratch[y + d, x])
+                if not math.isfinite(c):
+                    ok = False
+                    break
+                s += c
+                lo = min(lo, c)
+                hi = max(hi, c)
+            if ok and hi - lo <= max_span:
+                out[y, x] = s / n
+    return out
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignore[no-untyped-def]
-    """Sub-pixel x on fractional row ``y + w`` where the code equals ``fu`` (NaN when not consistent)."""
+    """Sub-pixel x on fractional row ``y + w`` where the code (level units) equals ``fu``; NaN if none."""
     k = math.floor(fu)
     t = fu - k
     idx = int(k) + code_offset
-    if idx < 0 or idx + 1 >= tab.shape[1]:
+    if idx < 0 or idx + 1 >= tab.shape[1] or y < 0 or y + 1 >= tab.shape[0]:
         return np.nan
     xa0 = np.float64(tab[y, idx])
     xb0 = np.float64(tab[y, idx + 1])
@@ -113,81 +260,127 @@ def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignor
     return x0 + w * (x1 - x0)
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _level_at(tab, y, w, x, k, code_offset, max_gap, max_row_jump):  # type: ignore[no-untyped-def]
+    """Continuous level of the point x on fractional row ``y + w`` inside stripe ``(k, k + 1)``; NaN if the
+    stripe's boundaries there are missing or inconsistent."""
+    idx = k + code_offset
+    if idx < 0 or idx + 1 >= tab.shape[1] or y < 0 or y + 1 >= tab.shape[0]:
+        return np.nan
+    xa0 = np.float64(tab[y, idx])
+    xb0 = np.float64(tab[y, idx + 1])
+    xa1 = np.float64(tab[y + 1, idx])
+    xb1 = np.float64(tab[y + 1, idx + 1])
+    if not (abs(xb0 - xa0) <= max_gap and abs(xb1 - xa1) <= max_gap):
+        return np.nan
+    if not (abs(xa1 - xa0) <= max_row_jump and abs(xb1 - xb0) <= max_row_jump):
+        return np.nan
+    xa = xa0 + w * (xa1 - xa0)
+    xb = xb0 + w * (xb1 - xb0)
+    if abs(xb - xa) < 1e-6:
+        return np.nan
+    return k + (x - xa) / (xb - xa)
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _bilinear(img, x, y):  # type: ignore[no-untyped-def]
+    ix = math.floor(x)
+    iy = math.floor(y)
+    if ix < 0 or iy < 0 or ix + 1 >= img.shape[1] or iy + 1 >= img.shape[0]:
+        return np.nan
+    tx = x - ix
+    ty = y - iy
+    a = img[iy, ix] + tx * (img[iy, ix + 1] - img[iy, ix])
+    b = img[iy + 1, ix] + tx * (img[iy + 1, ix + 1] - img[iy + 1, ix])
+    return a + ty * (b - a)
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def stereo_match(  # type: ignore[no-untyped-def]
-    u0,
-    v0,
+def cc_match(  # type: ignore[no-untyped-def]
+    lev0,
     mask0,
     rect0,
     cross0,
     cross1,
+    quantised,
+    v0,
     v1rect,
     use_v,
     code_offset,
     geom,
+    shift,
     rr_t,
     c0,
     r0z,
     t0z,
-    proj_r,
-    proj_t,
-    kp,
-    dp,
-    use_proj,
-    max_code_err,
-    max_gap,
-    max_row_jump,
-    max_lr,
-    max_epi,
+    tol,
     zmin,
     zmax,
     out,
+    epi,
+    status,
 ):
-    """Match every cam0 pixel along its rectified row in cam1 by code and triangulate (world frame, mm).
+    """Match every cam0 pixel on its rectified row of cam1 and triangulate (world frame, mm).
 
-    ``geom`` = (a0min, a1min, bmin, step, baseline_mm); ``rect0`` holds each pixel's (x, y) on the grid.
+    ``lev0`` holds the pixels' codes in level units; ``geom`` = (a0min, a1min, bmin, step, baseline_mm);
+    ``shift`` = (s0, sx, sy): cam1's row is ``y + s0 + sx * x + sy * y`` (a measured epipolar offset);
+    ``tol`` = (max_gap_px, max_row_jump_px, max_own_px, own_margin). ``epi`` receives the epipolar
+    residual (rectified px, NaN without v) and ``status`` the outcome (``ST_*``).
     """
-    h, w = u0.shape[0], u0.shape[1]
+    h, w = lev0.shape[0], lev0.shape[1]
     hr = cross1.shape[0]
-    wr1 = v1rect.shape[1]
     a0min, a1min, bmin, step, base = geom[0], geom[1], geom[2], geom[3], geom[4]
-    fx, sk, cx = kp[0, 0], kp[0, 1], kp[0, 2]
-    fy, cy = kp[1, 1], kp[1, 2]
+    max_gap, max_row_jump, max_own, margin = tol[0], tol[1], tol[2], tol[3]
     for r in prange(h):
         for col in range(w):
             out[r, col, 0] = _NAN
             out[r, col, 1] = _NAN
             out[r, col, 2] = _NAN
-            fu = np.float64(u0[r, col])
+            epi[r, col] = _NAN
+            fu = np.float64(lev0[r, col])
+            if not (mask0[r, col] and fu == fu):
+                status[r, col] = ST_NONE
+                continue
             xr0 = np.float64(rect0[r, col, 0])
             yr = np.float64(rect0[r, col, 1])
-            if not (mask0[r, col] and fu == fu and yr >= 0.0 and yr < hr - 1):
+            y1 = yr + shift[0] + shift[1] * xr0 + shift[2] * yr
+            if not (yr >= 0.0 and yr < hr - 1 and y1 >= 0.0 and y1 < hr - 1):
+                status[r, col] = ST_OUTSIDE
                 continue
             iy = int(yr)
             wy = yr - iy
-            x1 = _cross_at(cross1, iy, wy, fu, code_offset, max_gap, max_row_jump)
+            if quantised:
+                # the pixel's place inside its stripe, from the stripe's boundaries on its own row
+                k = math.floor(fu)
+                fu = _level_at(cross0, iy, wy, xr0, k, code_offset, max_gap, max_row_jump)
+                if not (fu >= k - margin and fu <= k + 1 + margin):
+                    status[r, col] = ST_OWN
+                    continue
+            else:
+                # left-right check: the code must come back to this very pixel on cam0's own row
+                xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump)
+                if not abs(xb - xr0) <= max_own:
+                    status[r, col] = ST_OWN
+                    continue
+            iy1 = int(y1)
+            x1 = _cross_at(cross1, iy1, y1 - iy1, fu, code_offset, max_gap, max_row_jump)
             if x1 != x1:
-                continue
-            # left-right check: the code must come back to this very pixel on cam0's own row
-            xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump)
-            if not abs(xb - xr0) <= max_lr:
+                status[r, col] = ST_OTHER
                 continue
             if use_v:
-                ix = int(x1)
-                if ix < 0 or ix + 1 >= wr1 or iy + 2 >= hr:
-                    continue
-                tx = x1 - ix
-                va = v1rect[iy, ix] + tx * (v1rect[iy, ix + 1] - v1rect[iy, ix])
-                vb = v1rect[iy + 1, ix] + tx * (v1rect[iy + 1, ix + 1] - v1rect[iy + 1, ix])
-                v1 = va + wy * (vb - va)
-                dvdy = vb - va
-                if not (abs(dvdy) > 1e-6 and abs(np.float64(v0[r, col]) - v1) <= max_epi * abs(dvdy)):
-                    continue
+                fv = np.float64(v0[r, col])
+                va = _bilinear(v1rect, x1, y1 - 1.0)
+                vb = _bilinear(v1rect, x1, y1 + 1.0)
+                vc = _bilinear(v1rect, x1, y1)
+                dvdy = 0.5 * (vb - va)
+                if abs(dvdy) > 1e-6 and fv == fv:
+                    epi[r, col] = (fv - vc) / dvdy
             a0 = a0min + xr0 * step
             a1 = a1min + x1 * step
             b = bmin + yr * step
             disp = a0 - a1
             if not disp > 0.0:
+                status[r, col] = ST_DEPTH
                 continue
             zr = base / disp
             px = c0[0] + zr * (rr_t[0, 0] * a0 + rr_t[0, 1] * b + rr_t[0, 2])
@@ -195,19 +388,67 @@ def stereo_match(  # type: ignore[no-untyped-def]
             pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
             depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
             if not (depth >= zmin and depth <= zmax):
+                status[r, col] = ST_DEPTH
                 continue
-            if use_proj:
-                qx = proj_r[0, 0] * px + proj_r[0, 1] * py + proj_r[0, 2] * pz + proj_t[0]
-                qy = proj_r[1, 0] * px + proj_r[1, 1] * py + proj_r[1, 2] * pz + proj_t[1]
-                qz = proj_r[2, 0] * px + proj_r[2, 1] * py + proj_r[2, 2] * pz + proj_t[2]
-                if qz <= 0.0:
-                    continue
-                xd, yd, _, _, _, _ = distort_jac(qx / qz, qy / qz, dp)
-                if not abs(fx * xd + sk * yd + cx - fu) <= max_code_err:
-                    continue
-                if use_v and not abs(fy * yd + cy - np.float64(v0[r, col])) <= max_code_err:
-                    continue
             out[r, col, 0] = px
             out[r, col, 1] = py
             out[r, col, 2] = pz
+            status[r, col] = ST_OK
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def three_view_error(xyz, u0, v0, use_v, proj_r, proj_t, kp, dp, out):  # type: ignore[no-untyped-def]
+    """|projected code - decoded code| (projector px, the larger axis) of each point; NaN without a point."""
+    h, w = u0.shape[0], u0.shape[1]
+    fx, sk, cx = kp[0, 0], kp[0, 1], kp[0, 2]
+    fy, cy = kp[1, 1], kp[1, 2]
+    for r in prange(h):
+        for col in range(w):
+            out[r, col] = _NAN
+            px = np.float64(xyz[r, col, 0])
+            if px != px:
+                continue
+            py = np.float64(xyz[r, col, 1])
+            pz = np.float64(xyz[r, col, 2])
+            qx = proj_r[0, 0] * px + proj_r[0, 1] * py + proj_r[0, 2] * pz + proj_t[0]
+            qy = proj_r[1, 0] * px + proj_r[1, 1] * py + proj_r[1, 2] * pz + proj_t[1]
+            qz = proj_r[2, 0] * px + proj_r[2, 1] * py + proj_r[2, 2] * pz + proj_t[2]
+            if qz <= 0.0:
+                out[r, col] = np.inf
+                continue
+            xd, yd, _, _, _, _ = distort_jac(qx / qz, qy / qz, dp)
+            e = abs(fx * xd + sk * yd + cx - np.float64(u0[r, col]))
+            if use_v:
+                e = max(e, abs(fy * yd + cy - np.float64(v0[r, col])))
+            out[r, col] = e
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def reject(xyz, err, limit, code, status):  # type: ignore[no-untyped-def]
+    """Points whose |err| exceeds ``limit`` (NaN err passes) become NaN with status ``code``."""
+    h, w = err.shape[0], err.shape[1]
+    for r in prange(h):
+        for col in range(w):
+            e = abs(np.float64(err[r, col]))
+            if status[r, col] == ST_OK and e > limit:
+                xyz[r, col, 0] = _NAN
+                xyz[r, col, 1] = _NAN
+                xyz[r, col, 2] = _NAN
+                status[r, col] = code
+    return xyz
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def status_counts(status, n, out):  # type: ignore[no-untyped-def]
+    """Counts of each status value 0..n-1, per row (the caller sums); ``out`` is (H, n) int64."""
+    h, w = status.shape[0], status.shape[1]
+    for r in prange(h):
+        for s in range(n):
+            out[r, s] = 0
+        for col in range(w):
+            s = status[r, col]
+            if s < n:
+                out[r, s] += 1
     return out

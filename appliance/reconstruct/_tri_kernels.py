@@ -23,10 +23,10 @@ from appliance.reconstruct._procam_kernels import (
     tri_plane,
     tri_ray,
 )
-from appliance.reconstruct._stereo_kernels import crossing_table, project_dirs, remap_codes, stereo_match
+from appliance.reconstruct._stereo_kernels import project_dirs, remap_codes
 
 __all__ = [
-    "apply_keep", "code_line_table", "compact", "crossing_table", "depth_filtered", "distort_jac", "emit_points",
+    "apply_keep", "code_line_table", "compact", "depth_filtered", "distort_jac", "emit_points",
     "epipolar_intercepts", "filter_depth", "filter_quality", "isolated_keep", "normals", "organised_from_depth",
-    "project_dirs", "remap_codes", "row_counts", "stereo_match", "tri_plane", "tri_ray",
+    "project_dirs", "remap_codes", "row_counts", "tri_plane", "tri_ray",
 ]

@@ -5,25 +5,38 @@ Method
 Both cameras are rectified once (per calibration) to a common orientation whose x axis is the baseline, so
 that every epipolar plane is one rectified row ``b`` shared by both cameras. Per scan:
 
-1. The code maps (u, and v when coded) of both cameras are resampled onto their rectified grids (bilinear,
-   only where the four neighbours are decoded and agree within a few codes, i.e. not across an edge).
-2. For every rectified row, a crossing table records the sub-pixel x where the code crosses each integer
-   value (linear between pixels); an integer crossed twice in a row is marked ambiguous.
-3. Every cam0 pixel keeps its own exact code and its exact rectified position (x0, b): its match is looked
-   up on the (fractional) row b of cam1 by interpolating the crossing table between the integers around u
-   and between the two rows around b: sub-pixel, no search. The match is rejected when:
-   the code is ambiguous or absent; the crossing moves more than ``max_row_jump_px`` between the two rows;
-   the same lookup on cam0's own rectified row does not come back to x0 within ``max_lr_px`` (left-right
-   check: catches codes that appear twice); with v coded, cam1's v there differs from cam0's v by more than
-   ``max_epipolar_px`` times the local dv/dy (i.e. the point where (u, v) match lies that far off the
-   epipolar line); with a calibrated projector, the triangulated point does not project within
-   ``max_code_err_px`` of the decoded code (a three-view check); or the depth is out of range.
-4. The two rays are coplanar by construction, so they meet exactly: depth = baseline / disparity.
+1. The codes are looked at first: *continuous* codes (phase) change smoothly from pixel to pixel;
+   *quantised* codes (Gray only) are stripe centres, constant over a stripe. Quantisation (step and grid)
+   and the code gradient (codes per pixel) are measured from the maps, and every tolerance below scales
+   with them.
+2. The code maps of both cameras are resampled onto their rectified grids (bilinear, only where the four
+   neighbours are decoded and agree within the measured gradient plus one code step: not across an edge).
+   Codes are counted in *levels*: one projector pixel for continuous codes, the stripe boundaries for
+   quantised ones.
+3. For every rectified row, a crossing table records the sub-pixel x where the code crosses each level
+   (linear between pixels); a level crossed twice on a row is ambiguous and never used. For quantised
+   codes each crossing is a stripe boundary known to half a pixel; a local plane fit over neighbouring
+   levels and rows (robust, with a second pass without outliers) takes that quantisation out.
+4. Every cam0 pixel gets a continuous level: its own code (continuous) or its place between its stripe's
+   boundaries on its own row (quantised; a pixel outside its own stripe is rejected, which is also the
+   left-right check). Its match is looked up on row ``b`` of cam1 by interpolating cam1's crossing table:
+   sub-pixel, no search, no averaging of codes seen twice.
+5. With rows coded too (v), the match's epipolar residual is measured (how far off the row cam1's v equals
+   cam0's v). A systematic offset (a calibration that drifted) is fitted as a plane over the image and the
+   rows of cam1 are corrected by it; the tolerance then follows from the calibration's stated RMS and this
+   scan's own residual spread, not from a constant. With a calibrated projector the point must project onto
+   its code (three-view check), with a tolerance from the code step and the residuals.
+6. The two rays are coplanar by construction: depth = baseline / disparity.
+
+Every stage counts what it rejects (:class:`StereoReport`), and a stage that rejects most candidates is
+said in words, with what to do.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -31,7 +44,7 @@ import numpy.typing as npt
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 from appliance.geometry.rays import RayTable
-from appliance.reconstruct import _tri_kernels as K
+from appliance.reconstruct import _stereo_kernels as C
 from appliance.reconstruct.triangulate import check_maps, check_out, distortion12
 from appliance.reconstruct.types import DecodedMaps
 
@@ -39,7 +52,155 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
 CODE_OFFSET = 2
-"""Integer codes from -2 up are tabulated."""
+"""Levels from -2 up are tabulated."""
+
+SMOOTH_ROWS = 2
+"""Quantised codes: the crossing fit spans this many rectified rows either side."""
+SMOOTH_SPAN_PX = 3.0
+"""Quantised codes: ... and levels spanning about this many pixels either side."""
+SMOOTH_MAX_LEVELS = 12
+MAX_RES_PX = 1.0
+"""A crossing further than this from the local fit is left out of it (px)."""
+MAX_ROW_JUMP_PX = 2.0
+"""Largest change of a crossing between two neighbouring rectified rows (px)."""
+MAX_OWN_PX = 1.0
+"""Continuous codes, left-right check: largest distance between a pixel and its code on its own row (px)."""
+EPIPOLAR_OFFSET_MIN_PX = 0.3
+"""A median epipolar residual beyond this (and beyond half its spread) is corrected (px)."""
+MIN_SAMPLES = 200
+"""Fewest residuals a statistic is taken from."""
+MOST = 0.5
+"""A stage that rejects more than this share of the candidates is reported in words."""
+
+STAGES = {
+    C.ST_OUTSIDE: "outside the rows both cameras see",
+    C.ST_OWN: "code not consistent on its own row (edge, ambiguous, left-right check)",
+    C.ST_OTHER: "code not found (or ambiguous) on the other camera's row",
+    C.ST_EPIPOLAR: "off the epipolar line",
+    C.ST_DEPTH: "outside the depth range",
+    C.ST_THREE_VIEW: "does not project onto its projector code",
+}
+_N_STATUS = C.ST_OK + 1
+
+
+@dataclass
+class CodeGrid:
+    """How one axis of codes is quantised, measured from the maps.
+
+    Attributes
+    ----------
+    quantised : bool
+        Codes are stripe centres (Gray only), not continuous.
+    step : float
+        Code step (projector px): the stripe width; 1 for continuous codes (levels are projector pixels).
+    origin : float
+        A stripe centre (projector px): centres are ``origin + k * step``.
+    per_px : float
+        Mean code change between neighbouring camera pixels along rows (projector px per camera px).
+    """
+
+    quantised: bool
+    step: float
+    origin: float
+    per_px: float
+
+    @property
+    def stripe_px(self) -> float:
+        """Width of one code step in camera pixels."""
+        return self.step / max(self.per_px, 1e-6)
+
+
+def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5) -> CodeGrid | None:
+    """Measure the quantisation and gradient of a code map (a subsample of every ``stride``-th row/column).
+
+    Parameters
+    ----------
+    code : ndarray, shape (H, W), float32
+        Decoded code (projector px), NaN where not decoded.
+    mask : ndarray, shape (H, W), bool
+        Decoded pixels.
+    stride : int
+        Subsampling of rows and columns.
+
+    Returns
+    -------
+    CodeGrid or None
+        None when fewer than 100 pixels are decoded.
+    """
+    rows = code[::stride]
+    vals = rows[:, ::stride][mask[::stride, ::stride]]
+    vals = vals[np.isfinite(vals)].astype(np.float64)
+    if vals.size < 100:
+        return None
+    d = np.abs(np.diff(rows, axis=1))
+    d = d[np.isfinite(d)]
+    d = d[d < 64.0]  # not across an occlusion
+    per_px = float(d.mean()) if d.size else 1.0
+    twice = 2.0 * vals
+    on_grid = np.abs(twice - np.round(twice)) < 1e-3
+    if on_grid.mean() >= 0.99:
+        uniq = np.unique(vals[on_grid])
+        gaps = np.diff(uniq)
+        gaps = gaps[gaps > 0.25]
+        if gaps.size:
+            step = float(np.min(gaps))
+            if step >= 1.0 - 1e-6:
+                origin = float(np.median(np.mod(uniq, step)))
+                return CodeGrid(True, step, origin, max(per_px, 1e-3))
+    return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
+
+
+@dataclass
+class StereoReport:
+    """What the last camera-camera reconstruction did, stage by stage.
+
+    Attributes
+    ----------
+    candidates : int
+        Decoded pixels of the reference camera.
+    points : int
+        Points kept.
+    rejected : dict of str to int
+        Candidates rejected, by stage (see ``STAGES``).
+    code : str
+        ``'quantised'`` or ``'continuous'`` codes, with the step and stripe width.
+    epipolar : dict of str to float
+        With rows coded: residual median and spread (robust sigma) before and after correction, the offset
+        applied (px, rectified), the limit used and the number of samples.
+    three_view : dict of str to float
+        With a projector: residual median, spread, limit (projector px), samples.
+    warnings : list of str
+        Plain-words statements about stages that rejected most candidates, with what to do.
+    """
+
+    candidates: int = 0
+    points: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    code: str = ""
+    epipolar: dict[str, float] = field(default_factory=dict)
+    three_view: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready form (for the sidecar and ``scan3d decode --report``)."""
+        return {
+            "candidates": self.candidates,
+            "points": self.points,
+            "rejected": dict(self.rejected),
+            "code": self.code,
+            "epipolar": dict(self.epipolar),
+            "three_view": dict(self.three_view),
+            "warnings": list(self.warnings),
+        }
+
+
+def _robust(values: F32) -> tuple[float, float, int]:
+    """Median, robust sigma (1.4826 MAD) and count of the finite values."""
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return math.nan, math.nan, 0
+    med = float(np.median(v))
+    return med, 1.4826 * float(np.median(np.abs(v - med))), int(v.size)
 
 
 def _rect_coords(rot: F64, norm: F64) -> tuple[F64, F64]:
@@ -63,6 +224,12 @@ def _border_pixels(cam: CameraModel, n: int = 64) -> F64:
     )
 
 
+def _stated_rms(*devices: CameraModel) -> float:
+    """Root-sum-square of the devices' stated reprojection RMS (px); 0 where none is stated."""
+    vals = [d.rms for d in devices if math.isfinite(d.rms)]
+    return math.sqrt(sum(v * v for v in vals)) if vals else 0.0
+
+
 class StereoTriangulator:
     """Camera-camera triangulation for one camera pair; the rectification is built once, here.
 
@@ -72,20 +239,16 @@ class StereoTriangulator:
         The two cameras; output is organised for cam0's pixels, in the world frame.
     rays0 : RayTable, optional
         cam0's ray table, when already computed.
-    max_epipolar_px : float
-        With v coded: largest distance (rectified px) of the (u, v) match from the epipolar line.
-    max_lr_px : float
-        Left-right check: largest distance between a cam0 pixel and where its code lies on its own row (px).
-    max_row_jump_px : float
-        Largest change of a code's crossing between two neighbouring rectified rows (px).
-    max_code_step : float
-        Largest code change between neighbouring pixels still treated as one surface (projector px).
-    max_code_gap_px : float
-        Largest distance between the crossings of two consecutive integer codes (rectified px).
+    max_epipolar_px : float, optional
+        With v coded: fixed limit of the epipolar residual (rectified px). Default: from the calibration's
+        stated RMS and this scan's residual spread.
     projector : CameraModel, optional
         Calibrated projector for the three-view check.
-    max_code_err_px : float
-        Three-view check: largest |projected code - decoded code| (projector px).
+    max_code_err_px : float, optional
+        Three-view check: fixed limit of |projected code - decoded code| (projector px). Default: from the
+        code step and this scan's residual spread.
+    correct_epipolar : bool
+        Fit and correct a systematic epipolar offset measured from (u, v) matches.
     """
 
     def __init__(
@@ -93,32 +256,20 @@ class StereoTriangulator:
         cam0: CameraModel,
         cam1: CameraModel,
         rays0: RayTable | None = None,
-        max_epipolar_px: float = 1.5,
-        max_lr_px: float = 1.0,
-        max_row_jump_px: float = 2.0,
-        max_code_step: float = 3.0,
-        max_code_gap_px: float = 8.0,
+        max_epipolar_px: float | None = None,
         projector: CameraModel | None = None,
-        max_code_err_px: float = 2.0,
+        max_code_err_px: float | None = None,
+        correct_epipolar: bool = True,
     ) -> None:
         self.cam0, self.cam1, self.projector = cam0, cam1, projector
         self.rays0 = rays0 if rays0 is not None else RayTable(cam0)
-        self.max_epipolar_px, self.max_lr_px, self.max_row_jump_px = (
-            max_epipolar_px,
-            max_lr_px,
-            max_row_jump_px,
-        )
-        self.max_code_step, self.max_code_gap_px, self.max_code_err_px = (
-            max_code_step,
-            max_code_gap_px,
-            max_code_err_px,
-        )
+        self.max_epipolar_px, self.max_code_err_px = max_epipolar_px, max_code_err_px
+        self.correct_epipolar = correct_epipolar
+        self.report = StereoReport()
         c0, c1 = cam0.center, cam1.center
         base = float(np.linalg.norm(c1 - c0))
         if base < 1e-6:
-            raise CalibrationError(
-                f"{cam0.name}/{cam1.name}: the cameras share one centre: no stereo baseline"
-            )
+            raise CalibrationError(f"{cam0.name}/{cam1.name}: the cameras share one centre: no stereo baseline")
         ex = (c1 - c0) / base
         zavg = cam0.R[2] + cam1.R[2]
         ez = zavg - (zavg @ ex) * ex
@@ -133,15 +284,11 @@ class StereoTriangulator:
         a0, b0 = _rect_coords(rot0, self.rays0.normalized.reshape(-1, 2).astype(np.float64))
         a1, b1 = _rect_coords(rot1, cam1.undistort_pixels(_border_pixels(cam1)))
         if not (np.isfinite(a0).mean() > 0.5 and np.isfinite(a1).all()):
-            raise CalibrationError(
-                f"{cam0.name}/{cam1.name}: the cameras look more than 90 deg away from each other"
-            )
+            raise CalibrationError(f"{cam0.name}/{cam1.name}: the cameras look more than 90 deg away from each other")
         bmin = max(np.nanmin(b0), np.nanmin(b1)) - 2 * step
         bmax = min(np.nanmax(b0), np.nanmax(b1)) + 2 * step
         if bmax <= bmin:
-            raise CalibrationError(
-                f"{cam0.name}/{cam1.name}: the two views share no epipolar plane (no overlap)"
-            )
+            raise CalibrationError(f"{cam0.name}/{cam1.name}: the two views share no epipolar plane (no overlap)")
         a0min, a0max = np.nanmin(a0) - 2 * step, np.nanmax(a0) + 2 * step
         a1min, a1max = np.nanmin(a1) - 2 * step, np.nanmax(a1) + 2 * step
         hr = math.ceil((bmax - bmin) / step) + 1
@@ -155,12 +302,8 @@ class StereoTriangulator:
         self._geom = np.array([a0min, a1min, bmin, step, base])
         self.rect_shape = (hr, wr0, wr1)
         k0, k1 = np.ascontiguousarray(cam0.K), np.ascontiguousarray(cam1.K)
-        self._map0 = K.project_dirs(
-            np.ascontiguousarray(rot0.T), a0min, bmin, step, hr, wr0, k0, distortion12(cam0)
-        )
-        self._map1 = K.project_dirs(
-            np.ascontiguousarray(rot1.T), a1min, bmin, step, hr, wr1, k1, distortion12(cam1)
-        )
+        self._map0 = C.project_dirs(np.ascontiguousarray(rot0.T), a0min, bmin, step, hr, wr0, k0, distortion12(cam0))
+        self._map1 = C.project_dirs(np.ascontiguousarray(rot1.T), a1min, bmin, step, hr, wr1, k1, distortion12(cam1))
         rect0 = np.empty((h, w, 2), np.float32)
         rect0[..., 0] = ((a0 - a0min) / step).reshape(h, w)
         rect0[..., 1] = ((b0 - bmin) / step).reshape(h, w)
@@ -168,16 +311,28 @@ class StereoTriangulator:
         self._r0z = np.ascontiguousarray(cam0.R[2])
         self._t0z = float(cam0.T[2])
         self._c0 = c0
-        if projector is not None:
-            self._pr, self._pt = np.ascontiguousarray(projector.R), np.ascontiguousarray(projector.T)
-            self._pk, self._pd = np.ascontiguousarray(projector.K), distortion12(projector)
-        else:
-            self._pr, self._pt, self._pk, self._pd = np.eye(3), np.zeros(3), np.eye(3), np.zeros(12)
+        # per-scan buffers, reused
         self._u0r = np.empty((hr, wr0), np.float32)
         self._u1r = np.empty((hr, wr1), np.float32)
         self._v1r = np.full((hr, wr1), np.nan, np.float32)
-        self._cross0 = np.empty((hr, 0), np.float32)
-        self._cross1 = np.empty((hr, 0), np.float32)
+        self._v1s = np.full((hr, wr1), np.nan, np.float32)
+        self._scr1 = np.empty((hr, wr1), np.float32)
+        self._lev0 = np.empty((h, w), np.float32)
+        self._v0s = np.empty((h, w), np.float32)
+        self._scr0 = np.empty((h, w), np.float32)
+        self._epi = np.empty((h, w), np.float32)
+        self._err3 = np.empty((h, w), np.float32)
+        self._status = np.zeros((h, w), np.uint8)
+        self._counts = np.zeros((h, _N_STATUS), np.int64)
+        self._tabs: dict[str, F32] = {}
+        self.last_grid: CodeGrid | None = None
+
+    def _table(self, name: str, nk: int) -> F32:
+        tab = self._tabs.get(name)
+        if tab is None or tab.shape[1] < nk:
+            tab = np.empty((self.rect_shape[0], nk), np.float32)
+            self._tabs[name] = tab
+        return tab[:, :nk]
 
     def triangulate(
         self,
@@ -187,7 +342,7 @@ class StereoTriangulator:
         min_depth_mm: float = 1e-6,
         max_depth_mm: float = math.inf,
     ) -> F32:
-        """Match and triangulate.
+        """Match and triangulate; :attr:`report` tells what each stage rejected.
 
         Parameters
         ----------
@@ -206,50 +361,165 @@ class StereoTriangulator:
         u0, v0, mask0 = check_maps(maps0, self.rays0.shape, self.cam0.name)
         u1, v1, mask1 = check_maps(maps1, (self.cam1.height, self.cam1.width), self.cam1.name)
         xyz = check_out(out, self.rays0.shape)
+        rep = StereoReport()
+        self.report = rep
+        grid = code_grid(u0, mask0)
+        self.last_grid = grid
+        if grid is None:
+            xyz[...] = np.nan
+            rep.candidates = int(mask0.sum())
+            rep.warnings.append(f"{self.cam0.name}: fewer than 100 decoded pixels: nothing to match")
+            return xyz
         use_v = bool(np.isfinite(v0[::7, ::7]).any() and np.isfinite(v1[::7, ::7]).any())
-        hi = max(float(np.nanmax(u0, initial=0.0)), float(np.nanmax(u1, initial=0.0)))
-        nk = math.ceil(hi) + CODE_OFFSET + 3
-        if self._cross0.shape[1] < nk:
-            hr = self.rect_shape[0]
-            self._cross0 = np.empty((hr, nk), np.float32)
-            self._cross1 = np.empty((hr, nk), np.float32)
-        spread = 2.0 * self.max_code_step
-        K.remap_codes(u0, mask0, self._map0, spread, self._u0r)
-        K.remap_codes(u1, mask1, self._map1, spread, self._u1r)
-        if use_v:
-            K.remap_codes(v1, mask1, self._map1, spread, self._v1r)
-        K.crossing_table(self._u0r, CODE_OFFSET, self.max_code_step, self._cross0)
-        K.crossing_table(self._u1r, CODE_OFFSET, self.max_code_step, self._cross1)
-        K.stereo_match(
-            u0,
-            v0,
-            mask0,
-            self._rect0,
-            self._cross0,
-            self._cross1,
-            self._v1r,
-            use_v,
-            CODE_OFFSET,
-            self._geom,
-            self._rr_t,
-            self._c0,
-            self._r0z,
-            self._t0z,
-            self._pr,
-            self._pt,
-            self._pk,
-            self._pd,
-            self.projector is not None,
-            self.max_code_err_px,
-            self.max_code_gap_px,
-            self.max_row_jump_px,
-            self.max_lr_px,
-            self.max_epipolar_px,
-            max(float(min_depth_mm), 1e-6),
-            float(max_depth_mm),
-            xyz,
+        # levels: projector pixels (continuous) or stripe boundaries (quantised; stripe k = (k, k + 1))
+        dl = grid.step
+        lev_origin = grid.origin - 0.5 * grid.step if grid.quantised else 0.0
+        per_lev = grid.per_px / dl  # levels per pixel
+        spread = 1.5 * (grid.step if grid.quantised else 1.0) + 3.0 * grid.per_px
+        max_step = spread / dl
+        max_gap = max(4.0, 3.0 / per_lev)
+        margin = max(0.25, 0.75 * per_lev) if grid.quantised else 0.0
+        rep.code = (
+            f"quantised, step {grid.step:g} projector px, {grid.stripe_px:.2f} camera px per step"
+            if grid.quantised
+            else f"continuous, {grid.per_px:.2f} projector px per camera px"
         )
+        hi = max(float(np.nanmax(u0, initial=0.0)), float(np.nanmax(u1, initial=0.0)))
+        nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
+        C.remap_codes(u0, mask0, self._map0, spread, self._u0r)
+        C.remap_codes(u1, mask1, self._map1, spread, self._u1r)
+        C.to_levels(self._u0r, lev_origin, 1.0 / dl)
+        C.to_levels(self._u1r, lev_origin, 1.0 / dl)
+        np.subtract(u0, np.float32(lev_origin), out=self._lev0)
+        np.multiply(self._lev0, np.float32(1.0 / dl), out=self._lev0)
+        cross0, cross1 = self._table("c0", nk), self._table("c1", nk)
+        C.level_crossings(self._u0r, CODE_OFFSET, max_step, cross0)
+        C.level_crossings(self._u1r, CODE_OFFSET, max_step, cross1)
+        if grid.quantised:
+            levels = int(min(SMOOTH_MAX_LEVELS, max(1, math.ceil(SMOOTH_SPAN_PX * per_lev))))
+            s0, s1 = self._table("s0", nk), self._table("s1", nk)
+            for raw, sm in ((cross0, s0), (cross1, s1)):
+                C.smooth_crossings(raw, levels, False, MAX_RES_PX, sm)
+                C.smooth_crossings(sm, SMOOTH_ROWS, True, MAX_RES_PX, raw)  # back into the raw table
+        v0m, v1m = v0, self._v1r
+        vgrid: CodeGrid | None = None
+        if use_v:
+            vgrid = code_grid(np.ascontiguousarray(v0.T), np.ascontiguousarray(mask0.T))
+            vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
+            vper = vgrid.per_px if vgrid is not None else 1.0
+            C.remap_codes(v1, mask1, self._map1, 1.5 * vstep + 3.0 * vper, self._v1r)
+            if vgrid is not None and vgrid.quantised:
+                radius = int(min(8, max(1, math.ceil(vgrid.stripe_px))))
+                span = (2 * radius + 1) * vper + 2.0 * vstep
+                C.box_mean(v0, radius, span, self._scr0, self._v0s)
+                C.box_mean(self._v1r, radius, span, self._scr1, self._v1s)
+                v0m, v1m = self._v0s, self._v1s
+        tol = np.array([max_gap, MAX_ROW_JUMP_PX, MAX_OWN_PX, margin])
+        zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
+        shift = np.zeros(3)
+        args = (self._rr_t, self._c0, self._r0z, self._t0z, tol, zmin, zmax, xyz, self._epi, self._status)
+        C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v, CODE_OFFSET,
+                   self._geom, shift, *args)  # fmt: skip
+        stated = _stated_rms(self.cam0, self.cam1)
+        if use_v:
+            ok = self._status[::3, ::3] == C.ST_OK
+            med, sig, n = _robust(self._epi[::3, ::3][ok])
+            rep.epipolar = {"median_px": med, "spread_px": sig, "samples": float(n), "offset_px": 0.0}
+            if self.correct_epipolar and n >= MIN_SAMPLES and abs(med) > max(EPIPOLAR_OFFSET_MIN_PX, 0.5 * sig):
+                shift = self._fit_offset(med, sig)
+                C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v,
+                           CODE_OFFSET, self._geom, shift, *args)  # fmt: skip
+                ok = self._status[::3, ::3] == C.ST_OK
+                med2, sig2, _ = _robust(self._epi[::3, ::3][ok])
+                rep.epipolar.update(
+                    {"offset_px": float(shift[0] + shift[1] * self._rect0[..., 0].mean()
+                                        + shift[2] * self._rect0[..., 1].mean()),
+                     "corrected_median_px": med2, "corrected_spread_px": sig2}
+                )  # fmt: skip
+                med, sig = med2, sig2
+            if self.max_epipolar_px is not None:
+                limit = float(self.max_epipolar_px)
+            else:
+                vq = 0.5 / vgrid.stripe_px if vgrid is not None and vgrid.quantised else 0.0
+                limit = max(3.0 * stated, abs(med) + 5.0 * (sig if math.isfinite(sig) else 0.0) + vq, 0.5)
+            rep.epipolar["limit_px"] = limit
+            C.reject(xyz, self._epi, limit, C.ST_EPIPOLAR, self._status)
+        if self.projector is not None:
+            p = self.projector
+            C.three_view_error(xyz, u0, v0, use_v, np.ascontiguousarray(p.R), np.ascontiguousarray(p.T),
+                               np.ascontiguousarray(p.K), distortion12(p), self._err3)  # fmt: skip
+            ok = self._status[::3, ::3] == C.ST_OK
+            med3, sig3, n3 = _robust(self._err3[::3, ::3][ok])
+            if self.max_code_err_px is not None:
+                limit3 = float(self.max_code_err_px)
+            else:
+                limit3 = max(2.0, 0.5 * dl + 3.0 * _stated_rms(p), med3 + 5.0 * (sig3 if math.isfinite(sig3) else 0))
+            rep.three_view = {"median_px": med3, "spread_px": sig3, "samples": float(n3), "limit_px": limit3}
+            C.reject(xyz, self._err3, limit3, C.ST_THREE_VIEW, self._status)
+        self._summarise(rep)
         return xyz
+
+    def _fit_offset(self, med: float, sig: float) -> F64:
+        """Plane ``s0 + sx x + sy y`` (rectified px) through the epipolar residuals near their median."""
+        ok = self._status[::4, ::4] == C.ST_OK
+        e = self._epi[::4, ::4][ok].astype(np.float64)
+        x = self._rect0[::4, ::4, 0][ok].astype(np.float64)
+        y = self._rect0[::4, ::4, 1][ok].astype(np.float64)
+        good = np.isfinite(e) & (np.abs(e - med) <= max(3.0 * sig, 0.5))
+        if good.sum() < MIN_SAMPLES:
+            return np.array([med, 0.0, 0.0])
+        a = np.stack([np.ones(int(good.sum())), x[good], y[good]], 1)
+        coef, *_ = np.linalg.lstsq(a, e[good], rcond=None)
+        return np.asarray(coef, np.float64)
+
+    def _summarise(self, rep: StereoReport) -> None:
+        counts = C.status_counts(self._status, _N_STATUS, self._counts).sum(axis=0)
+        rep.candidates = int(counts[1:].sum())
+        rep.points = int(counts[C.ST_OK])
+        rep.rejected = {STAGES[s]: int(counts[s]) for s in STAGES}
+        if rep.candidates == 0:
+            return
+        names = f"{self.cam0.name}/{self.cam1.name}"
+        epi = rep.epipolar
+        for s, words in STAGES.items():
+            share = counts[s] / rep.candidates
+            if share <= MOST:
+                continue
+            if s == C.ST_EPIPOLAR:
+                rep.warnings.append(
+                    f"{names}: {100 * share:.0f} % of camera-camera matches lie a median "
+                    f"{abs(epi.get('median_px', math.nan)):.1f} px off the epipolar line (limit "
+                    f"{epi.get('limit_px', math.nan):.1f}): the calibration may no longer fit the rig; "
+                    "run scan3d verify or recalibrate"
+                )
+            elif s == C.ST_THREE_VIEW:
+                rep.warnings.append(
+                    f"{names}: {100 * share:.0f} % of points do not project onto their projector code "
+                    f"(median {rep.three_view.get('median_px', math.nan):.1f} px, limit "
+                    f"{rep.three_view.get('limit_px', math.nan):.1f}): the projector's calibration may no "
+                    "longer fit the cameras; run scan3d verify or recalibrate"
+                )
+            elif s == C.ST_OUTSIDE:
+                rep.warnings.append(
+                    f"{names}: {100 * share:.0f} % of decoded pixels lie outside the rows both cameras see: "
+                    "the cameras barely overlap, or the calibration does not belong to this rig"
+                )
+            elif s == C.ST_DEPTH:
+                rep.warnings.append(
+                    f"{names}: {100 * share:.0f} % of matches fall outside the depth range: check "
+                    "reconstruction.min_depth_mm / max_depth_mm, or the calibration's baseline"
+                )
+            else:
+                rep.warnings.append(
+                    f"{names}: {100 * share:.0f} % of decoded pixels rejected: {words}; the two cameras may "
+                    "see different parts of the scene, or the calibration does not fit the rig"
+                )
+        off = epi.get("offset_px", 0.0)
+        if abs(off) > 1.0:
+            rep.warnings.append(
+                f"{names}: the epipolar lines are off by {off:.1f} px (corrected from this scan's matches): the "
+                "calibration has drifted; run scan3d verify or recalibrate"
+            )
 
 
 def triangulate_stereo(
@@ -257,7 +527,7 @@ def triangulate_stereo(
     maps1: DecodedMaps,
     cam0: CameraModel,
     cam1: CameraModel,
-    max_epipolar_px: float = 1.5,
+    max_epipolar_px: float | None = None,
     projector: CameraModel | None = None,
     out: F32 | None = None,
     min_depth_mm: float = 1e-6,
@@ -271,8 +541,8 @@ def triangulate_stereo(
         Decoded codes of the two cameras.
     cam0, cam1 : CameraModel
         The cameras.
-    max_epipolar_px : float
-        With v coded: largest distance of the (u, v) match from the epipolar line (px).
+    max_epipolar_px : float, optional
+        With v coded: fixed epipolar limit (px); default from the calibration and the data.
     projector : CameraModel, optional
         Calibrated projector for the three-view consistency check.
     out : ndarray, shape (H0, W0, 3), float32, optional
