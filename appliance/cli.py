@@ -33,9 +33,9 @@ def _cmd_patterns(a: argparse.Namespace) -> int:
 
 
 def _cmd_decode(a: argparse.Namespace) -> int:
-    from appliance.commands import decode_manifest
+    from appliance.commands import decode_manifests
 
-    return decode_manifest(a.manifest, a.calibration, a.out, a.maps, a.timings, a.config)
+    return decode_manifests(a.manifest, a.calibration, a.out, a.maps, a.timings, a.decode_config, a.mode, a.report)
 
 
 def _cmd_scan(a: argparse.Namespace) -> int:
@@ -82,21 +82,27 @@ def _cmd_grab(a: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(a: argparse.Namespace) -> int:
+    if a.live or a.what is None:
+        import asyncio
+
+        from appliance.procedures.live_calibration import calibrate_live
+
+        return asyncio.run(calibrate_live(a.config, poses=a.poses, out=a.out, save_frames=a.save_frames))
     from appliance.calibration import cli as cal
 
-    if a.live or a.what is None:
-        return cal.calibrate_live_cli(a.config, poses=a.poses, out=a.out)
     board = cal.board_from_args(a)
     a.out = a.out or Path("calibration.yaml")
     if a.what == "camera":
         return cal.calibrate_camera_cli([Path(p) for p in a.inputs], board, a.out, a.model)
-    return cal.calibrate_projector_cli([Path(p) for p in a.inputs], board, a.out)
+    return cal.calibrate_projector_cli([Path(p) for p in a.inputs], board, a.out, a.model, a.projector_model)
 
 
 def _cmd_verify(a: argparse.Namespace) -> int:
-    from appliance.calibration.verify import verify_cli
+    import asyncio
 
-    return verify_cli(a.config)
+    from appliance.procedures.verify import verify_command
+
+    return asyncio.run(verify_command(a.config, out=a.out))
 
 
 def _cmd_firmware(a: argparse.Namespace) -> int:
@@ -138,13 +144,21 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--height", type=int, default=None, help="projector height (px)")
     config_arg(sp)
 
-    sp = cmd("decode", _cmd_decode, "decode a recorded capture (manifest) offline")
-    sp.add_argument("manifest", type=Path)
-    sp.add_argument("--calibration", type=Path, default=None, help="calibration file; without it, maps only")
-    sp.add_argument("--out", type=Path, default=None, help="output cloud (.ply)")
-    sp.add_argument("--maps", type=Path, default=None, help="write u, v, mask, quality per camera (.npz)")
-    sp.add_argument("--timings", action="store_true", help="print one JSON line of stage timings (ms)")
-    config_arg(sp)
+    sp = cmd("decode", _cmd_decode, "decode recorded captures (manifests) offline; several are a batch")
+    sp.add_argument("manifest", type=Path, nargs="+")
+    sp.add_argument("--calibration", type=Path, default=None, help="calibration file (this project's or "
+                    "SLMaster's caliInfo.yml); without it, maps only")
+    sp.add_argument("--mode", choices=["projector", "stereo", "both"], default=None,
+                    help="camera-projector, camera-camera or both (default: from what the calibration holds)")
+    sp.add_argument("--out", type=Path, default=None,
+                    help="output cloud (.ply), or a folder for <manifest stem>.ply (always a folder for a batch)")
+    sp.add_argument("--maps", type=Path, default=None,
+                    help="write u, v, mask, quality per camera (.npz; a folder for a batch)")
+    sp.add_argument("--report", type=Path, default=None, help="write the capture's JSON sidecar (one capture)")
+    sp.add_argument("--timings", action="store_true",
+                    help="print one JSON line of stage timings (ms) per capture and a summary line")
+    sp.add_argument("--config", dest="decode_config", type=Path, default=None,
+                    help="configuration whose reconstruction settings override the defaults (optional)")
 
     sp = cmd("scan", _cmd_scan, "run one scan on the configured rig and write cloud, sidecar and preview")
     config_arg(sp)
@@ -195,16 +209,22 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--square-mm", type=float, default=25.0, help="square size or circle pitch (mm)")
     sp.add_argument("--marker-mm", type=float, default=None, help="ChArUco marker size (mm)")
     sp.add_argument("--dictionary", default="DICT_6X6_250", help="ChArUco ArUco dictionary")
-    sp.add_argument("--model", default="standard", help="distortion model: standard (k1 k2 p1 p2 k3), "
-                    "simple (k1 k2 p1 p2), rational")
+    sp.add_argument("--model", default="auto", help="camera distortion model: auto (chosen by "
+                    "leave-one-view-out error), standard (k1 k2 p1 p2 k3), simple (k1 k2 p1 p2), rational")
+    sp.add_argument("--projector-model", default="auto", help="projector distortion model (as --model)")
     sp.add_argument("--out", type=Path, default=None,
                     help="calibration file to write (default: calibration.yaml; --live: the configured file)")
     sp.add_argument("--poses", type=int, default=None,
                     help="--live: capture this many poses without waiting for Enter (virtual rig, demos)")
+    sp.add_argument("--save-frames", type=Path, default=None,
+                    help="--live: keep each pose's white frame per camera in this folder (pose_NN_CAMERA.png)")
     config_arg(sp)
 
-    sp = cmd("verify", _cmd_verify, "scan the known artefact and check the calibration's accuracy")
+    sp = cmd("verify", _cmd_verify, "scan the known artefact in several positions and check the calibration "
+             "against VDI/VDE 2634 part 2 (PF, PS, SD, flatness)")
     config_arg(sp)
+    sp.add_argument("--out", type=Path, default=None,
+                    help="report page to write (default: verify-report.html beside the calibration file)")
 
     sp = cmd("firmware", _cmd_firmware, "install or simulate the trigger controller firmware")
     sp.add_argument("action", choices=["install", "simulate"])

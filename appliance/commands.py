@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import json
+import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -17,7 +19,7 @@ import numpy.typing as npt
 
 from appliance.config import AppConfig, load_config
 from appliance.config.schema import ReconstructionConfig
-from appliance.errors import ApplianceError, ConfigError, ManifestError
+from appliance.errors import ApplianceError, ConfigError, ManifestError, OutputError
 
 
 def _config_or_default(path: Path | None) -> AppConfig:
@@ -57,69 +59,392 @@ def decode_manifest(
     timings: bool,
     config: Path | None,
 ) -> int:
-    """Decode a recorded capture; with a calibration, triangulate and write a PLY."""
-    from appliance.patterns import read_manifest
-    from appliance.reconstruct.decode import DecodeParams, decode, plan_decode
+    """Decode one recorded capture (see :func:`decode_manifests`)."""
+    return decode_manifests([manifest_path], calibration, out, maps_out, timings, config)
 
+
+DECODE_MODES = ("projector", "stereo", "both")
+"""``scan3d decode --mode`` choices: camera-projector, camera-camera, or both (fused where supported)."""
+
+
+def choose_decode_mode(calib: Any, cameras: list[str] | tuple[str, ...], requested: str | None = None) -> str:
+    """The reconstruction mode of an offline decode, from what the calibration holds.
+
+    A projector entry: camera-projector for every camera (``'projector'``); two cameras and no projector:
+    camera-camera (``'stereo'``); both: ``'both'``. ``requested`` overrides, if the calibration allows it.
+
+    Raises
+    ------
+    ConfigError
+        When the calibration cannot support the requested (or any) mode.
+    """
+    from appliance.geometry.calibration_file import PROJECTOR_NAME
+
+    cams = [c for c in cameras if c != PROJECTOR_NAME and c in calib.devices]
+    has_projector = calib.projector is not None
+    if requested is None:
+        if has_projector and len(cams) >= 2:
+            return "both"
+        if has_projector:
+            return "projector"
+        if len(cams) >= 2:
+            return "stereo"
+        raise ConfigError(
+            f"decode: the calibration has camera(s) {cams} and no projector: nothing to triangulate with; "
+            "add the projector's calibration or decode two cameras"
+        )
+    if requested not in DECODE_MODES:
+        raise ConfigError(f"decode: --mode {requested!r}: must be one of {', '.join(DECODE_MODES)}")
+    if requested in ("projector", "both") and not has_projector:
+        raise ConfigError(f"decode: --mode {requested}: the calibration has no 'projector'; use --mode stereo")
+    if requested in ("stereo", "both") and len(cams) < 2:
+        raise ConfigError(
+            f"decode: --mode {requested}: needs two cameras of the manifest in the calibration, found {cams}; "
+            "use --mode projector"
+        )
+    return requested
+
+
+class _DecodeBatch:
+    """What a batch of offline decodes shares: plans, calibrations and reconstructors are built once."""
+
+    def __init__(self, calibration: Path | None, config: Path | None, mode: str | None) -> None:
+        self.calibration_path = calibration
+        self.mode_requested = mode
+        cfg = load_config(config) if config is not None else None
+        self.rc = cfg.reconstruction if cfg is not None else ReconstructionConfig()
+        self.depth_given = bool({"min_depth_mm", "max_depth_mm"} & self.rc.model_fields_set)
+        self._plans: dict[Any, Any] = {}
+        self._calibs: dict[tuple[int, int], Any] = {}
+        self._recons: dict[Any, Any] = {}
+        self.notes: list[str] = []
+
+    def plan(self, sequence: Any) -> Any:
+        from appliance.reconstruct.decode import plan_decode
+
+        if sequence not in self._plans:
+            self._plans[sequence] = plan_decode(sequence)
+        return self._plans[sequence]
+
+    def calib(self, projector_size: tuple[int, int]) -> Any:
+        from appliance.geometry.calibration_file import read_calibration
+
+        assert self.calibration_path is not None
+        if projector_size not in self._calibs:
+            self._calibs[projector_size] = read_calibration(self.calibration_path, projector_size)
+        return self._calibs[projector_size]
+
+    def reconstructor(self, man: Any, axes: str, shapes: dict[str, tuple[int, int]]) -> tuple[Any, str, Any]:
+        """(Reconstructor, mode, its ReconstructionConfig) for this manifest's cameras and sequence."""
+        from appliance.geometry.calibration_file import PROJECTOR_NAME
+        from appliance.reconstruct.pipeline import Reconstructor
+
+        calib = self.calib((man.sequence.width, man.sequence.height))
+        missing = [c for c in man.cameras if c not in calib.devices]
+        if missing:
+            raise ManifestError(
+                f"{man.path}: camera(s) {missing} have no entry in {self.calibration_path} (it has "
+                f"{list(calib.devices)}); name the manifest's cameras as in the calibration"
+            )
+        for cam, (h, w) in shapes.items():
+            dev = calib.devices[cam]
+            if (dev.width, dev.height) != (w, h):
+                raise ManifestError(
+                    f"{man.path}: camera {cam!r}: images are {w}x{h} but {self.calibration_path} calibrates it at "
+                    f"{dev.width}x{dev.height}; use the calibration of these images"
+                )
+        mode = choose_decode_mode(calib, man.cameras, self.mode_requested)
+        key = (id(calib), tuple(man.cameras), axes, mode)
+        if key in self._recons:
+            return self._recons[key]  # type: ignore[no-any-return]
+        sub = type(calib)({n: calib.devices[n] for n in [*man.cameras, PROJECTOR_NAME] if n in calib.devices})
+        rc = self._config_for(mode, sub, list(man.cameras))
+        used_mode = rc.mode
+        if used_mode != mode:
+            self.notes.append(
+                f"mode {mode}: this reconstruction has no fused mode; triangulating camera-projector only "
+                "(give --mode stereo for camera-camera)"
+            )
+        recon = Reconstructor(sub, axes, rc)
+        self._recons[key] = (recon, used_mode, rc)
+        return self._recons[key]  # type: ignore[no-any-return]
+
+    def _config_for(self, mode: str, calib: Any, cameras: list[str]) -> ReconstructionConfig:
+        from pydantic import ValidationError
+
+        from appliance.reconstruct.defaults import default_depth_range_mm
+
+        update: dict[str, Any] = {"mode": mode}
+        if not self.depth_given:
+            cams = [calib.devices[c] for c in cameras if c in calib.devices]
+            pairs: list[tuple[list[Any], list[Any]]] = []
+            if mode in ("projector", "both"):
+                pairs.append((cams, [calib.projector]))
+            if mode in ("stereo", "both"):
+                pairs.append((cams[:1], cams[1:2]))
+            near, far = math.inf, 0.0
+            for refs, others in pairs:
+                lo, hi = default_depth_range_mm(refs, others)
+                near, far = min(near, lo), max(far, hi)
+            update["min_depth_mm"], update["max_depth_mm"] = near, far
+        try:
+            return ReconstructionConfig.model_validate({**self.rc.model_dump(), **update})
+        except ValidationError:
+            if mode != "both":
+                raise
+            update["mode"] = "projector"  # no fused mode in this build's schema
+            return ReconstructionConfig.model_validate({**self.rc.model_dump(), **update})
+
+
+def _intensity8(stack: Any, plan: Any, bits: int) -> npt.NDArray[np.uint8]:
+    """Grey value (0..255) per pixel: the white frame, else the mean of the phase frames, else the brightest."""
+    from appliance.patterns.sequence import PhaseFrame
+
+    if plan.white >= 0:
+        img = np.asarray(stack[plan.white], np.float32)
+    else:
+        phase = [i for i, f in enumerate(plan.sequence.frames) if isinstance(f, PhaseFrame)]
+        img = (np.mean(stack[phase], axis=0, dtype=np.float32) if phase
+               else np.max(stack[list(plan.used)], axis=0).astype(np.float32))  # fmt: skip
+    scale = 255.0 / float((1 << bits) - 1)
+    return np.clip(img * scale + 0.5, 0, 255).astype(np.uint8)
+
+
+def _target(base: Path | None, manifest: Path, suffix: str, batch: bool) -> Path:
+    """Where a capture's file goes: ``base`` itself (one capture, a file name), or ``base/<stem><suffix>``."""
+    if base is None:
+        return manifest.with_suffix(suffix)
+    if batch or base.is_dir() or base.suffix == "":
+        return base / f"{manifest.stem}{suffix}"
+    return base
+
+
+def _stripe_summary(maps: Any) -> dict[str, dict[str, float]]:
+    """Share of decoded pixels per effective stripe width (projector px; 0 = sub-pixel phase), per axis."""
+    out: dict[str, dict[str, float]] = {}
+    stripe = getattr(maps, "stripe", None)
+    if stripe is None:
+        return out
+    n = max(int(maps.mask.sum()), 1)
+    for a, axis in enumerate(("x", "y")):
+        vals = stripe[a][maps.mask]
+        vals = vals[np.isfinite(vals)]
+        if vals.size == 0:
+            continue
+        widths, counts = np.unique(vals, return_counts=True)
+        out[axis] = {f"{w:g}": round(float(c) / n, 6) for w, c in zip(widths, counts, strict=True)}
+    return out
+
+
+def _reconstruction_report(recon: Any) -> dict[str, Any]:
+    """Per-stage counts and messages of the last reconstruction, where the reconstructor provides them."""
+    out: dict[str, Any] = {}
+    for name in ("last_report", "report", "rejections", "stats"):
+        value = getattr(recon, name, None)
+        if value is None or callable(value):
+            continue
+        if hasattr(value, "to_dict"):
+            value = value.to_dict()
+        elif hasattr(value, "__dataclass_fields__"):
+            import dataclasses
+
+            value = dataclasses.asdict(value)
+        if isinstance(value, dict | list):
+            out[name] = value
+    return out
+
+
+def _decode_one(
+    batch: _DecodeBatch,
+    manifest_path: Path,
+    out: Path | None,
+    maps_out: Path | None,
+    report: Path | None,
+    is_batch: bool,
+) -> dict[str, float]:
+    """Decode (and with a calibration triangulate) one capture; returns its timings (ms)."""
+    from appliance.patterns import read_manifest
+    from appliance.reconstruct.decode import DecodeParams, decode
+
+    tag = f"{manifest_path.stem}: " if is_batch else ""
     t0 = time.perf_counter()
-    cfg = _config_or_default(config) if config is not None else None
-    rc = cfg.reconstruction if cfg is not None else ReconstructionConfig()
     man = read_manifest(manifest_path)
-    plan = plan_decode(man.sequence)
     stacks = {cam: man.load_stack(cam) for cam in man.cameras}
+    bits = {cam: man.bits_of(st) for cam, st in stacks.items()}
     t1 = time.perf_counter()
-    params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast)
-    maps = {cam: decode(stacks[cam], man.sequence, params) for cam in man.cameras}
+    plan = batch.plan(man.sequence)
+    shapes = {cam: (int(st.shape[1]), int(st.shape[2])) for cam, st in stacks.items()}
+    recon = None
+    if batch.calibration_path is not None:
+        recon, mode, rc = batch.reconstructor(man, "".join(plan.axes), shapes)
+    else:
+        if out is not None:
+            raise ConfigError("decode: --out needs --calibration (without one, only --maps can be written)")
+        rc = batch.rc
+        mode = ""
     t2 = time.perf_counter()
+    maps = {}
+    for cam, st in stacks.items():
+        params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast,
+                              max_value=float((1 << bits[cam]) - 1))
+        maps[cam] = decode(st, plan, params)
+    t3 = time.perf_counter()
     for note in plan.ignored:
-        print(f"ignored: {note}")
+        print(f"{tag}ignored: {note}")
     for cam, m in maps.items():
-        print(f"{cam}: {int(m.mask.sum())} of {m.mask.size} pixels decoded ({100 * m.mask.mean():.1f} %)")
+        print(f"{tag}{cam}: {int(m.mask.sum())} of {m.mask.size} pixels decoded ({100 * m.mask.mean():.1f} %)")
+    cloud = None
+    if recon is not None:
+        white = {cam: _intensity8(st, plan, bits[cam]) for cam, st in stacks.items()}
+        cloud, _ = recon.run(maps, white)
+    t4 = time.perf_counter()
+    written: dict[str, str] = {}
     if maps_out is not None:
+        path = _target(maps_out, manifest_path, ".npz", is_batch)
         arrays: dict[str, npt.NDArray[Any]] = {}
         for cam, m in maps.items():
             arrays[f"{cam}_u"], arrays[f"{cam}_v"] = m.u, m.v
             arrays[f"{cam}_mask"], arrays[f"{cam}_quality"] = m.mask, m.quality
-        maps_out.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(maps_out, allow_pickle=False, **arrays)
-        print(f"maps: {maps_out}")
-    t3 = t4 = time.perf_counter()
-    if calibration is not None:
-        from appliance.geometry.calibration_file import read_calibration
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(path, allow_pickle=False, **arrays)
+        except OSError as exc:
+            raise OutputError(f"{path}: the maps cannot be written ({exc.strerror}); check the folder") from exc
+        written["maps"] = str(path)
+        print(f"{tag}maps: {path}")
+    if cloud is not None:
         from appliance.output.ply import write_ply
-        from appliance.reconstruct.pipeline import Reconstructor
 
-        calib = read_calibration(calibration)
-        missing = [c for c in man.cameras if c not in calib.devices]
-        if missing:
-            raise ManifestError(
-                f"{manifest_path}: camera(s) {missing} have no entry in {calibration} (it has "
-                f"{list(calib.devices)}); name the manifest's cameras as in the calibration"
-            )
-        white_idx = next((i for i, f in enumerate(man.sequence.frames) if f.pattern == "white"), None)
-        white = {}
-        for cam, st in stacks.items():
-            w = st[white_idx] if white_idx is not None else np.zeros(st.shape[1:], st.dtype)
-            white[cam] = w if w.dtype == np.uint8 else (w >> 8).astype(np.uint8)
-        sub = {name: calib.devices[name] for name in [*man.cameras, "projector"] if name in calib.devices}
-        recon = Reconstructor(type(calib)(sub), "".join(plan.axes), rc)
-        cloud, _ = recon.run(maps, white)
-        t3 = time.perf_counter()
-        out = out or manifest_path.with_suffix(".ply")
-        write_ply(out, cloud, normals=rc.normals and cloud.normal is not None)
-        t4 = time.perf_counter()
-        print(f"cloud: {out} ({len(cloud)} points)")
-    elif out is not None:
-        raise ConfigError("decode: --out needs --calibration (without one, only --maps can be written)")
-    if timings:
+        path = _target(out, manifest_path, ".ply", is_batch)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"{path.parent}: cannot be created ({exc.strerror}); check --out") from exc
+        write_ply(path, cloud, normals=rc.normals and cloud.normal is not None)
+        written["cloud"] = str(path)
+        print(f"{tag}cloud: {path} ({len(cloud)} points, mode {mode})")
+    for note in batch.notes:
+        print(f"{tag}note: {note}")
+    batch.notes.clear()
+    t5 = time.perf_counter()
+    times = {
+        "load_ms": round((t1 - t0) * 1e3, 3),
+        "setup_ms": round((t2 - t1) * 1e3, 3),
+        "decode_ms": round((t3 - t2) * 1e3, 3),
+        "triangulate_ms": round((t4 - t3) * 1e3, 3),
+        "write_ms": round((t5 - t4) * 1e3, 3),
+        "total_ms": round((t5 - t0) * 1e3, 3),
+    }
+    if report is not None:
+        _write_report(report, man, plan, maps, cloud, recon, mode, rc, batch, times, written)
+    return times
+
+
+def _write_report(
+    report: Path, man: Any, plan: Any, maps: dict[str, Any], cloud: Any, recon: Any, mode: str,
+    rc: ReconstructionConfig, batch: _DecodeBatch, times: dict[str, float], written: dict[str, str],
+) -> None:  # fmt: skip
+    """The JSON sidecar of one offline decode, as a scan writes it."""
+    from appliance.output.sidecar import ScanMetadata, write_sidecar
+
+    per_cam: dict[str, Any] = {}
+    for i, (cam, m) in enumerate(maps.items()):
+        entry: dict[str, Any] = {"decoded_pixels": int(m.mask.sum()), "pixels": int(m.mask.size)}
+        if cloud is not None:
+            entry["points"] = int(np.sum(cloud.camera == i)) if mode != "stereo" or i == 0 else 0
+        stripes = _stripe_summary(m)
+        if stripes:
+            entry["stripe_widths"] = stripes
+        per_cam[cam] = entry
+    counts: dict[str, Any] = {"points": len(cloud) if cloud is not None else 0, "cameras": per_cam}
+    extra: dict[str, Any] = {"manifest": str(man.path), "ignored_frames": list(plan.ignored)}
+    calib_hash = ""
+    if recon is not None:
+        calib_hash = recon.calibration.hash()
+        extra.update({
+            "mode": mode,
+            "calibration_file": str(batch.calibration_path),
+            "depth_range_mm": [round(rc.min_depth_mm, 3), round(rc.max_depth_mm, 3)],
+        })  # fmt: skip
+        extra.update(_reconstruction_report(recon))
+    meta = ScanMetadata(
+        scan_id=man.path.stem,
+        time_utc=dt.datetime.now(dt.UTC).isoformat(),
+        sequence={"description": man.sequence.describe(), "frames": len(man.sequence),
+                  "projector": [man.sequence.width, man.sequence.height]},
+        calibration_hash=calib_hash,
+        counts=counts,
+        timings_ms=times,
+        cameras=list(man.cameras),
+        files=written,
+        extra=extra,
+    )
+    try:
+        report.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{report.parent}: cannot be created ({exc.strerror}); check --report") from exc
+    write_sidecar(report, meta)
+    print(f"report: {report}")
+
+
+def decode_manifests(
+    manifests: list[Path],
+    calibration: Path | None,
+    out: Path | None,
+    maps_out: Path | None,
+    timings: bool,
+    config: Path | None,
+    mode: str | None = None,
+    report: Path | None = None,
+) -> int:
+    """Decode recorded captures offline; with a calibration, triangulate each and write a PLY.
+
+    The mode comes from the calibration (see :func:`choose_decode_mode`) unless ``mode`` is given;
+    ``config`` only overrides reconstruction settings (hardware entries are never needed) and the depth
+    range defaults to what the calibration's geometry can see. Several manifests are a batch: plans,
+    calibration and reconstruction tables are built once, ``out`` (and ``maps_out``) are folders holding
+    ``<manifest stem>.ply`` (``.npz``). A capture that fails prints one line; the others go on.
+
+    Returns
+    -------
+    int
+        0 when every capture decoded, 2 when any failed.
+    """
+    if not manifests:
+        raise ConfigError("decode: give at least one manifest")
+    is_batch = len(manifests) > 1
+    if is_batch and report is not None:
+        raise ConfigError("decode: --report writes the sidecar of one capture; give one manifest (or no --report)")
+    if is_batch and out is not None and out.suffix.lower() == ".ply":
+        raise ConfigError(f"decode: --out {out}: several manifests need a folder (one <stem>.ply each)")
+    batch = _DecodeBatch(calibration, config, mode)
+    failed = 0
+    totals: list[float] = []
+    for path in manifests:
+        try:
+            times = _decode_one(batch, path, out, maps_out, report, is_batch)
+        except ApplianceError as exc:
+            if not is_batch:
+                raise
+            failed += 1
+            print(f"scan3d decode: {path}: {exc}", file=sys.stderr)
+            continue
+        totals.append(times["total_ms"])
+        if timings:
+            print(json.dumps({"capture": path.stem, **times}))
+    if timings and totals:
+        rest = totals[1:]
         print(json.dumps({
-            "load_ms": round((t1 - t0) * 1e3, 3),
-            "decode_ms": round((t2 - t1) * 1e3, 3),
-            "triangulate_ms": round((t3 - t2) * 1e3, 3) if calibration is not None else 0.0,
-            "write_ms": round((t4 - t3) * 1e3, 3),
-            "total_ms": round((time.perf_counter() - t0) * 1e3, 3),
-        }))
-    return 0
+            "summary": True,
+            "captures": len(totals),
+            "failed": failed,
+            "total_ms": round(sum(totals), 3),
+            "first_ms": totals[0],
+            "median_after_first_ms": round(float(np.median(rest)), 3) if rest else None,
+        }))  # fmt: skip
+    elif is_batch:
+        print(f"decoded {len(totals)} of {len(manifests)} captures" + (f" ({failed} failed)" if failed else ""))
+    return 2 if failed else 0
 
 
 async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) -> int:

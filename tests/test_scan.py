@@ -120,8 +120,10 @@ def test_decode_command_on_a_recorded_capture(tmp_path: Path) -> None:
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert out.returncode == 0, out.stderr
-    timings = json.loads(out.stdout.strip().splitlines()[-1])
-    assert set(timings) == {"load_ms", "decode_ms", "triangulate_ms", "write_ms", "total_ms"}
+    lines = [json.loads(x) for x in out.stdout.strip().splitlines() if x.startswith("{")]
+    timings, summary = lines[0], lines[-1]
+    assert set(timings) == {"capture", "load_ms", "setup_ms", "decode_ms", "triangulate_ms", "write_ms", "total_ms"}
+    assert summary["summary"] and summary["captures"] == 1
     maps = np.load(tmp_path / "m.npz")
     assert set(maps.files) == {"cam0_u", "cam0_v", "cam0_mask", "cam0_quality"}
     v = PlyData.read(str(tmp_path / "c.ply"))["vertex"]

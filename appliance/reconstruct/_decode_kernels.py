@@ -8,8 +8,12 @@ the same bits whatever order frames arrive in.
 Plan tables (built by ``decode.plan_decode``):
 
 - ``gray_tab`` int64 (G, 4): axis (0 = x, 1 = y), bit, positive frame, negative frame (-1: absent).
-  The positive frame is lit where the bit is 1; a bit with one frame is compared to (white + black) / 2.
-- ``axis_tab`` int64 (2, 6): coded, has Gray, stripe (px), stripe count, tolerate one weak bit, size (px).
+  The positive frame is lit where the bit is 1; a bit with one frame is compared to (white + black) / 2,
+  or without white and black to the mean of the reference phase set ``mean_idx`` (frame indices).
+  Each bit's contrast ``|d|`` is kept per pixel (uint16, clipped at 65535) for the final step, which
+  finds the weak bits against the pixel's own contrast floor and drops the finest unresolved ones.
+- ``axis_tab`` int64 (2, 8): coded, has Gray, stripe (px), stripe count, tolerate one weak bit, size (px),
+  edge-aware unwrapping (a phase set with source -3), Gray bits.
 - ``ph_tab`` int64 (S, 4): axis, steps, source (-2 axis centre, -1 Gray stripe centre, -3 Gray edge-aware,
   1 previous set), first row
   in ``ph_idx`` / ``ph_sin`` / ``ph_cos``; sets ordered coarse to fine within an axis.
@@ -85,22 +89,23 @@ def _gray_to_binary(g):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _add_bit(d_row, bit, code, m1, m2):  # type: ignore[no-untyped-def]
-    """Fold one Gray bit's signed contrast row ``d_row`` into code (uint32) and the two smallest contrasts."""
+def _add_bit(d_row, bit, code, cst):  # type: ignore[no-untyped-def]
+    """Fold one Gray bit's signed contrast row ``d_row`` into code (uint32) and its contrast row (uint16)."""
     on = np.uint32(1 << bit)
     off = np.uint32(0)
     for x in range(d_row.shape[0]):
         code[x] |= on if d_row[x] > 0 else off
-    _fold_min(d_row, np.uint32(bit), m1, m2)
+    for x in range(d_row.shape[0]):
+        cst[x] = np.uint16(min(abs(d_row[x]), 65535))
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_min(d_row, bit, m1, m2):  # type: ignore[no-untyped-def]
-    """Keep the two smallest keys ``contrast * 32 + bit`` (unique, so the result is order independent)."""
-    for x in range(d_row.shape[0]):
-        key = (np.uint32(abs(d_row[x])) << _U5) | bit
-        m2[x] = min(m2[x], max(m1[x], key))
-        m1[x] = min(m1[x], key)
+def _popcount(v):  # type: ignore[no-untyped-def]
+    """Set bits of a uint32 (SWAR; vectorisable)."""
+    v = v - ((v >> _U1) & np.uint32(0x55555555))
+    v = (v & np.uint32(0x33333333)) + ((v >> _U2) & np.uint32(0x33333333))
+    v = (v + (v >> _U4)) & np.uint32(0x0F0F0F0F)
+    return (v * np.uint32(0x01010101)) >> np.uint32(24)
 
 
 # The final step is split into short loops over a row, each touching few arrays, so that LLVM
@@ -157,25 +162,86 @@ def _atan2_f32(y, x):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gray_index(code, stripe, nstripes, cg, ok):  # type: ignore[no-untyped-def]
-    nstripes = np.int32(nstripes)
-    stripe = np.float32(stripe)
-    for x in range(code.shape[0]):
-        k = np.int32(_gray_to_binary(code[x]))  # int32 -> float vectorises on AVX2; int64/uint32 do not
-        cg[x] = (np.float32(k) + _FHALF) * stripe - _FHALF
-        ok[x] = k < nstripes
+def _fold_weak(c, bit, relg, weak, qa):  # type: ignore[no-untyped-def]
+    """One bit's contrasts ``c`` (float32) into the weak-bit mask and the weakest strong contrast ``qa``.
+
+    Bits below the dropped level are all weak, so the weakest strong bit is the weakest one the decode
+    relied on, whatever the level.
+    """
+    on = np.uint32(1) << np.uint32(bit)
+    zero = np.uint32(0)
+    for x in range(c.shape[0]):
+        strong = c[x] >= relg[x]
+        weak[x] |= zero if strong else on
+        qa[x] = min(qa[x], c[x] if strong else _FINF)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gray_gate(m1, m2, relv, tolerate, ok, qa):  # type: ignore[no-untyped-def]
-    for x in range(m1.shape[0]):
-        q1 = np.float32(np.int32(m1[x] >> _U5))
-        strong1 = q1 >= relv[x]
-        strong2 = tolerate & (np.float32(np.int32(m2[x] >> _U5)) >= relv[x])
-        ok[x] = ok[x] & (strong1 | strong2)
-    for x in range(m1.shape[0]):
-        q1 = np.float32(np.int32(m1[x] >> _U5))
-        qa[x] = q1 if q1 >= relv[x] else np.float32(np.int32(m2[x] >> _U5))
+def _fold_keys(c, bit, m1, m2):  # type: ignore[no-untyped-def]
+    """The two smallest keys ``contrast * 32 + bit`` (for the edge-aware unwrapping)."""
+    b = np.uint32(bit)
+    for x in range(c.shape[0]):
+        key = (np.uint32(np.int32(c[x])) << _U5) | b
+        m2[x] = min(m2[x], max(m1[x], key))
+        m1[x] = min(m1[x], key)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+    """Batch: a bit's signed contrast row ``d`` into the code and the axis' gate state (``cf`` scratch)."""
+    on = np.uint32(1 << bit)
+    off = np.uint32(0)
+    for x in range(d.shape[0]):
+        code[x] |= on if d[x] > 0 else off
+    for x in range(d.shape[0]):
+        cf[x] = np.float32(min(abs(d[x]), 65535))
+    _fold_weak(cf, bit, relg, weak, qa)
+    if keys:
+        _fold_keys(cf, bit, m1, m2)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _fold_cst(cst, bit, relg, keys, cf, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+    """Streaming: a bit's stored contrasts (uint16) into the axis' gate state, as :func:`_fold_d` does."""
+    for x in range(cst.shape[0]):
+        cf[x] = np.float32(cst[x])
+    _fold_weak(cf, bit, relg, weak, qa)
+    if keys:
+        _fold_keys(cf, bit, m1, m2)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_level(weak, tol, nbits, finest, fl, ok):  # type: ignore[no-untyped-def]
+    """Bits dropped per pixel (``fl``) and whether the rest decodes.
+
+    At most ``tol`` weak bits: full resolution (one weak bit is a stripe edge). Otherwise, with ``finest``,
+    the contiguous weak bits from bit 0 (stripes finer than the optics resolve) are dropped and at most
+    ``tol`` weak bits may remain above them.
+    """
+    t = np.uint32(tol)
+    nb = np.uint32(nbits)
+    for x in range(weak.shape[0]):
+        w = weak[x]
+        full = _popcount(w) <= t
+        low = (~w) & (w + _U1)  # lowest strong bit, as a power of two
+        f = _popcount(low - _U1)
+        rest = w & ~(low - _U1)
+        trunc = finest & (_popcount(rest) <= t) & (f < nb)
+        fl[x] = np.uint32(0) if full else f
+        ok[x] = full | trunc
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_index(code, fl, stripe, nstripes, cg, ok):  # type: ignore[no-untyped-def]
+    """Stripe centre of the code without its ``fl`` dropped bits (Gray: the top bits of G(k) are G(k >> fl))."""
+    stripe = np.float32(stripe)
+    for x in range(code.shape[0]):
+        f = fl[x]
+        k = np.int32(_gray_to_binary(code[x] >> f))  # int32 -> float vectorises on AVX2
+        n = np.int32((np.uint32(nstripes) + (_U1 << f) - _U1) >> f)
+        width = stripe * np.float32(np.int32(_U1 << f))
+        cg[x] = (np.float32(k) + _FHALF) * width - _FHALF
+        ok[x] = ok[x] & (k < n)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -232,6 +298,16 @@ def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _unwrap_gate(fl, stripe, period, ok):  # type: ignore[no-untyped-def]
+    """A Gray code unwraps a phase set only while its effective stripe is at most half the period."""
+    half = np.float32(0.5 * period)
+    st = np.float32(stripe)
+    for x in range(fl.shape[0]):
+        f = fl[x]
+        ok[x] = ok[x] & ((f == np.uint32(0)) | (st * np.float32(np.int32(_U1 << f)) <= half))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _emit_axis(cc, ok, lit, out):  # type: ignore[no-untyped-def]
     for x in range(cc.shape[0]):
         good = ok[x] & lit[x]
@@ -265,13 +341,30 @@ def _mask_quality(lit, qmin, mask, quality):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _finish_row(  # type: ignore[no-untyped-def]
-    r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr, u, v, mask, quality, scratch, ok, lit
-):
-    """Per-pixel final step shared by batch and streaming: gates, Gray index, phase, unwrapping.
+def _emit_level(fl, lit, lev):  # type: ignore[no-untyped-def]
+    for x in range(fl.shape[0]):
+        lev[x] = np.uint8(min(fl[x], np.uint32(255))) if lit[x] else np.uint8(0)
 
-    ``r`` int32 (W,): contrast range; ``code``/``m1``/``m2`` uint32 (2, W); ``ssum``/``csum`` float64 (S, W);
-    ``scratch`` float32 (9, W), ``ok`` and ``lit`` bool (W,) are scratch.
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gate_init(weak, qg, m1, m2):  # type: ignore[no-untyped-def]
+    weak[:] = np.uint32(0)
+    qg[:] = _FINF
+    m1[:] = BIG
+    m2[:] = BIG
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _finish_row(  # type: ignore[no-untyped-def]
+    lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest, u, v, mask, quality, levels,
+    scratch, fl, ok,
+):  # fmt: skip
+    """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
+
+    ``lit`` bool (W,) and ``scratch[0]`` (phase floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`;
+    ``code``, ``weak``, ``m1``, ``m2`` uint32 (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits;
+    ``ssum``/``csum`` float64 (S, W); ``levels`` uint8 (2, W) out: Gray bits dropped per axis;
+    ``scratch`` float32 (9, W), ``fl`` uint32 (W,), ``ok`` bool (W,) are scratch.
     """
     relv = scratch[0]
     cg = scratch[1]
@@ -281,21 +374,23 @@ def _finish_row(  # type: ignore[no-untyped-def]
     mod = scratch[5]
     cph = scratch[6]
     cb = scratch[7]
-    relg = scratch[8]
-    _lit_row(r, rel, thr, relv, relg, lit)
     qmin[:] = _FINF
     for a in range(2):
         out = u if a == 0 else v
         if axis_tab[a, 0] == 0:
             out[:] = _FNAN
+            levels[a, :] = np.uint8(0)
             continue
         stripe = np.float64(axis_tab[a, 2])
         if axis_tab[a, 1] != 0:
-            _gray_index(code[a], stripe, axis_tab[a, 3], cg, ok)
-            _gray_gate(m1[a], m2[a], relg, axis_tab[a, 4] != 0, ok, qa)
+            tol = 1 if axis_tab[a, 4] != 0 else 0
+            _gray_level(weak[a], tol, axis_tab[a, 7], finest, fl, ok)
+            _gray_index(code[a], fl, stripe, axis_tab[a, 3], cg, ok)
+            qa[:] = qg[a]
         else:
             ok[:] = True
             qa[:] = _FINF
+            fl[:] = np.uint32(0)
             cg[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
         cc[:] = cg
         for s in range(ph_tab.shape[0]):
@@ -310,13 +405,16 @@ def _finish_row(  # type: ignore[no-untyped-def]
             elif src == -3:
                 _gray_edge(code[a], m1[a], m2[a], stripe, cg, cb)
                 _unwrap(cph, cb, period, cc)
+                _unwrap_gate(fl, stripe, period, ok)
             elif src > 0:
                 cb[:] = cc
                 _unwrap(cph, cb, period, cc)
             else:
                 _unwrap(cph, cg, period, cc)
+                _unwrap_gate(fl, stripe, period, ok)
             _phase_gate(mod, relv, ok, qa)
         _emit_axis(cc, ok, lit, out)
+        _emit_level(fl, lit, levels[a])
         _min_into(qmin, qa)
     _mask_quality(lit, qmin, mask, quality)
 
@@ -386,8 +484,27 @@ def range_hist_stack(frames, wb, used, maxval, shift, nbins):  # type: ignore[no
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gray_row(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-untyped-def]
+def _mean_diff(one, msum, n, sign, d):  # type: ignore[no-untyped-def]
+    """Signed contrast of a frame against the mean of ``n`` phase frames (sum ``msum``), in pair units."""
+    for x in range(d.shape[0]):
+        d[x] = sign * ((2 * (n * np.int32(one[x]) - msum[x])) // n)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_row(  # type: ignore[no-untyped-def]
+    frames, y, wb, gray_tab, mean_idx, axis_tab, relg, d, cf, msum, code, weak, qg, m1, m2
+):
+    """Every Gray bit of row ``y``: pairs compare pattern and inverse, single frames (white + black) / 2
+    or, without white and black, the mean of the reference phase set ``mean_idx``."""
     w = frames.shape[2]
+    nmean = np.int32(mean_idx.shape[0])
+    if nmean > 0 and wb[0] < 0:
+        for x in range(w):
+            msum[x] = 0
+        for i in range(mean_idx.shape[0]):
+            row = frames[mean_idx[i], y]
+            for x in range(w):
+                msum[x] += np.int32(row[x])
     for g in range(gray_tab.shape[0]):
         a = gray_tab[g, 0]
         bit = gray_tab[g, 1]
@@ -400,68 +517,15 @@ def _gray_row(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-unty
                 d[x] = np.int32(p[x]) - np.int32(n[x])
         else:
             one = frames[ip if ip >= 0 else ineg, y]
-            wr = frames[wb[0], y]
-            br = frames[wb[1], y]
             sign = np.int32(1) if ip >= 0 else np.int32(-1)
-            for x in range(w):
-                d[x] = sign * (2 * np.int32(one[x]) - np.int32(wr[x]) - np.int32(br[x]))
-        _add_bit(d, bit, code[a], m1[a], m2[a])
-
-
-_N5 = np.uint16(5)
-NARROW_BIG = np.uint16(0x7FFF)  # "no contrast seen yet" of the 16-bit keys
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _diff16(p, n, d):  # type: ignore[no-untyped-def]
-    for x in range(d.shape[0]):
-        d[x] = np.int16(np.int16(p[x]) - np.int16(n[x]))
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _single16(one, wr, br, sign, d):  # type: ignore[no-untyped-def]
-    for x in range(d.shape[0]):
-        d[x] = np.int16(sign * (2 * np.int16(one[x]) - np.int16(wr[x]) - np.int16(br[x])))
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _code16(d, on, code):  # type: ignore[no-untyped-def]
-    zero = np.uint16(0)
-    for x in range(d.shape[0]):
-        code[x] |= on if d[x] > 0 else zero
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _fold16(d, bit, m1, m2):  # type: ignore[no-untyped-def]
-    for x in range(d.shape[0]):
-        key = np.uint16((np.uint16(abs(d[x])) << _N5) | bit)
-        m2[x] = min(m2[x], max(m1[x], key))
-        m1[x] = min(m1[x], key)
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _gray_row16(frames, y, wb, gray_tab, d, code, m1, m2):  # type: ignore[no-untyped-def]
-    """:func:`_gray_row` in 16-bit lanes for 8-bit frames (|contrast| <= 510, bits <= 15): same values."""
-    for g in range(gray_tab.shape[0]):
-        a = gray_tab[g, 0]
-        bit = gray_tab[g, 1]
-        ip = gray_tab[g, 2]
-        ineg = gray_tab[g, 3]
-        if ip >= 0 and ineg >= 0:
-            _diff16(frames[ip, y], frames[ineg, y], d)
-        else:
-            sign = np.int16(1) if ip >= 0 else np.int16(-1)
-            _single16(frames[ip if ip >= 0 else ineg, y], frames[wb[0], y], frames[wb[1], y], sign, d)
-        _code16(d, np.uint16(1 << bit), code[a])
-        _fold16(d, np.uint16(bit), m1[a], m2[a])
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _widen16(c16, a16, b16, code, m1, m2):  # type: ignore[no-untyped-def]
-    for x in range(code.shape[0]):
-        code[x] = np.uint32(c16[x])
-        m1[x] = BIG if a16[x] == NARROW_BIG else np.uint32(a16[x])
-        m2[x] = BIG if b16[x] == NARROW_BIG else np.uint32(b16[x])
+            if wb[0] >= 0:
+                wr = frames[wb[0], y]
+                br = frames[wb[1], y]
+                for x in range(w):
+                    d[x] = sign * (2 * np.int32(one[x]) - np.int32(wr[x]) - np.int32(br[x]))
+            else:
+                _mean_diff(one, msum, nmean, sign, d)
+        _fold_d(d, bit, relg, axis_tab[a, 6] != 0, cf, code[a], weak[a], qg[a], m1[a], m2[a])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -486,13 +550,12 @@ def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def decode_stack(  # type: ignore[no-untyped-def]
-    frames, wb, used, maxval, gray_tab, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos,
-    rel, thr, nthreads, narrow, u, v, mask, quality,
+    frames, wb, used, maxval, gray_tab, mean_idx, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos,
+    rel, thr, finest, nthreads, u, v, mask, quality, levels,
 ):  # fmt: skip
-    """Decode a (F, H, W) stack into u, v, mask, quality (H, W) in one pass over rows.
+    """Decode a (F, H, W) stack into u, v, mask, quality (H, W) and levels (2, H, W) in one pass over rows.
 
-    ``narrow``: 8-bit frames with <= 15 Gray bits per axis, folded in 16-bit lanes (twice the SIMD width,
-    same values). ``v`` with no rows: the y axis is not coded and not written.
+    ``v`` with no rows: the y axis is not coded and not written.
     """
     h = frames.shape[1]
     w = frames.shape[2]
@@ -501,40 +564,32 @@ def decode_stack(  # type: ignore[no-untyped-def]
     for ch in prange(nch):
         r = np.empty(w, np.int32)
         d = np.empty(w, np.int32)
-        d16 = np.empty(w, np.int16)
         mx = np.empty(w, np.int32)
         mn = np.empty(w, np.int32)
+        msum = np.empty(w, np.int32)
+        cf = np.empty(w, np.float32)
         code = np.empty((2, w), np.uint32)
+        weak = np.empty((2, w), np.uint32)
         m1 = np.empty((2, w), np.uint32)
         m2 = np.empty((2, w), np.uint32)
-        c16 = np.empty((2, w), np.uint16)
-        a16 = np.empty((2, w), np.uint16)
-        b16 = np.empty((2, w), np.uint16)
+        qg = np.empty((2, w), np.float32)
         ssum = np.empty((nset, w), np.float64)
         csum = np.empty((nset, w), np.float64)
         scratch = np.empty((9, w), np.float32)
+        fl = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
-            if narrow:
-                c16[:] = np.uint16(0)
-                a16[:] = NARROW_BIG
-                b16[:] = NARROW_BIG
-                _gray_row16(frames, y, wb, gray_tab, d16, c16, a16, b16)
-                for a in range(2):
-                    if axis_tab[a, 1] != 0:
-                        _widen16(c16[a], a16[a], b16[a], code[a], m1[a], m2[a])
-            else:
-                code[:] = np.uint32(0)
-                m1[:] = BIG
-                m2[:] = BIG
-                _gray_row(frames, y, wb, gray_tab, d, code, m1, m2)
+            _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
+            code[:] = np.uint32(0)
+            _gate_init(weak, qg, m1, m2)
+            _gray_row(frames, y, wb, gray_tab, mean_idx, axis_tab, scratch[8], d, cf, msum, code, weak, qg, m1, m2)
             _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
-                r, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr,
-                u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], scratch, ok, lit,
+                lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest,
+                u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[:, y, :], scratch, fl, ok,
             )  # fmt: skip
 
 
@@ -544,8 +599,8 @@ def decode_stack(  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def stream_pair(pos, neg, bit, code, m1, m2):  # type: ignore[no-untyped-def]
-    """Fold a (pattern, inverse) pair of (H, W) images into the axis state (H, W) arrays."""
+def stream_pair(pos, neg, bit, code, cst):  # type: ignore[no-untyped-def]
+    """Fold a (pattern, inverse) pair of (H, W) images into the axis code and the bit's contrasts (H, W)."""
     h, w = pos.shape
     for y in prange(h):
         d = np.empty(w, np.int32)
@@ -553,11 +608,11 @@ def stream_pair(pos, neg, bit, code, m1, m2):  # type: ignore[no-untyped-def]
         n = neg[y]
         for x in range(w):
             d[x] = np.int32(p[x]) - np.int32(n[x])
-        _add_bit(d, bit, code[y], m1[y], m2[y])
+        _add_bit(d, bit, code[y], cst[y])
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def stream_single(img, sign, white, black, bit, code, m1, m2):  # type: ignore[no-untyped-def]
+def stream_single(img, sign, white, black, bit, code, cst):  # type: ignore[no-untyped-def]
     """Fold a Gray frame without inverse, thresholded at (white + black) / 2, into the axis state."""
     h, w = img.shape
     for y in prange(h):
@@ -567,7 +622,28 @@ def stream_single(img, sign, white, black, bit, code, m1, m2):  # type: ignore[n
         br = black[y]
         for x in range(w):
             d[x] = np.int32(sign) * (2 * np.int32(one[x]) - np.int32(wr[x]) - np.int32(br[x]))
-        _add_bit(d, bit, code[y], m1[y], m2[y])
+        _add_bit(d, bit, code[y], cst[y])
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def stream_single_mean(img, sign, msum, n, bit, code, cst):  # type: ignore[no-untyped-def]
+    """Fold a Gray frame without inverse, thresholded at the mean of ``n`` phase frames (sum ``msum``)."""
+    h, w = img.shape
+    for y in prange(h):
+        d = np.empty(w, np.int32)
+        _mean_diff(img[y], msum[y], np.int32(n), np.int32(sign), d)
+        _add_bit(d, bit, code[y], cst[y])
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def stream_sum(img, msum):  # type: ignore[no-untyped-def]
+    """Add an (H, W) frame into an int32 per-pixel sum."""
+    h, w = img.shape
+    for y in prange(h):
+        row = img[y]
+        acc = msum[y]
+        for x in range(w):
+            acc[x] += np.int32(row[x])
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -599,14 +675,21 @@ def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_finish(  # type: ignore[no-untyped-def]
-    hi, lo, code, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr, nthreads, u, v, mask, quality
-):
-    """Final step of streaming: state arrays (H, W) / (2, H, W) / (S, H, W) -> outputs (H, W)."""
+    hi, lo, code, cst, gray_tab, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr, finest, nthreads, u, v, mask,
+    quality, levels,
+):  # fmt: skip
+    """Final step of streaming: state arrays (H, W) / (2, H, W) / (G, H, W) / (S, H, W) -> outputs."""
     h, w = hi.shape
     nch = min(h, 8 * nthreads)
     for ch in prange(nch):
         r = np.empty(w, np.int32)
+        cf = np.empty(w, np.float32)
+        weak = np.empty((2, w), np.uint32)
+        m1 = np.empty((2, w), np.uint32)
+        m2 = np.empty((2, w), np.uint32)
+        qg = np.empty((2, w), np.float32)
         scratch = np.empty((9, w), np.float32)
+        fl = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
@@ -615,8 +698,14 @@ def stream_finish(  # type: ignore[no-untyped-def]
             lr = lo[y]
             for x in range(w):
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
+            _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
+            _gate_init(weak, qg, m1, m2)
+            for g in range(gray_tab.shape[0]):
+                a = gray_tab[g, 0]
+                _fold_cst(cst[g, y], gray_tab[g, 1], scratch[8], axis_tab[a, 6] != 0, cf, weak[a], qg[a], m1[a],
+                          m2[a])  # fmt: skip
             _finish_row(
-                r, code[:, y, :], m1[:, y, :], m2[:, y, :], ssum[:, y, :], csum[:, y, :],
-                axis_tab, ph_tab, ph_period, rel, thr, u[y], v[y] if v.shape[0] == h else vnone, mask[y],
-                quality[y], scratch, ok, lit,
+                lit, code[:, y, :], weak, qg, m1, m2, ssum[:, y, :], csum[:, y, :], axis_tab, ph_tab, ph_period,
+                finest, u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[:, y, :], scratch,
+                fl, ok,
             )  # fmt: skip

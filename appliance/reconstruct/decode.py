@@ -81,13 +81,27 @@ class DecodeParams:
         The lit threshold is at least this fraction of the Otsu threshold of the image's
         ``white - black`` histogram (adapts to ambient light and noise).
     max_value : float or None
-        Full scale of the data (DN); None: 255 for uint8, 65535 for uint16 (give 4095 for 12-bit data).
+        Full scale of the data (DN): ``2**bits - 1`` of the camera's significant bits (4095 for Mono12 data
+        in uint16). None: 255 for uint8, 65535 for uint16. Every DN threshold scales with it.
+    finest_bit : bool
+        Decode each pixel to the finest Gray bit that has contrast: where the finest stripes are below what
+        the optics resolve (several weak bits from bit 0 up), those bits are dropped and the pixel gets the
+        centre of the coarser stripe (``DecodedMaps.levels`` says how many bits). False: such pixels are
+        rejected.
     """
 
     min_contrast_dn: float = 6.0
     relative_contrast: float = 0.15
     shadow_fraction: float = 0.2
     max_value: float | None = None
+    finest_bit: bool = True
+
+    @staticmethod
+    def for_bits(bits: int, **kwargs: Any) -> DecodeParams:
+        """Parameters for data with ``bits`` significant bits (8..16), e.g. ``for_bits(12)`` for Mono12."""
+        if not 1 <= int(bits) <= 16:
+            raise DecodeError(f"decode params: bits = {bits}: must be 1..16 (significant bits of the data)")
+        return DecodeParams(max_value=float((1 << int(bits)) - 1), **kwargs)
 
     def __post_init__(self) -> None:
         if not (self.min_contrast_dn >= 0.0 and math.isfinite(self.min_contrast_dn)):
@@ -145,6 +159,9 @@ class DecodePlan:
         Phase sets, coarse to fine within each axis.
     ignored : list of str
         Frames not used, with the reason.
+    mean_frames : tuple of int
+        Without white and black frames: the phase set whose per-pixel mean thresholds the Gray frames that
+        have no inverse (empty when not needed).
     """
 
     sequence: Sequence
@@ -154,6 +171,7 @@ class DecodePlan:
     gray: tuple[GrayAxisPlan, ...]
     phase: tuple[PhaseSetPlan, ...]
     ignored: list[str] = field(default_factory=list)
+    mean_frames: tuple[int, ...] = ()
     tables: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -253,6 +271,14 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
     elif blacks:
         ignored.append(f"frame {blacks[0]}: black without a white frame; unused")
     has_wb = white >= 0
+    # without white/black, a Gray frame without inverse is thresholded at the mean of a complete phase set
+    # (a sinusoid's mean is half way between its lit and dark levels): the most steps, then the finest
+    complete = [
+        pk for pk, kinds in phase_kind.items()
+        if len(kinds) == 1 and all(s in phases[pk] for s in range(next(iter(kinds))[0]))
+    ]  # fmt: skip
+    mean_key = min(complete, key=lambda pk: (-next(iter(phase_kind[pk]))[0], pk[1], pk[0]), default=None)
+    needs_mean = False
 
     gray_plans: dict[Axis, GrayAxisPlan] = {}
     for axis in _AXES:
@@ -281,10 +307,13 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
             pos = gray[axis].get((b, False), -1)
             neg = gray[axis].get((b, True), -1)
             if (pos < 0 or neg < 0) and not has_wb:
-                problems.append(
-                    f"gray code axis {axis}: bit {b} has no inverse frame and the sequence has no white and "
-                    "black frames to threshold it against; add inverses or white and black frames"
-                )
+                if mean_key is None:
+                    problems.append(
+                        f"gray code axis {axis}: bit {b} has no inverse frame and the sequence has no white "
+                        "and black frames or complete phase set to threshold it against; add inverses, white "
+                        "and black frames, or the phase frames"
+                    )
+                needs_mean = True
             frames_of_bit.append((pos, neg))
         gray_plans[axis] = GrayAxisPlan(axis, stripe, needed, tuple(frames_of_bit))
 
@@ -352,7 +381,12 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
         raise PatternError(
             f"sequence ({sequence.describe()}): no Gray code or phase frames: nothing to decode"
         )
-    plan = DecodePlan(sequence, axes, white, black, tuple(gray_plans.values()), tuple(phase_plans), ignored)
+    mean_frames: tuple[int, ...] = ()
+    if needs_mean and mean_key is not None:
+        steps = next(iter(phase_kind[mean_key]))[0]
+        mean_frames = tuple(phases[mean_key][s] for s in range(steps))
+    plan = DecodePlan(sequence, axes, white, black, tuple(gray_plans.values()), tuple(phase_plans), ignored,
+                      mean_frames)  # fmt: skip
     plan.tables.update(_tables(plan))
     return plan
 
@@ -364,7 +398,7 @@ def _gray_stripe(plan: DecodePlan, axis: Axis) -> int:
 def _tables(plan: DecodePlan) -> dict[str, Any]:
     seq = plan.sequence
     gray_rows: list[tuple[int, int, int, int]] = []
-    axis_tab = np.zeros((2, 6), np.int64)
+    axis_tab = np.zeros((2, 8), np.int64)
     for a, axis in enumerate(_AXES):
         axis_tab[a, 5] = seq.axis_size(axis)
         axis_tab[a, 2] = 1
@@ -373,6 +407,7 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
     for g in plan.gray:
         a = _AXES.index(g.axis)
         axis_tab[a, 1:5] = (1, g.stripe, -(-seq.axis_size(g.axis) // g.stripe), int(g.bits >= 2))
+        axis_tab[a, 7] = g.bits
         gray_rows.extend((a, b, pos, neg) for b, (pos, neg) in enumerate(g.frames))
     ph_tab = np.zeros((len(plan.phase), 4), np.int64)
     ph_idx: list[int] = []
@@ -383,12 +418,14 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
         if src == -1 and 2 * _gray_stripe(plan, p.axis) > p.period:
             src = -3  # stripe > period / 2: no margin at stripe edges; find the edge from the weak bit
         ph_tab[s] = (_AXES.index(p.axis), p.steps, src, len(ph_idx))
+        if src == -3:
+            axis_tab[_AXES.index(p.axis), 6] = 1
         for n, idx in enumerate(p.frames):
             theta = p.offset + 2.0 * math.pi * n / p.steps
             ph_idx.append(idx)
             ph_sin.append(round(math.sin(theta) / COEFFICIENT_QUANTUM) * COEFFICIENT_QUANTUM)
             ph_cos.append(round(math.cos(theta) / COEFFICIENT_QUANTUM) * COEFFICIENT_QUANTUM)
-    used = sorted({i for row in gray_rows for i in row[2:] if i >= 0} | set(ph_idx))
+    used = sorted({i for row in gray_rows for i in row[2:] if i >= 0} | set(ph_idx) | set(plan.mean_frames))
     return {
         "wb": np.array([plan.white, plan.black], np.int64),
         "gray_tab": np.array(gray_rows, np.int64).reshape(-1, 4),
@@ -399,6 +436,7 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
         "ph_sin": np.array(ph_sin, np.float64),
         "ph_cos": np.array(ph_cos, np.float64),
         "used": np.array(used, np.int64),
+        "mean_idx": np.array(plan.mean_frames, np.int64),
     }
 
 
@@ -413,9 +451,18 @@ def _max_value(dtype: np.dtype[Any], params: DecodeParams) -> float:
     return 255.0 if dtype == np.uint8 else 65535.0
 
 
-def _hist_layout(dtype: np.dtype[Any]) -> tuple[int, int]:
-    """(shift, bins) of the contrast-range histogram."""
-    return (0, 256) if dtype == np.uint8 else (4, 4096)
+def _bits(dtype: np.dtype[Any], params: DecodeParams) -> int:
+    """Significant bits of the data: from ``max_value``, else the dtype's."""
+    return max(1, math.ceil(math.log2(_max_value(dtype, params) + 1.0)))
+
+
+def _hist_layout(dtype: np.dtype[Any], params: DecodeParams = DecodeParams()) -> tuple[int, int]:
+    """(shift, bins) of the contrast-range histogram: one bin per DN up to 12 bits, 4096 bins above."""
+    if dtype == np.uint8:
+        return (0, 256)
+    bits = min(_bits(dtype, params), 16)
+    shift = max(bits - 12, 0)
+    return (shift, 1 << (bits - shift))
 
 
 def otsu_threshold(hist: npt.NDArray[np.int64]) -> int:
@@ -441,7 +488,7 @@ def otsu_threshold(hist: npt.NDArray[np.int64]) -> int:
 
 def lit_threshold(hist: npt.NDArray[np.int64], dtype: np.dtype[Any], params: DecodeParams) -> float:
     """Scene-adaptive lit threshold on ``white - black`` (DN) from its histogram."""
-    shift, _ = _hist_layout(dtype)
+    shift, _ = _hist_layout(dtype, params)
     floor = params.min_contrast_dn * _max_value(dtype, params) / 255.0
     return max(floor, params.shadow_fraction * float(otsu_threshold(hist) << shift))
 
@@ -472,6 +519,7 @@ def empty_maps(shape: tuple[int, int]) -> DecodedMaps:
         np.empty(shape, np.float32),
         np.empty(shape, np.bool_),
         np.empty(shape, np.float32),
+        levels=np.empty((2, *shape), np.uint8),
     )
 
 
@@ -479,18 +527,23 @@ def _outputs(
     plan: DecodePlan, shape: tuple[int, int], out: DecodedMaps | None
 ) -> tuple[DecodedMaps, npt.NDArray[np.float32]]:
     """Output maps, and the v buffer the kernel writes (no rows: v is a read-only NaN map, not written)."""
+    lev_shape = (2, *shape)
     if out is not None:
         _check_out(out, shape)
+        lev = out.levels
+        if lev is None or lev.shape != lev_shape or lev.dtype != np.uint8 or not lev.flags.c_contiguous:
+            out.levels = np.empty(lev_shape, np.uint8)
         return out, out.v
     # outputs are views of blocks reused once the caller drops them (saves their first-touch page faults)
     if "y" in plan.axes:
-        u, v, mask, quality = _POOL.arrays([(shape, np.float32), (shape, np.float32), (shape, np.bool_),
-                                            (shape, np.float32)])  # fmt: skip
-        maps = DecodedMaps(u, v, mask, quality)  # type: ignore[arg-type]
+        u, v, mask, quality, levels = _POOL.arrays([(shape, np.float32), (shape, np.float32), (shape, np.bool_),
+                                                    (shape, np.float32), (lev_shape, np.uint8)])  # fmt: skip
+        maps = DecodedMaps(u, v, mask, quality, levels=levels)  # type: ignore[arg-type]
         return maps, maps.v
     # the y axis is not coded: v is NaN everywhere, one shared read-only map instead of H x W stores per call
-    u, mask, quality = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32)])
-    maps = DecodedMaps(u, _nan_map(shape), mask, quality)  # type: ignore[arg-type]
+    u, mask, quality, levels = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32),
+                                             (lev_shape, np.uint8)])  # fmt: skip
+    maps = DecodedMaps(u, _nan_map(shape), mask, quality, levels=levels)  # type: ignore[arg-type]
     return maps, np.empty((0, shape[1]), np.float32)
 
 
@@ -500,11 +553,6 @@ def _nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
     nan = np.full(shape, np.nan, np.float32)
     nan.flags.writeable = False
     return nan
-
-
-def _narrow(plan: DecodePlan, dtype: np.dtype[Any]) -> bool:
-    """8-bit frames and at most 15 Gray bits per axis: the kernel folds Gray bits in 16-bit lanes."""
-    return bool(dtype == np.uint8 and all(g.bits <= 15 for g in plan.gray))
 
 
 def decode(
@@ -554,17 +602,18 @@ def decode(
     shape = (int(stack.shape[1]), int(stack.shape[2]))
     out, v_arg = _outputs(plan, shape, out)
     t = plan.tables
-    shift, nbins = _hist_layout(stack.dtype)
+    shift, nbins = _hist_layout(stack.dtype, params)
     maxval = 255 if stack.dtype == np.uint8 else 65535
     if plan.white >= 0:
         hist = _k.range_hist(stack[plan.white], stack[plan.black], shift, nbins)
     else:
         hist = _k.range_hist_stack(stack, t["wb"], t["used"], maxval, shift, nbins)
     thr = lit_threshold(hist, stack.dtype, params)
+    assert out.levels is not None
     _k.decode_stack(
-        stack, t["wb"], t["used"], maxval, t["gray_tab"], t["axis_tab"], t["ph_tab"], t["ph_period"],
-        t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
-        numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask, out.quality,
+        stack, t["wb"], t["used"], maxval, t["gray_tab"], t["mean_idx"], t["axis_tab"], t["ph_tab"],
+        t["ph_period"], t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
+        bool(params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality, out.levels,
     )  # fmt: skip
     out.ignored = list(plan.ignored)
     return out
@@ -579,8 +628,8 @@ class StreamingDecoder:
     """Decode frames one at a time, as they arrive; :meth:`finish` equals :func:`decode` bit for bit.
 
     Every frame does its share of the work in :meth:`push` (a Gray pair when both frames are in, a
-    Gray frame without inverse once white and black are in, a phase step at once). All state is
-    allocated here and reused after :meth:`reset`.
+    Gray frame without inverse once its reference is in: white and black, or the whole mean phase set;
+    a phase step at once). All state is allocated here and reused after :meth:`reset`.
 
     Parameters
     ----------
@@ -591,7 +640,7 @@ class StreamingDecoder:
     dtype : numpy dtype
         ``np.uint8`` or ``np.uint16``.
     params : DecodeParams
-        Thresholds.
+        Thresholds (``max_value`` gives the significant bits of uint16 data).
     """
 
     def __init__(
@@ -616,12 +665,13 @@ class StreamingDecoder:
         self._hi = np.empty((h, w), self.dtype)
         self._lo = np.empty((h, w), self.dtype)
         self._code = np.empty((2, h, w), np.uint32)
-        self._m1 = np.empty((2, h, w), np.uint32)
-        self._m2 = np.empty((2, h, w), np.uint32)
+        self._cst = np.zeros((max(len(t["gray_tab"]), 1), h, w), np.uint16)
         nset = len(self.plan.phase)
         self._ssum = np.empty((max(nset, 1), h, w), np.float64)
         self._csum = np.empty((max(nset, 1), h, w), np.float64)
-        # role of each frame: ("white"|"black"|"pos"|"neg"|"single"|"phase", row in its table)
+        self._mean = frozenset(self.plan.mean_frames) if self.plan.white < 0 else frozenset()
+        self._msum = np.empty((h, w) if self._mean else (0, 0), np.int32)
+        # role of each frame: ("white"|"black"|"pos"|"neg"|"single"|"phase"|"mean", row in its table)
         self._role: dict[int, tuple[str, int]] = {}
         if self.plan.white >= 0:
             self._role[self.plan.white] = ("white", 0)
@@ -635,26 +685,35 @@ class StreamingDecoder:
                 self._pending[g] = np.empty((h, w), self.dtype)  # first-arrived frame of the pair
             else:
                 self._role[pos if pos >= 0 else neg] = ("single", g)
-                self._pending[g] = np.empty((h, w), self.dtype)  # waits for white and black
+                self._pending[g] = np.empty((h, w), self.dtype)  # waits for its reference
         for k, idx in enumerate(t["ph_idx"].tolist()):
             self._role[idx] = ("phase", k)
+        for idx in self._mean:
+            self._role.setdefault(idx, ("mean", 0))
         self._ph_set = np.repeat(np.arange(nset), [p.steps for p in self.plan.phase]).astype(np.int64)
         self._pushed: set[int] = set()
         self._waiting: set[int] = set()  # gray rows with one frame stored in _pending
+        self._levels_shape = (2, h, w)
         self.reset()
 
     def reset(self) -> None:
         """Forget the frames pushed so far; buffers are kept for the next scan."""
         self._code.fill(0)
-        self._m1.fill(_k.BIG)
-        self._m2.fill(_k.BIG)
+        self._cst.fill(0)
         self._ssum.fill(0.0)
         self._csum.fill(0.0)
+        self._msum.fill(0)
         if self.plan.white < 0:
             self._hi.fill(0)
             self._lo.fill(self._maxval)
         self._pushed.clear()
         self._waiting.clear()
+
+    def _reference_ready(self) -> bool:
+        """Whether single Gray frames can be thresholded: white and black, or every mean frame, pushed."""
+        if self.plan.white >= 0:
+            return self.plan.white in self._pushed and self.plan.black in self._pushed
+        return bool(self._mean) and self._mean <= self._pushed
 
     def push(self, index: int, frame: npt.NDArray[Any]) -> None:
         """Add frame ``index`` of the sequence (any order).
@@ -691,39 +750,52 @@ class StreamingDecoder:
         t = self.plan.tables
         if kind in ("white", "black"):
             np.copyto(self._hi if kind == "white" else self._lo, img)
-            if self.plan.white in self._pushed and self.plan.black in self._pushed:
-                for g in sorted(self._waiting):
-                    if min(int(t["gray_tab"][g, 2]), int(t["gray_tab"][g, 3])) < 0:  # a single, not a pair
-                        self._single(g, self._pending[g])
-                        self._waiting.discard(g)
+            self._flush_singles()
             return
         if self.plan.white < 0:
             _k.stream_minmax(img, self._hi, self._lo)
+        if index in self._mean:
+            _k.stream_sum(img, self._msum)
         if kind == "phase":
             s = int(self._ph_set[row])
             _k.stream_phase(
                 img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s]
             )
         elif kind == "single":
-            if self.plan.white in self._pushed and self.plan.black in self._pushed:
+            if self._reference_ready():
                 self._single(row, img)
             else:
                 np.copyto(self._pending[row], img)
                 self._waiting.add(row)
-        elif row in self._waiting:
-            a, bit, _, _ = (int(x) for x in t["gray_tab"][row])
-            other = self._pending[row]
-            pos, neg = (img, other) if kind == "pos" else (other, img)
-            _k.stream_pair(pos, neg, bit, self._code[a], self._m1[a], self._m2[a])
-            self._waiting.discard(row)
-        else:
-            np.copyto(self._pending[row], img)
-            self._waiting.add(row)
+        elif kind in ("pos", "neg"):
+            if row in self._waiting:
+                a, bit, _, _ = (int(x) for x in t["gray_tab"][row])
+                other = self._pending[row]
+                pos, neg = (img, other) if kind == "pos" else (other, img)
+                _k.stream_pair(pos, neg, bit, self._code[a], self._cst[row])
+                self._waiting.discard(row)
+            else:
+                np.copyto(self._pending[row], img)
+                self._waiting.add(row)
+        if index in self._mean:
+            self._flush_singles()
+
+    def _flush_singles(self) -> None:
+        if not self._reference_ready():
+            return
+        gray_tab = self.plan.tables["gray_tab"]
+        for g in sorted(self._waiting):
+            if min(int(gray_tab[g, 2]), int(gray_tab[g, 3])) < 0:  # a single, not a pair
+                self._single(g, self._pending[g])
+                self._waiting.discard(g)
 
     def _single(self, g: int, img: npt.NDArray[Any]) -> None:
         a, bit, pos, _ = (int(x) for x in self.plan.tables["gray_tab"][g])
         sign = 1 if pos >= 0 else -1
-        _k.stream_single(img, sign, self._hi, self._lo, bit, self._code[a], self._m1[a], self._m2[a])
+        if self.plan.white >= 0:
+            _k.stream_single(img, sign, self._hi, self._lo, bit, self._code[a], self._cst[g])
+        else:
+            _k.stream_single_mean(img, sign, self._msum, len(self._mean), bit, self._code[a], self._cst[g])
 
     @property
     def missing(self) -> list[int]:
@@ -748,14 +820,16 @@ class StreamingDecoder:
                 "of the sequence before finish()"
             )
         out, v_arg = _outputs(self.plan, self.shape, out)
+        assert out.levels is not None
         t = self.plan.tables
-        shift, nbins = _hist_layout(self.dtype)
+        shift, nbins = _hist_layout(self.dtype, self.params)
         hist = _k.range_hist(self._hi, self._lo, shift, nbins)
         thr = lit_threshold(hist, self.dtype, self.params)
         _k.stream_finish(
-            self._hi, self._lo, self._code, self._m1, self._m2, self._ssum, self._csum, t["axis_tab"],
+            self._hi, self._lo, self._code, self._cst, t["gray_tab"], self._ssum, self._csum, t["axis_tab"],
             t["ph_tab"], t["ph_period"], float(self.params.relative_contrast), float(thr),
-            numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
+            bool(self.params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
+            out.levels,
         )  # fmt: skip
         out.ignored = list(self.plan.ignored)
         return out

@@ -22,6 +22,9 @@ class DecodedMaps:
         Decoding confidence: the weakest signal contrast of the pixel (digital numbers, DN); 0 where masked.
     ignored : list of str
         Human descriptions of frames the decoder did not use.
+    levels : ndarray, shape (2, H, W), uint8, optional
+        Per axis (x, y), how many of the finest Gray bits the pixel could not resolve and dropped: its code
+        is a stripe of ``stripe * 2**level`` projector px (0 where undecoded). None when not computed.
     """
 
     u: npt.NDArray[np.float32]
@@ -29,6 +32,7 @@ class DecodedMaps:
     mask: npt.NDArray[np.bool_]
     quality: npt.NDArray[np.float32]
     ignored: list[str] = field(default_factory=list)
+    levels: npt.NDArray[np.uint8] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -54,6 +58,9 @@ class PointCloud:
         Decoding quality of the point (see :class:`DecodedMaps`).
     normal : ndarray, shape (N, 3), float32, optional
         Unit surface normals pointing towards the camera.
+    sigma_mm : ndarray, shape (N,), float32, optional
+        Expected 1-sigma error of each point along its camera ray (mm), from its decode noise; NaN where
+        unknown. None: unknown for every point.
     """
 
     xyz: npt.NDArray[np.float32]
@@ -63,6 +70,7 @@ class PointCloud:
     intensity: npt.NDArray[np.uint8]
     quality: npt.NDArray[np.float32]
     normal: npt.NDArray[np.float32] | None = None
+    sigma_mm: npt.NDArray[np.float32] | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -89,14 +97,20 @@ class PointCloud:
             self.intensity[keep],
             self.quality[keep],
             None if self.normal is None else self.normal[keep],
+            None if self.sigma_mm is None else self.sigma_mm[keep],
         )
 
     @staticmethod
     def concatenate(clouds: list[PointCloud]) -> PointCloud:
-        """Join clouds (normals kept only when every cloud has them)."""
+        """Join clouds (normals kept only when every cloud has them; sigma NaN where a cloud has none)."""
         if not clouds:
             return PointCloud.empty()
         normals = [c.normal for c in clouds]
+        sigmas = None
+        if any(c.sigma_mm is not None for c in clouds):
+            sigmas = np.concatenate(
+                [c.sigma_mm if c.sigma_mm is not None else np.full(len(c), np.nan, np.float32) for c in clouds]
+            )
         return PointCloud(
             np.concatenate([c.xyz for c in clouds]),
             np.concatenate([c.row for c in clouds]),
@@ -105,4 +119,63 @@ class PointCloud:
             np.concatenate([c.intensity for c in clouds]),
             np.concatenate([c.quality for c in clouds]),
             None if any(n is None for n in normals) else np.concatenate(normals),  # type: ignore[arg-type]
+            sigmas,
         )
+
+
+STAGES = ("decode", "geometry", "depth_range", "neighbours", "sigma")
+"""The stages of a camera-projector reconstruction, in order, each rejecting some of the candidates left."""
+
+
+@dataclass(frozen=True)
+class StageCounts:
+    """How many candidates one camera's reconstruction had after each stage, and why the others went.
+
+    Attributes
+    ----------
+    camera : str
+        Camera name.
+    pixels : int
+        Pixels of the image (the candidates of the first stage).
+    decoded : int
+        Pixels that decoded a code (``decode`` rejects the rest: shadow, too little contrast).
+    triangulated : int
+        Decoded pixels the geometry turned into a point (``geometry`` rejects codes off the projector's image,
+        rays along the coded light surfaces, points behind a device).
+    in_range : int
+        Points inside the depth range (``depth_range``).
+    with_neighbours : int
+        Points with enough near neighbours (``neighbours``).
+    kept : int
+        Points whose expected error is within ``max_sigma_mm`` (``sigma``): the points of the cloud.
+    """
+
+    camera: str
+    pixels: int
+    decoded: int
+    triangulated: int
+    in_range: int
+    with_neighbours: int
+    kept: int
+
+    def remaining(self) -> tuple[int, ...]:
+        """Candidates before each stage and after the last: (pixels, decoded, ..., kept)."""
+        return (self.pixels, self.decoded, self.triangulated, self.in_range, self.with_neighbours, self.kept)
+
+    def rejected(self) -> dict[str, int]:
+        """Candidates each stage rejected, by stage name (see :data:`STAGES`)."""
+        n = self.remaining()
+        return {stage: n[i] - n[i + 1] for i, stage in enumerate(STAGES)}
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready: the counts and the rejections per stage."""
+        return {
+            "camera": self.camera,
+            "pixels": self.pixels,
+            "decoded": self.decoded,
+            "triangulated": self.triangulated,
+            "in_range": self.in_range,
+            "with_neighbours": self.with_neighbours,
+            "kept": self.kept,
+            "rejected": self.rejected(),
+        }
