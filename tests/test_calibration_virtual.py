@@ -1,13 +1,16 @@
 """Calibration on the virtual rig against its ground truth: live capture, joint refinement, verification.
 
 The rig is the default configuration (camera 1280x1024 with distortion, projector 1280x800 with
-distortion, 190 mm baseline); the board is moved through preset poses by the live command.
+distortion, 190 mm baseline); the board is moved through preset poses by the live command, which also keeps
+each pose's white frame; ``scan3d calibrate camera`` then runs on those 15 frames.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import io
+import re
 from pathlib import Path
 
 import cv2
@@ -16,13 +19,15 @@ import pytest
 
 from appliance.calibration.boards import BoardSpec
 from appliance.calibration.bundle import Observation, bundle_adjust
-from appliance.calibration.cli import calibrate_live_cli
 from appliance.calibration.report import report_paths
-from appliance.calibration.verify import evaluate_artefact, verify, verify_cli
+from appliance.calibration.verify import evaluate_artefact
 from appliance.calibration.virtual import preset_board_poses
-from appliance.config.schema import AppConfig, ArtefactConfig, VerifyTolerances
-from appliance.geometry.calibration_file import Calibration, read_calibration, write_calibration
+from appliance.cli import main
+from appliance.config.schema import AppConfig, ArtefactConfig, ArtefactPosition, VerifyTolerances
+from appliance.geometry.calibration_file import read_calibration
 from appliance.geometry.camera import CameraModel, look_at
+from appliance.procedures.live_calibration import calibrate_live
+from appliance.procedures.verify import verify_rig
 from appliance.sim.rig import device_model
 
 TRUTH = AppConfig().virtual_rig
@@ -32,10 +37,15 @@ PROJ = device_model("projector", TRUTH.projector)
 
 @pytest.fixture(scope="module")
 def calibration_15(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
-    out = tmp_path_factory.mktemp("live15") / "calibration.yaml"
+    folder = tmp_path_factory.mktemp("live15")
+    out = folder / "calibration.yaml"
+    config = folder / "appliance.yaml"
+    config.write_text("serial: SIM-CAL\n")  # the virtual-rig defaults
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        assert calibrate_live_cli(None, poses=15, out=out) == 0
+        rc = main(["calibrate", "--live", "--poses", "15", "--config", str(config), "--out", str(out),
+                   "--save-frames", str(folder / "frames")])  # fmt: skip
+    assert rc == 0, buf.getvalue()
     return out, buf.getvalue()
 
 
@@ -55,8 +65,26 @@ def test_fifteen_pose_calibration_matches_ground_truth(calibration_15: tuple[Pat
     assert abs(baseline - np.linalg.norm(PROJ.center - CAM.center)) < 0.1
     np.testing.assert_allclose(calib.devices["cam0"].T, 0.0, atol=1e-12)
     assert "pose 15: cam0" in text and "coverage: cam0" in text and "joint refinement" in text
+    assert "cam0: distortion model" in text and "projector: distortion model" in text and "held-out" in text
     html, folder = report_paths(out)
     assert html.is_file() and (folder / "projector_residuals.png").is_file()
+
+
+@pytest.mark.slow
+def test_camera_command_on_fifteen_virtual_board_frames(calibration_15: tuple[Path, str]) -> None:
+    """``scan3d calibrate camera`` on the 15 white frames the live calibration kept, against the truth."""
+    frames = sorted((calibration_15[0].parent / "frames").glob("pose_*_cam0.png"))
+    assert len(frames) == 15
+    out = calibration_15[0].parent / "camera.yaml"
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main(["calibrate", "camera", *map(str, frames), "--board", "chessboard", "--cols", "15",
+                   "--rows", "11", "--square-mm", "15", "--out", str(out)])  # fmt: skip
+    assert rc == 0, buf.getvalue()
+    got = read_calibration(out).devices["cam0"]
+    assert abs(got.K[0, 0] / CAM.K[0, 0] - 1) <= 0.001 and abs(got.K[1, 1] / CAM.K[1, 1] - 1) <= 0.001
+    assert abs(got.K[0, 2] - CAM.K[0, 2]) <= 0.5 and abs(got.K[1, 2] - CAM.K[1, 2]) <= 0.5
+    assert re.search(r"cam0: distortion model \w+ \(selected\)", buf.getvalue())
 
 
 @pytest.mark.slow
@@ -64,7 +92,9 @@ def test_scan_with_recovered_calibration_measures_sphere_and_plane(
     calibration_15: tuple[Path, str],
 ) -> None:
     cfg = AppConfig(calibration_file=calibration_15[0])
-    report = verify(cfg)
+    art = cfg.calibration.artefact.model_copy(update={"positions": (ArtefactPosition(),)})
+    cfg = cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"artefact": art})})
+    report = asyncio.run(verify_rig(cfg)).reports[0]
     assert len(report.spheres) == 2 and report.plane is not None
     for s in report.spheres:
         assert abs(s["error_mm"]) <= 0.05, report.lines()
@@ -78,9 +108,12 @@ def test_live_calibration_interactive_on_virtual_rig(
 ) -> None:
     out = tmp_path / "live.yaml"
     # three Enter presses capture three poses, 'c' calibrates
-    assert calibrate_live_cli(None, out=out, stdin=io.StringIO("\n\n\nc\n")) == 0
+    assert asyncio.run(calibrate_live(None, out=out, stdin=io.StringIO("\n\n\nc\n"))) == 0
     text = capsys.readouterr().out
     assert text.count("board points") == 3 and "pose 3: cam0" in text
+    # after each pose it says where the board is still missing, and the result says what to add
+    assert "next pose: put the board into the" in text
+    assert "the calibration is weak:" in text and "only 3 views (want >= 10)" in text
     calib = read_calibration(out)
     assert set(calib.devices) == {"cam0", "projector"}
     # three poses constrain the focal length to well under 1 %
@@ -90,24 +123,8 @@ def test_live_calibration_interactive_on_virtual_rig(
 
 def test_live_calibration_quit_writes_nothing(tmp_path: Path) -> None:
     out = tmp_path / "none.yaml"
-    assert calibrate_live_cli(None, out=out, stdin=io.StringIO("q\n")) == 1
+    assert asyncio.run(calibrate_live(None, out=out, stdin=io.StringIO("q\n"))) == 1
     assert not out.exists()
-
-
-def test_verify_passes_on_exact_and_fails_on_perturbed_calibration(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    assert verify_cli(None) == 0
-    assert capsys.readouterr().out.rstrip().endswith("PASS")
-    # the projector 1 % farther from the camera: every length scales by about 1 %
-    proj = PROJ.with_pose(PROJ.R, PROJ.T * 1.01)
-    bad = tmp_path / "perturbed.yaml"
-    write_calibration(bad, Calibration({"cam0": CAM, "projector": proj}))
-    cfg_file = tmp_path / "appliance.yaml"
-    cfg_file.write_text(f"calibration_file: {bad}\n")
-    assert verify_cli(cfg_file) == 1
-    text = capsys.readouterr().out
-    assert "FAIL: ball-bar length error" in text and text.rstrip().endswith("FAIL")
 
 
 def test_evaluate_artefact_on_exact_points() -> None:
@@ -131,6 +148,7 @@ def test_evaluate_artefact_on_exact_points() -> None:
     rep = evaluate_artefact(np.concatenate(pts), art, VerifyTolerances())
     for s in rep.spheres:
         assert s["error_mm"] == pytest.approx(0.04, abs=1e-6)
+        assert s["form_mm"] == pytest.approx(0.0, abs=1e-6)  # exact sphere: no form error
     assert rep.ball_bar is not None and rep.ball_bar["error_mm"] == pytest.approx(0.0, abs=1e-6)
     assert rep.plane is not None and rep.plane["flatness_mm"] == pytest.approx(0.08, abs=0.01)
     assert rep.passed

@@ -11,7 +11,7 @@ analytic Jacobian from OpenCV (``projectPoints`` and ``composeRT``); the normal 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -87,6 +87,11 @@ class BundleResult:
         Levenberg-Marquardt iterations.
     dropped_points : int
         Points dropped as outliers.
+    correlations : dict of str to dict of str to (str, float)
+        Per device and free intrinsic parameter: the other intrinsic of the same device it correlates with
+        most strongly, and that correlation coefficient (-1..1).
+    fixed : tuple of str
+        Devices whose intrinsics were held at their starting values.
     """
 
     devices: dict[str, CameraModel]
@@ -96,12 +101,20 @@ class BundleResult:
     residuals: list[F64] = field(default_factory=list)
     iterations: int = 0
     dropped_points: int = 0
+    correlations: dict[str, dict[str, tuple[str, float]]] = field(default_factory=dict)
+    fixed: tuple[str, ...] = ()
 
 
 class _Layout:
     """Where each unknown lives in the parameter vector."""
 
-    def __init__(self, devices: dict[str, CameraModel], models: dict[str, str], views: list[int]) -> None:
+    def __init__(
+        self,
+        devices: dict[str, CameraModel],
+        models: dict[str, str],
+        views: list[int],
+        fixed: Collection[str] = (),
+    ) -> None:
         self.names = list(devices)
         self.ref = self.names[0]
         self.dist_len: dict[str, int] = {}
@@ -109,11 +122,12 @@ class _Layout:
         self.intr: dict[str, int] = {}
         self.pose: dict[str, int] = {}
         self.view: dict[int, int] = {}
+        self.fixed = {n: (devices[n].K.copy(), devices[n].dist.copy()) for n in fixed if n in devices}
         k = 0
         for n in self.names:
             self.dist_len[n], self.dist_free[n] = free_distortion(models[n])
             self.intr[n] = k
-            k += 4 + len(self.dist_free[n])
+            k += self.n_intr(n)
         for n in self.names[1:]:
             self.pose[n] = k
             k += 6
@@ -123,9 +137,11 @@ class _Layout:
         self.size = k
 
     def n_intr(self, name: str) -> int:
-        return 4 + len(self.dist_free[name])
+        return 0 if name in self.fixed else 4 + len(self.dist_free[name])
 
     def intrinsics(self, x: F64, name: str) -> tuple[F64, F64]:
+        if name in self.fixed:
+            return self.fixed[name]
         i = self.intr[name]
         K = np.array([[x[i], 0.0, x[i + 2]], [0.0, x[i + 1], x[i + 3]], [0.0, 0.0, 1.0]])
         d = np.zeros(self.dist_len[name])
@@ -176,11 +192,12 @@ def _evaluate(
         if J is not None:
             Jr, Jt = jp[:, 0:3], jp[:, 3:6]
             ii = lay.intr[o.device]
-            J[sl, ii : ii + 2] = jp[:, 6:8]
-            J[sl, ii + 2 : ii + 4] = jp[:, 8:10]
-            free = list(lay.dist_free[o.device])
-            if free:
-                J[sl, ii + 4 : ii + lay.n_intr(o.device)] = jp[:, 10:][:, free]
+            if o.device not in lay.fixed:
+                J[sl, ii : ii + 2] = jp[:, 6:8]
+                J[sl, ii + 2 : ii + 4] = jp[:, 8:10]
+                free = list(lay.dist_free[o.device])
+                if free:
+                    J[sl, ii + 4 : ii + lay.n_intr(o.device)] = jp[:, 10:][:, free]
             if comp is None:
                 J[sl, vi : vi + 3] = Jr
                 J[sl, vi + 3 : vi + 6] = Jt
@@ -242,6 +259,7 @@ def bundle_adjust(
     board_poses: dict[int, tuple[F64, F64]],
     *,
     reject_outliers: bool = True,
+    fixed: Collection[str] = (),
 ) -> BundleResult:
     """Refine all devices' intrinsics and poses and all board poses together.
 
@@ -259,6 +277,8 @@ def bundle_adjust(
         a pose are ignored.
     reject_outliers : bool
         Drop points beyond ``OUTLIER_SIGMAS`` robust sigmas after a first solve and solve again.
+    fixed : collection of str
+        Devices whose intrinsics and distortion stay as given (only their poses are refined).
 
     Returns
     -------
@@ -278,14 +298,15 @@ def bundle_adjust(
             f"joint refinement: device(s) {missing} have no observation; capture more poses"
         )
     views = sorted({o.view for o in obs})
-    lay = _Layout(devices, models, views)
+    lay = _Layout(devices, models, views, fixed)
     x = np.zeros(lay.size)
     for n, dev in devices.items():
         i = lay.intr[n]
-        x[i : i + 4] = dev.K[0, 0], dev.K[1, 1], dev.K[0, 2], dev.K[1, 2]
-        dist = np.zeros(lay.dist_len[n])
-        dist[: min(dev.dist.size, dist.size)] = dev.dist[: dist.size]
-        x[i + 4 : i + lay.n_intr(n)] = dist[list(lay.dist_free[n])]
+        if n not in lay.fixed:
+            x[i : i + 4] = dev.K[0, 0], dev.K[1, 1], dev.K[0, 2], dev.K[1, 2]
+            dist = np.zeros(lay.dist_len[n])
+            dist[: min(dev.dist.size, dist.size)] = dev.dist[: dist.size]
+            x[i + 4 : i + lay.n_intr(n)] = dist[list(lay.dist_free[n])]
         if n in lay.pose:
             p = lay.pose[n]
             x[p : p + 3], x[p + 3 : p + 6] = _rvec(dev.R), dev.T
@@ -322,6 +343,7 @@ def bundle_adjust(
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     out_devices: dict[str, CameraModel] = {}
     std: dict[str, dict[str, float]] = {}
+    corr: dict[str, dict[str, tuple[str, float]]] = {}
     residuals: list[F64] = []
     per_dev: dict[str, list[F64]] = {n: [] for n in devices}
     at = 0
@@ -336,8 +358,9 @@ def bundle_adjust(
         K, d = lay.intrinsics(x, n)
         R, T = np.eye(3), np.zeros(3)
         i = lay.intr[n]
-        names = ["fx", "fy", "cx", "cy", *(DIST_NAMES[j] for j in lay.dist_free[n])]
+        names = [] if n in lay.fixed else ["fx", "fy", "cx", "cy", *(DIST_NAMES[j] for j in lay.dist_free[n])]
         std[n] = {nm: float(sd[i + j]) for j, nm in enumerate(names)}
+        corr[n] = _strongest_correlations(np.asarray(cov[i : i + len(names), i : i + len(names)], np.float64), names)
         if n in lay.pose:
             p = lay.pose[n]
             R, T = _rmat(x[p : p + 3]), x[p + 3 : p + 6].copy()
@@ -359,4 +382,18 @@ def bundle_adjust(
             full.append(next(it_res))
         else:
             full.append(np.full((len(o.object_points), 2), np.nan))
-    return BundleResult(out_devices, poses, total, std, full, iters, dropped)
+    return BundleResult(out_devices, poses, total, std, full, iters, dropped, corr, tuple(lay.fixed))
+
+
+def _strongest_correlations(cov: F64, names: Sequence[str]) -> dict[str, tuple[str, float]]:
+    """Per parameter: the other parameter it correlates with most strongly, and the coefficient."""
+    if len(names) < 2:
+        return {}
+    s = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    c = cov / np.outer(s, s)
+    np.fill_diagonal(c, 0.0)
+    out = {}
+    for j, nm in enumerate(names):
+        k = int(np.argmax(np.abs(c[j])))
+        out[nm] = (names[k], float(np.clip(c[j, k], -1.0, 1.0)))
+    return out

@@ -156,6 +156,7 @@ def calibrate_camera(
     outlier_factor: float = 3.0,
     flags: int = 0,
     K_guess: F64 | None = None,
+    dist_guess: F64 | None = None,
 ) -> CameraResult:
     """Calibrate one camera from board detections.
 
@@ -178,6 +179,8 @@ def calibrate_camera(
         Extra OpenCV calibration flags (e.g. ``CALIB_FIX_ASPECT_RATIO``).
     K_guess : ndarray, shape (3, 3), optional
         Initial camera matrix (sets ``CALIB_USE_INTRINSIC_GUESS``).
+    dist_guess : ndarray, optional
+        Initial distortion (OpenCV order), used with ``K_guess``.
 
     Returns
     -------
@@ -209,7 +212,7 @@ def calibrate_camera(
                 "need >= 3, better >= 10 with the board tilted and in every part of the image"
             )
         dets = [detections[i] for i in usable]
-        fit = _fit(dets, (width, height), base_flags, K_guess)  # type: ignore[arg-type]
+        fit = _fit(dets, (width, height), base_flags, K_guess, dist_guess)  # type: ignore[arg-type]
         errs = fit["per_view"]
         limit = max(max_view_rms_px, outlier_factor * float(np.median(errs)))
         bad = [usable[k] for k in range(len(usable)) if errs[k] > limit]
@@ -250,7 +253,9 @@ def calibrate_camera(
     )
 
 
-def _fit(dets: list[Detection], size: tuple[int, int], flags: int, K_guess: F64 | None) -> dict[str, Any]:
+def _fit(
+    dets: list[Detection], size: tuple[int, int], flags: int, K_guess: F64 | None, dist_guess: F64 | None = None
+) -> dict[str, Any]:
     import cv2
 
     obj = [np.ascontiguousarray(d.object_points, np.float32).reshape(-1, 1, 3) for d in dets]
@@ -259,6 +264,9 @@ def _fit(dets: list[Detection], size: tuple[int, int], flags: int, K_guess: F64 
     if K is not None:
         flags |= cv2.CALIB_USE_INTRINSIC_GUESS
     no_dist: Any = None
+    if K is not None and dist_guess is not None:
+        no_dist = np.zeros(max(8 if flags & cv2.CALIB_RATIONAL_MODEL else 5, len(dist_guess)))
+        no_dist[: len(dist_guess)] = dist_guess
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     try:
         rms, K, dist, rvecs, tvecs, std_i, _std_e, per_view = cv2.calibrateCameraExtended(

@@ -13,6 +13,7 @@ import html
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -20,6 +21,10 @@ import numpy.typing as npt
 from appliance.calibration.intrinsics import CameraResult
 from appliance.calibration.stereo import StereoResult
 from appliance.errors import OutputError
+
+if TYPE_CHECKING:
+    from appliance.calibration.boards import BoardSpec
+    from appliance.calibration.rig import RigCalibration
 
 U8 = npt.NDArray[np.uint8]
 PLOT_WIDTH_PX = 800
@@ -150,6 +155,7 @@ def write_report(
     stereo: Sequence[StereoEntry] = (),
     title: str = "Calibration report",
     notes: Sequence[str] = (),
+    sections: Sequence[tuple[str, Sequence[str]]] = (),
 ) -> Path:
     """Write the report of a calibration beside its file.
 
@@ -165,6 +171,8 @@ def write_report(
         Page title.
     notes : sequence of str
         Extra lines for the page (e.g. the board used).
+    sections : sequence of (str, sequence of str)
+        Extra sections (heading, preformatted lines), e.g. the model selection and the weaknesses.
 
     Returns
     -------
@@ -183,6 +191,10 @@ def write_report(
         f"<p>calibration file: {html.escape(str(calibration_path))}</p>",
     ]
     parts += [f"<p>{html.escape(n)}</p>" for n in notes]
+    for heading, lines in sections:
+        if lines:
+            body = html.escape("\n".join(lines))
+            parts.append(f"<h2>{html.escape(heading)}</h2><pre>{body}</pre>")
 
     def figure(name: str, img: U8) -> str:
         data = _png(img)
@@ -236,3 +248,37 @@ def write_report(
             f"calibration report: cannot write {page} ({exc.strerror}); check permissions"
         ) from exc
     return page
+
+
+def write_rig_calibration(out: Path, result: RigCalibration, board: BoardSpec, title: str) -> Path:
+    """Write the calibration file of a rig and its report beside it.
+
+    Parameters
+    ----------
+    out : Path
+        Calibration file (OpenCV YAML).
+    result : RigCalibration
+        The calibration.
+    board : BoardSpec
+        The board (named on the page).
+    title : str
+        Page title.
+
+    Returns
+    -------
+    Path
+        The report page.
+    """
+    from appliance.geometry.calibration_file import Calibration, write_calibration
+
+    write_calibration(out, Calibration(devices=dict(result.devices)))
+    notes = [f"board: {board.describe()}"]
+    if result.bundle is not None:
+        b = result.bundle
+        notes.append(f"joint refinement: RMS {b.rms:.4f} px over {len(b.board_poses)} poses, "
+                     f"{b.iterations} iterations, {b.dropped_points} outlier points dropped")  # fmt: skip
+    sections = [
+        ("Distortion models (leave-one-view-out)", result.model_lines()),
+        ("Weaknesses and poses to add", result.weakness_lines()),
+    ]
+    return write_report(out, result.results, result.stereo, title=title, notes=notes, sections=sections)

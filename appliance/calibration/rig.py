@@ -16,16 +16,53 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from appliance.calibration.advice import Weakness, assess
+from appliance.calibration.boards import Detection
 from appliance.calibration.bundle import BundleResult, Observation, bundle_adjust
-from appliance.calibration.intrinsics import CameraResult, calibrate_camera, coverage_map
-from appliance.calibration.projector import ProcamView, calibrate_procam
+from appliance.calibration.intrinsics import CameraResult, coverage_map
+from appliance.calibration.projector import ProcamView
 from appliance.calibration.report import StereoEntry
+from appliance.calibration.selection import ModelChoice, pnp_error, select_model
 from appliance.calibration.stereo import StereoResult, stereo_calibrate
 from appliance.errors import CalibrationError
 from appliance.geometry.calibration_file import PROJECTOR_NAME
 from appliance.geometry.camera import CameraModel
 
 F64 = npt.NDArray[np.float64]
+
+
+GUARD_TOLERANCE = 0.0
+"""The joint refinement may not raise a device's held-out error above its pairwise one by more than this share."""
+
+
+@dataclass(frozen=True)
+class GuardEntry:
+    """How the joint refinement did against the pairwise calibration of one device, on left-out views.
+
+    Attributes
+    ----------
+    device : str
+        Device name.
+    pairwise_px : float
+        Held-out RMS of the pairwise intrinsics (px).
+    joint_px : float
+        Held-out RMS of the jointly refined intrinsics (px); for a device held at its pairwise values, the
+        error of the refinement that was refused.
+    kept_pairwise : bool
+        True when the joint refinement was worse, so the device's intrinsics were held at the pairwise values.
+    """
+
+    device: str
+    pairwise_px: float
+    joint_px: float
+    kept_pairwise: bool
+
+    def line(self) -> str:
+        """One human line."""
+        verdict = ("worse: intrinsics held at the pairwise values" if self.kept_pairwise
+                   else "not worse: refined intrinsics kept")  # fmt: skip
+        return (f"{self.device}: held-out error pairwise {self.pairwise_px:.4f} px, joint "
+                f"{self.joint_px:.4f} px ({verdict})")  # fmt: skip
 
 
 @dataclass
@@ -44,6 +81,12 @@ class RigCalibration:
         The pairwise (starting) calibration.
     bundle : BundleResult or None
         The joint refinement (None when it was not run).
+    choices : dict of str to ModelChoice
+        Per device: the distortion model candidates, their held-out errors and the choice.
+    guard : list of GuardEntry
+        Per device: held-out error of the pairwise and the joint intrinsics (empty without refinement).
+    weaknesses : dict of str to list of Weakness
+        Per device: what makes the calibration weak and which poses to add.
     """
 
     devices: dict[str, CameraModel]
@@ -51,10 +94,25 @@ class RigCalibration:
     stereo: list[StereoEntry]
     initial: dict[str, CameraModel]
     bundle: BundleResult | None
+    choices: dict[str, ModelChoice] = dataclasses.field(default_factory=dict)
+    guard: list[GuardEntry] = dataclasses.field(default_factory=list)
+    weaknesses: dict[str, list[Weakness]] = dataclasses.field(default_factory=dict)
+
+    def model_lines(self) -> list[str]:
+        """Model selection and the joint-refinement check, as human lines."""
+        lines = [line for c in self.choices.values() for line in c.lines()]
+        if self.guard:
+            lines.append("joint refinement against the pairwise calibration, on left-out views:")
+            lines += ["  " + g.line() for g in self.guard]
+        return lines
+
+    def weakness_lines(self) -> list[str]:
+        """What to improve, one line per weakness (empty when the calibration is not weak)."""
+        return [f"{name}: {w.line()}" for name, ws in self.weaknesses.items() for w in ws]
 
     def summary(self) -> str:
-        """Human summary: every device's intrinsics, RMS and pose."""
-        lines = []
+        """Human summary: model choice, every device's intrinsics, RMS and pose, weaknesses."""
+        lines = self.model_lines()
         if self.bundle is not None:
             b = self.bundle
             lines.append(
@@ -69,6 +127,10 @@ class RigCalibration:
                 f"stereo {e.first} -> {e.second}: RMS {st.rms:.3f} px, baseline {st.baseline_mm:.3f} mm, "
                 "T = " + " ".join(f"{t:.3f}" for t in st.T) + " mm"
             )
+        weak = self.weakness_lines()
+        if weak:
+            lines.append("the calibration is weak:")
+            lines += ["  " + w for w in weak]
         return "\n".join(lines)
 
 
@@ -83,27 +145,37 @@ def _inverse_compose(R_dev: F64, T_dev: F64, rvec: F64, tvec: F64) -> tuple[F64,
     return np.asarray(r, np.float64).ravel(), t
 
 
+def _forced(model: str) -> str | None:
+    return None if model == "auto" else model
+
+
 def calibrate_rig(
     views: Mapping[str, Sequence[ProcamView]],
     camera_sizes: Mapping[str, tuple[int, int]],
-    projector_size: tuple[int, int],
+    projector_size: tuple[int, int] | None,
     *,
-    camera_model: str = "k3p",
-    projector_model: str = "k2p",
+    camera_model: str = "auto",
+    projector_model: str = "auto",
     refine: bool = True,
 ) -> RigCalibration:
-    """Calibrate cameras, projector and their poses from board poses under structured light.
+    """Calibrate cameras, the projector and their poses: pairwise start, then one joint refinement.
+
+    Each device's distortion model is chosen by leave-one-view-out error
+    (:func:`~appliance.calibration.selection.select_model`). The joint refinement of all devices is then
+    checked on left-out views: a device whose refined intrinsics predict left-out views worse than its
+    pairwise ones keeps the pairwise intrinsics (only poses are refined for it).
 
     Parameters
     ----------
     views : mapping of str to sequence of ProcamView
-        Per camera (first = reference, the world frame), one view per board pose, same pose order.
+        Per camera (first = reference, the world frame), one view per board pose, same pose order. Without
+        a projector the views carry camera detections only.
     camera_sizes : mapping of str to (int, int)
         (width, height) per camera (px).
-    projector_size : tuple of int
-        (width, height) of the projector (px).
+    projector_size : tuple of int or None
+        (width, height) of the projector (px); None: cameras only.
     camera_model, projector_model : str
-        Distortion models.
+        Distortion models; ``auto`` selects by held-out error.
     refine : bool
         Run the joint refinement of all devices (otherwise the pairwise result is returned).
 
@@ -123,29 +195,43 @@ def calibrate_rig(
     if len(n_views) != 1:
         raise CalibrationError(f"calibrate rig: cameras have different numbers of poses {sorted(n_views)}")
     ref = names[0]
-    procam = calibrate_procam(
-        views[ref], camera_sizes[ref], projector_size, camera_model=camera_model,
-        projector_model=projector_model, camera_name=ref, projector_name=PROJECTOR_NAME,
-    )  # fmt: skip
-    initial: dict[str, CameraModel] = {ref: procam.camera.camera}
-    cam_results: dict[str, CameraResult] = {ref: procam.camera}
+    cam_results: dict[str, CameraResult] = {}
+    choices: dict[str, ModelChoice] = {}
+    for c in names:
+        cam_results[c], choices[c] = select_model(
+            [v.camera for v in views[c]], camera_sizes[c], name=c, forced=_forced(camera_model)
+        )
+    initial: dict[str, CameraModel] = {ref: cam_results[ref].camera}
     stereo: dict[str, StereoResult] = {}
     for c in names[1:]:
-        res = calibrate_camera([v.camera for v in views[c]], camera_sizes[c], camera_model, name=c)
+        res = cam_results[c]
         pairs = [
-            (a.camera, b.camera) if i in procam.camera.views and i in res.views else (None, None)
+            (a.camera, b.camera) if i in cam_results[ref].views and i in res.views else (None, None)
             for i, (a, b) in enumerate(zip(views[ref], views[c], strict=True))
         ]
-        st = stereo_calibrate(procam.camera.camera, res.camera, pairs)
+        st = stereo_calibrate(cam_results[ref].camera, res.camera, pairs)
         initial[c] = res.camera.with_pose(st.R, st.T)
-        cam_results[c] = res
         stereo[c] = st
-    initial[PROJECTOR_NAME] = procam.projector.camera.with_pose(procam.stereo.R, procam.stereo.T)
-    stereo[PROJECTOR_NAME] = procam.stereo
+    all_results = dict(cam_results)
+    if projector_size is not None:
+        proj, choices[PROJECTOR_NAME] = select_model(
+            [v.projector for v in views[ref]], projector_size, name=PROJECTOR_NAME,
+            forced=_forced(projector_model),
+        )  # fmt: skip
+        pairs = [
+            (v.camera, v.projector) if i in cam_results[ref].views and i in proj.views else (None, None)
+            for i, v in enumerate(views[ref])
+        ]
+        st = stereo_calibrate(cam_results[ref].camera, proj.camera, pairs, fix_intrinsics=True)
+        initial[PROJECTOR_NAME] = proj.camera.with_pose(st.R, st.T)
+        stereo[PROJECTOR_NAME] = st
+        all_results[PROJECTOR_NAME] = proj
+    others = [n for n in initial if n != ref]
     if not refine:
-        results = [*cam_results.values(), procam.projector]
-        entries = [StereoEntry(ref, n, stereo[n]) for n in [*names[1:], PROJECTOR_NAME]]
-        return RigCalibration(dict(initial), results, entries, initial, None)
+        entries = [StereoEntry(ref, n, stereo[n]) for n in others]
+        out = RigCalibration(dict(initial), list(all_results.values()), entries, initial, None, choices)
+        out.weaknesses = {n: assess(r, choices.get(n)) for n, r in all_results.items()}
+        return out
 
     poses: dict[int, tuple[F64, F64]] = {}
     for c in names:
@@ -160,21 +246,98 @@ def calibrate_rig(
         for i, v in enumerate(views[c]):
             if v.camera is not None and i in used:
                 observations.append(Observation(c, i, v.camera.object_points, v.camera.image_points, c))
-    for c in names:
-        for i, v in enumerate(views[c]):
-            if v.projector is not None and (c != ref or i in procam.projector.views):
-                observations.append(
-                    Observation(PROJECTOR_NAME, i, v.projector.object_points, v.projector.image_points, c)
-                )
-    models = {**{c: camera_model for c in names}, PROJECTOR_NAME: projector_model}
+    if projector_size is not None:
+        proj_views = set(all_results[PROJECTOR_NAME].views)
+        for c in names:
+            for i, v in enumerate(views[c]):
+                if v.projector is not None and (c != ref or i in proj_views):
+                    observations.append(
+                        Observation(PROJECTOR_NAME, i, v.projector.object_points, v.projector.image_points, c)
+                    )
+    models = {n: choices[n].chosen for n in initial}
+    bundle, guard = _guarded_bundle(initial, models, observations, poses, choices, all_results)
+    results = [_refined_result(all_results[n], bundle, observations, n) for n in initial]
+    entries = [StereoEntry(ref, n, _refined_stereo(bundle, observations, ref, n)) for n in others]
+    out = RigCalibration(dict(bundle.devices), results, entries, initial, bundle, choices, guard)
+    out.weaknesses = {r.camera.name: assess(r, choices.get(r.camera.name), all_results[r.camera.name])
+                      for r in results}  # fmt: skip
+    return out
+
+
+def _guarded_bundle(
+    initial: dict[str, CameraModel],
+    models: dict[str, str],
+    observations: list[Observation],
+    poses: dict[int, tuple[F64, F64]],
+    choices: Mapping[str, ModelChoice],
+    pairwise: Mapping[str, CameraResult],
+) -> tuple[BundleResult, list[GuardEntry]]:
+    """Joint refinement whose intrinsics are never worse than the pairwise ones on left-out views.
+
+    Each view is left out in turn: the refinement is solved without it (starting from the solution on all
+    views) and every device's left-out error is measured by PnP with its refined intrinsics, as the
+    pairwise held-out error was. A device that does worse keeps its pairwise intrinsics, and the
+    refinement is repeated with them fixed, until no device does worse.
+    """
+    fixed: set[str] = set()
     bundle = bundle_adjust(initial, models, observations, poses)
-    base = {**cam_results, PROJECTOR_NAME: procam.projector}
-    results = [_refined_result(base[n], bundle, observations, n) for n in [*names, PROJECTOR_NAME]]
-    entries = [
-        StereoEntry(ref, n, _refined_stereo(bundle, observations, ref, n))
-        for n in [*names[1:], PROJECTOR_NAME]
-    ]
-    return RigCalibration(dict(bundle.devices), results, entries, initial, bundle)
+    joint_px: dict[str, float] = {}
+    for _ in range(len(initial)):
+        joint_px.update(_joint_held_out(bundle, models, observations, choices, fixed))
+        worse = {
+            n for n, e in joint_px.items()
+            if n not in fixed and e > choices[n].best.held_out.rms_px * (1 + GUARD_TOLERANCE)
+        }  # fmt: skip
+        if not worse:
+            break
+        fixed |= worse
+        start = {n: (pairwise[n].camera.with_pose(d.R, d.T) if n in fixed else d)
+                 for n, d in bundle.devices.items()}  # fmt: skip
+        bundle = bundle_adjust(start, models, observations, bundle.board_poses, fixed=fixed)
+    guard = [
+        GuardEntry(n, choices[n].best.held_out.rms_px, joint_px.get(n, float("nan")), n in fixed)
+        for n in initial
+    ]  # fmt: skip
+    return bundle, guard
+
+
+def _joint_held_out(
+    bundle: BundleResult,
+    models: dict[str, str],
+    observations: list[Observation],
+    choices: Mapping[str, ModelChoice],
+    fixed: set[str],
+) -> dict[str, float]:
+    """Per device not in ``fixed``: RMS over left-out views of the refinement solved without each view."""
+    sq = dict.fromkeys(bundle.devices, 0.0)
+    cnt = dict.fromkeys(bundle.devices, 0)
+    ref_obs: dict[tuple[str, int], Observation] = {}
+    for o in observations:
+        # the pairwise held-out error of a projector used the reference camera's decoding
+        ref_obs.setdefault((o.device, o.view), o)
+    views = sorted({v for n in bundle.devices if n not in fixed for v in choices[n].best.held_out.views})
+    for v in views:
+        rest = [o for o in observations if o.view != v]
+        poses = {k: p for k, p in bundle.board_poses.items() if k != v}
+        if not rest or not poses:
+            continue
+        try:
+            loo = bundle_adjust(bundle.devices, models, rest, poses, fixed=fixed)
+        except CalibrationError:
+            continue
+        for n, dev in loo.devices.items():
+            if n in fixed or v not in choices[n].best.held_out.views:
+                continue
+            held = ref_obs.get((n, v))
+            if held is None:
+                continue
+            cam = CameraModel(n, dev.K, dev.dist, dev.width, dev.height)
+            s, m = pnp_error(cam, Detection(np.arange(len(held.image_points), dtype=np.int32), held.image_points,
+                                            held.object_points, (dev.width, dev.height)))  # fmt: skip
+            if np.isfinite(s):
+                sq[n] += s
+                cnt[n] += m
+    return {n: float(np.sqrt(sq[n] / cnt[n])) if cnt[n] else float("nan") for n in bundle.devices if n not in fixed}
 
 
 def _refined_result(

@@ -1,4 +1,11 @@
-"""Calibration verification in the spirit of VDI/VDE 2634: scan a known artefact and check its form.
+"""Calibration verification after VDI/VDE 2634 part 2: the figures of scans of a known artefact.
+
+The quantities of VDI/VDE 2634-2, measured on the artefact in several positions through the measuring volume
+(``calibration.artefact.positions``) and compared with maximum permissible errors
+(``calibration.tolerances``): probing error form PF (peak-to-valley of a sphere's radial residuals), probing
+error size PS (fitted minus calibrated diameter), sphere-spacing error SD (measured minus calibrated centre
+distance of the ball bar) and the flatness of the plane. The scans themselves are taken by
+:mod:`appliance.procedures.verify`; this module has the fits, the figures and the report page.
 
 The artefact (``calibration.artefact``) is a ball bar (two or more calibrated spheres) and a flat. Points are
 segmented by proximity to the nominal sphere centres and the nominal plane; each sphere is fitted robustly
@@ -12,7 +19,8 @@ rather than the noise. On a virtual rig the artefact is put into the scene from 
 
 from __future__ import annotations
 
-import asyncio
+import html
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,9 +28,16 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.schema import AppConfig, ArtefactConfig, PlaneObject, SphereObject, VerifyTolerances
-from appliance.errors import CalibrationError
-from appliance.geometry.calibration_file import Calibration
+from appliance.config.schema import (
+    ArtefactConfig,
+    ArtefactPlane,
+    ArtefactPosition,
+    ArtefactSphere,
+    PlaneObject,
+    SphereObject,
+    VerifyTolerances,
+)
+from appliance.errors import CalibrationError, OutputError
 
 F64 = npt.NDArray[np.float64]
 SEARCH_FACTOR = 3.0
@@ -171,7 +186,8 @@ class VerifyReport:
     Attributes
     ----------
     spheres : list of dict
-        Per sphere: ``points``, ``centre_mm``, ``diameter_mm``, ``nominal_mm``, ``error_mm``, ``rms_mm``.
+        Per sphere: ``points``, ``centre_mm``, ``diameter_mm``, ``nominal_mm``, ``error_mm`` (PS),
+        ``rms_mm``, ``form_mm`` (PF: peak-to-valley of the radial residuals).
     ball_bar : dict or None
         ``measured_mm``, ``nominal_mm``, ``error_mm`` of the first two spheres' centre distance.
     plane : dict or None
@@ -196,7 +212,8 @@ class VerifyReport:
         for i, s in enumerate(self.spheres):
             out.append(
                 f"sphere {i}: {s['points']} points, diameter {s['diameter_mm']:.4f} mm (calibrated "
-                f"{s['nominal_mm']:.4f}), error {s['error_mm']:+.4f} mm, form RMS {s['rms_mm']:.4f} mm"
+                f"{s['nominal_mm']:.4f}), error {s['error_mm']:+.4f} mm, form RMS {s['rms_mm']:.4f} mm, "
+                f"form PV {s['form_mm']:.4f} mm"
             )
         if self.ball_bar is not None:
             b = self.ball_bar
@@ -260,10 +277,13 @@ def evaluate_artefact(xyz: F64, artefact: ArtefactConfig, tol: VerifyTolerances)
         sel = np.abs(dist - radius) < margin
         centre, radius, rms, keep = fit_sphere_robust(p[sel])
         err = 2 * radius - sph.diameter_mm
+        radial = _exclude(np.linalg.norm(p[sel][keep] - centre, axis=1) - radius, tol.exclude_fraction)
+        form = float(radial.max() - radial.min())
         rep.spheres.append({"points": int(keep.sum()), "centre_mm": centre.tolist(),
-                            "diameter_mm": 2 * radius,
-                            "nominal_mm": sph.diameter_mm, "error_mm": err, "rms_mm": rms})  # fmt: skip
-        rep.checks.append(Check(f"sphere {i} diameter error", err, tol.sphere_diameter_mm))
+                            "diameter_mm": 2 * radius, "nominal_mm": sph.diameter_mm, "error_mm": err,
+                            "rms_mm": rms, "form_mm": form})  # fmt: skip
+        rep.checks.append(Check(f"PF sphere {i} probing form", form, tol.probing_form_mm))
+        rep.checks.append(Check(f"PS sphere {i} diameter error", err, tol.sphere_diameter_mm))
         centres.append(centre)
     if len(centres) >= 2:
         s0, s1 = artefact.spheres[0], artefact.spheres[1]
@@ -272,7 +292,8 @@ def evaluate_artefact(xyz: F64, artefact: ArtefactConfig, tol: VerifyTolerances)
             nominal = float(np.linalg.norm(np.subtract(s1.center_mm, s0.center_mm)))
         measured = float(np.linalg.norm(centres[1] - centres[0]))
         rep.ball_bar = {"measured_mm": measured, "nominal_mm": nominal, "error_mm": measured - nominal}
-        rep.checks.append(Check("ball-bar length error", measured - nominal, tol.ball_bar_length_mm))
+        rep.checks.append(Check("SD sphere spacing (ball-bar length) error", measured - nominal,
+                                tol.ball_bar_length_mm))  # fmt: skip
     if artefact.plane is not None:
         rep.plane = _plane(p, near_sphere, artefact, tol)
         rep.checks.append(Check("plane flatness", rep.plane["flatness_mm"], tol.flatness_mm))
@@ -345,70 +366,173 @@ def artefact_scene(artefact: ArtefactConfig) -> tuple[PlaneObject | SphereObject
     return tuple(objs)
 
 
-async def scan_artefact(cfg: AppConfig, calibration: Calibration | None = None) -> F64:
-    """Scan the artefact once on the configured rig (on a virtual rig: put it into the scene first).
+def placed(artefact: ArtefactConfig, position: ArtefactPosition) -> ArtefactConfig:
+    """The artefact moved to ``position``: turned about the world z axis through its spheres' mean centre,
+    then shifted.
 
     Parameters
     ----------
-    cfg : AppConfig
-        Configuration.
-    calibration : Calibration, optional
-        Calibration to reconstruct with (default: the configured one, or the virtual rig's exact one).
+    artefact : ArtefactConfig
+        The artefact at its nominal place.
+    position : ArtefactPosition
+        Offset (mm) and turn (deg).
 
     Returns
     -------
-    ndarray, shape (N, 3), float64
-        The points (world frame, mm).
+    ArtefactConfig
+        Same artefact, nominal sphere centres and plane moved (the ball-bar length is unchanged).
     """
-    from appliance.hardware.registry import build_rig
-    from appliance.scan import Scanner, load_calibration_for
+    a = np.deg2rad(position.rotation_deg)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    centres = [np.asarray(sp.center_mm, np.float64) for sp in artefact.spheres]
+    pivot = np.mean(centres, axis=0) if centres else np.zeros(3)
+    off = np.asarray(position.offset_mm, np.float64)
 
-    rig = build_rig(cfg)
-    loop = asyncio.get_running_loop()
-    if rig.virtual is not None:
-        from appliance.sim.scene import Scene
+    def move(x: Sequence[float]) -> tuple[float, float, float]:
+        v = R @ (np.asarray(x, np.float64) - pivot) + pivot + off
+        return (float(v[0]), float(v[1]), float(v[2]))
 
-        virtual = rig.virtual
-        virtual.set_scene(Scene(artefact_scene(cfg.calibration.artefact)))
-        await loop.run_in_executor(None, virtual.prepare)
-    calib = calibration if calibration is not None else load_calibration_for(cfg, rig)
-    scanner = Scanner(cfg, rig, calib)
-    try:
-        result = await scanner.scan()
-    finally:
-        await scanner.close()
-    return np.asarray(result.cloud.xyz, np.float64)
-
-
-def verify(cfg: AppConfig, calibration: Calibration | None = None) -> VerifyReport:
-    """Scan the configured artefact and check it against ``calibration.tolerances``."""
-    xyz = asyncio.run(scan_artefact(cfg, calibration))
-    return evaluate_artefact(xyz, cfg.calibration.artefact, cfg.calibration.tolerances)
+    spheres = tuple(ArtefactSphere(center_mm=move(sp.center_mm), diameter_mm=sp.diameter_mm)
+                    for sp in artefact.spheres)  # fmt: skip
+    plane = None
+    if artefact.plane is not None:
+        n = R @ np.asarray(artefact.plane.normal, np.float64)
+        plane = ArtefactPlane(point_mm=move(artefact.plane.point_mm), normal=(float(n[0]), float(n[1]), float(n[2])),
+                              size_mm=artefact.plane.size_mm)  # fmt: skip
+    nominal = artefact.ball_bar_length_mm
+    if nominal is None and len(centres) >= 2:
+        nominal = float(np.linalg.norm(centres[1] - centres[0]))
+    return artefact.model_copy(update={"spheres": spheres, "plane": plane, "ball_bar_length_mm": nominal})
 
 
-def verify_cli(config: Path | None) -> int:
-    """``scan3d verify``: scan the known artefact, print the VDI/VDE 2634-style report.
+@dataclass
+class VdiReport:
+    """VDI/VDE 2634-2 figures over all positions of the artefact.
+
+    Attributes
+    ----------
+    positions : list of ArtefactPosition
+        Where the artefact was.
+    reports : list of VerifyReport
+        One per position.
+    tolerances : VerifyTolerances
+        The maximum permissible errors.
+    """
+
+    positions: list[ArtefactPosition]
+    reports: list[VerifyReport]
+    tolerances: VerifyTolerances
+
+    def figures(self) -> dict[str, float]:
+        """``PF``, ``PS``, ``SD`` and ``flatness``: the worst value over all positions (mm; PS and SD signed)."""
+
+        def worst(values: list[float]) -> float:
+            vals = [v for v in values if np.isfinite(v)]
+            return max(vals, key=abs) if vals else float("nan")
+
+        return {
+            "PF": worst([s["form_mm"] for r in self.reports for s in r.spheres]),
+            "PS": worst([s["error_mm"] for r in self.reports for s in r.spheres]),
+            "SD": worst([r.ball_bar["error_mm"] for r in self.reports if r.ball_bar is not None]),
+            "flatness": worst([r.plane["flatness_mm"] for r in self.reports if r.plane is not None]),
+        }
+
+    @property
+    def checks(self) -> list[Check]:
+        """Each figure against its maximum permissible error."""
+        f, t = self.figures(), self.tolerances
+        out = [Check("PF probing error form", f["PF"], t.probing_form_mm),
+               Check("PS probing error size", f["PS"], t.sphere_diameter_mm),
+               Check("SD sphere-spacing error", f["SD"], t.ball_bar_length_mm)]  # fmt: skip
+        if np.isfinite(f["flatness"]):
+            out.append(Check("flatness", f["flatness"], t.flatness_mm))
+        return out
+
+    @property
+    def passed(self) -> bool:
+        """True when every figure is within its maximum permissible error."""
+        return all(c.passed for c in self.checks)
+
+    def lines(self) -> list[str]:
+        """Human report: each position's measurements, then the figures against the MPEs, then PASS/FAIL."""
+        out: list[str] = []
+        for k, (pos, rep) in enumerate(zip(self.positions, self.reports, strict=True)):
+            out.append(f"position {k + 1} of {len(self.positions)}: offset {tuple(pos.offset_mm)} mm, "
+                       f"turned {pos.rotation_deg:+.0f} deg")  # fmt: skip
+            out += ["  " + line for line in rep.lines()[:-1] if not line.lstrip().startswith(("pass", "FAIL"))]
+        out.append(f"VDI/VDE 2634-2 over {len(self.positions)} positions (worst value, limit = MPE):")
+        for c in self.checks:
+            out.append(f"  {'pass' if c.passed else 'FAIL'}: {c.name} {c.value:+.4f} mm (MPE {c.limit:.4f} mm)")
+        out.append("PASS" if self.passed else "FAIL")
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready figures, checks and per-position values."""
+        return {
+            "figures_mm": self.figures(),
+            "checks": [{"name": c.name, "value_mm": c.value, "mpe_mm": c.limit, "passed": c.passed}
+                       for c in self.checks],
+            "positions": [{"offset_mm": list(p.offset_mm), "rotation_deg": p.rotation_deg,
+                           "spheres": r.spheres, "ball_bar": r.ball_bar, "plane": r.plane}
+                          for p, r in zip(self.positions, self.reports, strict=True)],
+            "passed": self.passed,
+        }  # fmt: skip
+
+
+def write_verify_page(path: Path, report: VdiReport, title: str, notes: Sequence[str] = ()) -> Path:
+    """Write the verification report page (self-contained HTML with a bar chart per figure).
 
     Parameters
     ----------
-    config : Path or None
-        Configuration file (None: the built-in virtual-rig defaults).
+    path : Path
+        The page to write.
+    report : VdiReport
+        The figures.
+    title : str
+        Page title.
+    notes : sequence of str
+        Extra lines (e.g. which calibration was checked).
 
     Returns
     -------
-    int
-        0 when every check passes, 1 otherwise.
+    Path
+        ``path``.
     """
-    from appliance.config.loader import load_config
+    import base64
 
-    cfg = load_config(config) if config is not None else AppConfig()
-    source = (
-        str(cfg.calibration_file)
-        if cfg.calibration_file is not None
-        else "the virtual rig's exact calibration"
+    from appliance.calibration.report import _png, bar_plot
+
+    t = report.tolerances
+    series = {
+        "PF probing error form": ([max((s["form_mm"] for s in r.spheres), default=np.nan) for r in report.reports],
+                                  t.probing_form_mm),
+        "PS probing error size": ([max((s["error_mm"] for s in r.spheres), key=abs, default=np.nan)
+                                   for r in report.reports], t.sphere_diameter_mm),
+        "SD sphere-spacing error": ([r.ball_bar["error_mm"] if r.ball_bar else np.nan for r in report.reports],
+                                    t.ball_bar_length_mm),
+        "flatness": ([r.plane["flatness_mm"] if r.plane else np.nan for r in report.reports], t.flatness_mm),
+    }  # fmt: skip
+    parts = [f"<h1>{html.escape(title)}</h1>"] + [f"<p>{html.escape(n)}</p>" for n in notes]
+    rows = "".join(
+        f"<tr><td>{html.escape(c.name)}</td><td>{c.value:+.4f}</td><td>{c.limit:.4f}</td>"
+        f"<td class='{'ok' if c.passed else 'bad'}'>{'pass' if c.passed else 'FAIL'}</td></tr>"
+        for c in report.checks
     )
-    print(f"verify: scanning the artefact with {source}")
-    report = verify(cfg)
-    for line in report.lines():
-        print(line)
-    return 0 if report.passed else 1
+    parts.append(f"<h2>{'PASS' if report.passed else 'FAIL'}</h2><table><tr><th>figure</th><th>worst (mm)</th>"
+                 f"<th>MPE (mm)</th><th></th></tr>{rows}</table>")  # fmt: skip
+    labels = [f"#{k + 1}" for k in range(len(report.reports))]
+    for name, (values, mpe) in series.items():
+        vals = [abs(float(v)) if np.isfinite(v) else 0.0 for v in values]
+        img = bar_plot(vals, labels, f"{name} per position, |value| (MPE {mpe:.3f} mm)", unit="mm")
+        data = base64.b64encode(_png(img)).decode()
+        parts.append(f'<img alt="{html.escape(name)}" src="data:image/png;base64,{data}"><br>')
+    parts.append("<h2>Positions</h2><pre>" + html.escape("\n".join(report.lines())) + "</pre>")
+    style = "body{font-family:sans-serif} table{border-collapse:collapse} td,th{border:1px solid #999;padding:2px 6px}"
+    doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{style}"
+           f" .bad{{color:#b00}} .ok{{color:#070}}</style></head><body>{''.join(parts)}</body></html>")  # fmt: skip
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(doc, encoding="utf-8")
+    except OSError as exc:
+        raise OutputError(f"verify report: cannot write {path} ({exc.strerror}); check permissions") from exc
+    return path

@@ -347,7 +347,7 @@ ARUCO_DICTIONARIES = (
 )  # fmt: skip
 
 
-DistortionName = Literal["none", "k1", "k2", "k2p", "k3", "k3p", "rational", "standard", "simple"]
+DistortionName = Literal["auto", "none", "k1", "k2", "k2p", "k3", "k3p", "rational", "standard", "simple"]
 
 
 class BoardConfig(_Strict):
@@ -408,6 +408,22 @@ def _default_spheres() -> tuple[ArtefactSphere, ...]:
             ArtefactSphere(center_mm=(50.0, 0.0, 590.0), diameter_mm=30.0))  # fmt: skip
 
 
+class ArtefactPosition(_Strict):
+    """Where ``scan3d verify`` puts (or asks a person to put) the artefact: a move from its nominal place."""
+
+    offset_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Shift of the whole artefact, world frame (mm).")
+    rotation_deg: float = Field(
+        0.0, ge=-180, le=180, description="Turn about the world z axis through the sphere centres' mean (deg)."
+    )
+
+
+def _default_positions() -> tuple[ArtefactPosition, ...]:
+    return (ArtefactPosition(), ArtefactPosition(offset_mm=(-35.0, -20.0, -30.0), rotation_deg=45.0),
+            ArtefactPosition(offset_mm=(35.0, 20.0, 30.0), rotation_deg=-45.0),
+            ArtefactPosition(offset_mm=(0.0, 0.0, 40.0), rotation_deg=90.0),
+            ArtefactPosition(offset_mm=(0.0, 0.0, -40.0)))  # fmt: skip
+
+
 class ArtefactConfig(_Strict):
     """The known artefact scanned by ``scan3d verify`` (a ball bar and a plane, VDI/VDE 2634 style)."""
 
@@ -426,18 +442,30 @@ class ArtefactConfig(_Strict):
         "plane (mm); the first search reaches 3x as far from the nominal ones.",
     )
     albedo: float = Field(0.8, ge=0, le=1, description="Reflectance of the artefact on the virtual rig.")
+    positions: tuple[ArtefactPosition, ...] = Field(
+        default_factory=_default_positions, min_length=1, max_length=20,
+        description="Positions through the measuring volume (VDI/VDE 2634-2); each is scanned once.",
+    )
 
 
 class VerifyTolerances(_Strict):
     """Pass/fail limits of ``scan3d verify`` (mm)."""
 
     flatness_mm: float = Field(0.1, gt=0, description="Plane form error: peak-to-valley of cell means (mm).")
+    probing_form_mm: float = Field(
+        0.6, gt=0, description="MPE of the probing error form PF: peak-to-valley of a sphere's radial residuals, "
+        "point noise included (mm).",
+    )
     flatness_cell_mm: float = Field(
         10.0, ge=0, le=100, description="Cell size over which plane residuals are averaged before the "
         "peak-to-valley (mm); 0: raw points (noise included).",
     )
-    sphere_diameter_mm: float = Field(0.05, gt=0, description="|fitted - calibrated| sphere diameter (mm).")
-    ball_bar_length_mm: float = Field(0.1, gt=0, description="|measured - calibrated| sphere distance (mm).")
+    sphere_diameter_mm: float = Field(
+        0.05, gt=0, description="MPE of the probing error size PS: |fitted - calibrated| sphere diameter (mm)."
+    )
+    ball_bar_length_mm: float = Field(
+        0.1, gt=0, description="MPE of the sphere-spacing error SD: |measured - calibrated| sphere distance (mm)."
+    )
     exclude_fraction: float = Field(
         0.003, ge=0, le=0.1, description="Share of the largest residuals excluded before peak-to-valley "
         "values (VDI/VDE 2634: 0.3 %).",
@@ -453,9 +481,10 @@ class CalibrationConfig(_Strict):
         0.6, gt=0, le=1, description="Live calibration: share of each camera's image the board must cover."
     )
     camera_model: DistortionName = Field(
-        "k3p", description="Camera distortion: kN radial k1..kN, p tangential, rational k1..k6 p1 p2."
+        "auto", description="Camera distortion: auto (chosen by leave-one-view-out error among k2p, k3p, "
+        "rational), kN radial k1..kN, p tangential, rational k1..k6 p1 p2.",
     )
-    projector_model: DistortionName = Field("k2p", description="Projector distortion (as camera_model).")
+    projector_model: DistortionName = Field("auto", description="Projector distortion (as camera_model).")
     artefact: ArtefactConfig = Field(default_factory=ArtefactConfig)
     tolerances: VerifyTolerances = Field(default_factory=VerifyTolerances)
 

@@ -1,29 +1,35 @@
-"""Live calibration on the configured rig: capture board poses, show progress, calibrate, write the file.
+"""Live calibration on the configured rig: capture board poses, guide the person, calibrate, write the file.
 
 Each capture projects a white frame and a Gray + phase sequence on both projector axes and grabs every
 camera through the hardware protocols (as a scan does). The board is found in the white frame and its
 corners' projector coordinates come from the decoding (:func:`~appliance.calibration.projector.procam_view`).
 On a virtual rig the board is moved to the next of the preset poses before each capture
-(:class:`~appliance.calibration.virtual.VirtualBoard`); on real hardware the operator moves it.
+(:class:`~appliance.calibration.virtual.VirtualBoard`); on real hardware the operator moves it, guided after
+each capture by where the board is still missing in each device's image
+(:func:`~appliance.calibration.advice.next_pose_hint`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import numpy.typing as npt
 
+from appliance.calibration.advice import next_pose_hint
 from appliance.calibration.boards import BoardSpec
 from appliance.calibration.intrinsics import coverage_map
 from appliance.calibration.projector import ProcamView, procam_view
+from appliance.calibration.report import write_rig_calibration
 from appliance.calibration.rig import RigCalibration, calibrate_rig
 from appliance.config.schema import AppConfig, SequenceConfig
 from appliance.errors import CalibrationError, CameraError, HardwareError
-from appliance.geometry.calibration_file import PROJECTOR_NAME, Calibration, write_calibration
+from appliance.geometry.calibration_file import PROJECTOR_NAME
 from appliance.hardware.base import FrameArray
 from appliance.hardware.registry import Rig
 from appliance.patterns.sequence import Sequence, gray_phase_sequence
@@ -81,11 +87,15 @@ class LiveCalibration:
         The devices (see :func:`appliance.hardware.registry.build_rig`).
     poses_hint : int
         On a virtual rig: number of preset board poses to cycle through.
+    save_frames : Path, optional
+        Folder where each capture's white frame is kept per camera (``pose_NN_<camera>.png``), e.g. to
+        calibrate a camera again offline with ``scan3d calibrate camera``.
     """
 
     cfg: AppConfig
     rig: Rig
     poses_hint: int = 15
+    save_frames: Path | None = None
     captures: list[PoseCapture] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -169,9 +179,26 @@ class LiveCalibration:
         views = {}
         for name, buf in self._buffers.items():
             views[name] = await loop.run_in_executor(None, procam_view, buf, seq, board)
+            if self.save_frames is not None:
+                await loop.run_in_executor(None, self._save_white, name, buf)
         cap = PoseCapture(len(self.captures), views)
         self.captures.append(cap)
         return cap
+
+    def _save_white(self, camera: str, frames: FrameArray) -> None:
+        import cv2
+
+        from appliance.calibration.projector import white_frame_index
+
+        assert self.save_frames is not None and self.sequence is not None
+        path = self.save_frames / f"pose_{len(self.captures):02d}_{camera}.png"
+        try:
+            self.save_frames.mkdir(parents=True, exist_ok=True)
+            ok = cv2.imwrite(str(path), frames[white_frame_index(self.sequence)])
+        except OSError as exc:
+            raise CalibrationError(f"calibrate --live: cannot write {path} ({exc.strerror}); check the folder") from exc
+        if not ok:
+            raise CalibrationError(f"calibrate --live: cannot write {path}; check the folder (--save-frames)")
 
     def coverage(self) -> dict[str, float]:
         """Share of each device's image the board has covered so far (cameras and the projector)."""
@@ -208,8 +235,29 @@ class LiveCalibration:
         cams = [f for n, f in self.coverage().items() if n != PROJECTOR_NAME]
         return self.good_poses() >= cc.poses_wanted and min(cams) >= cc.coverage_target
 
+    def hints(self) -> list[str]:
+        """Per camera (then the projector): where to put the board next; empty when all is covered."""
+        out: list[str] = []
+        proj_pts: list[F64] = []
+        for name, size in self._sizes.items():
+            pts: list[F64] = []
+            for c in self.captures:
+                cam, proj = c.views[name].camera, c.views[name].projector
+                if cam is not None:
+                    pts.append(cam.image_points)
+                if proj is not None:
+                    proj_pts.append(proj.image_points)
+            hint = next_pose_hint(pts, size, name)
+            if hint is not None:
+                out.append(hint)
+        if not out and proj_pts:
+            hint = next_pose_hint(proj_pts, self.projector_size, PROJECTOR_NAME)
+            if hint is not None:
+                out.append(hint + " (if the cameras can see it there)")
+        return out
+
     def progress(self) -> str:
-        """Coverage per device and what is still missing."""
+        """Coverage per device, what is still missing and where to put the board next."""
         cc = self.cfg.calibration
         cov = ", ".join(f"{n} {100 * f:.0f} %" for n, f in self.coverage().items())
         line = f"  coverage: {cov} (camera target {100 * cc.coverage_target:.0f} %); " \
@@ -217,6 +265,8 @@ class LiveCalibration:
                f"{cc.poses_wanted} poses wanted"  # fmt: skip
         if self.enough():
             line += "\n  enough poses and coverage: calibrate now (or add poses where coverage is thin)"
+        for hint in self.hints():
+            line += "\n  " + hint
         return line
 
     def calibrate(self) -> RigCalibration:
@@ -236,14 +286,125 @@ class LiveCalibration:
         await self.rig.trigger.close()
 
 
-def write_rig_calibration(out: Path, result: RigCalibration, board: BoardSpec, title: str) -> Path:
-    """Write the calibration file and its report beside it; returns the report page."""
-    from appliance.calibration.report import write_report
+def _stdin_lines(stream: TextIO, loop: asyncio.AbstractEventLoop) -> asyncio.Queue[str | None]:
+    """Lines of ``stream`` as an asyncio queue (a daemon thread reads; None at end of input)."""
+    queue: asyncio.Queue[str | None] = asyncio.Queue()
 
-    write_calibration(out, Calibration(devices=dict(result.devices)))
-    notes = [f"board: {board.describe()}"]
-    if result.bundle is not None:
-        b = result.bundle
-        notes.append(f"joint refinement: RMS {b.rms:.4f} px over {len(b.board_poses)} poses, "
-                     f"{b.iterations} iterations, {b.dropped_points} outlier points dropped")  # fmt: skip
-    return write_report(out, result.results, result.stereo, title=title, notes=notes)
+    def pump() -> None:
+        for line in stream:
+            loop.call_soon_threadsafe(queue.put_nowait, line.strip())
+        loop.call_soon_threadsafe(queue.put_nowait, None)
+
+    threading.Thread(target=pump, name="calibrate-stdin", daemon=True).start()
+    return queue
+
+
+async def _next_command(lines: asyncio.Queue[str | None], trigger: Any) -> str | None:
+    """The next Enter line (``''`` for a plain Enter) or ``''`` for a button press; None at end of input."""
+    get_line = asyncio.ensure_future(lines.get())
+    get_press = asyncio.ensure_future(trigger.next_event())
+    done, pending = await asyncio.wait({get_line, get_press}, return_when=asyncio.FIRST_COMPLETED)
+    for task in pending:
+        task.cancel()
+    if get_line in done:
+        return get_line.result()
+    return ""
+
+
+async def calibrate_live(
+    config: Path | None,
+    poses: int | None = None,
+    out: Path | None = None,
+    stdin: TextIO | None = None,
+    save_frames: Path | None = None,
+) -> int:
+    """``scan3d calibrate --live``: capture board poses on the configured rig, calibrate, write the file.
+
+    Interactive (``poses`` None): each button press or Enter captures a pose and prints what was detected,
+    how the coverage of every device grows and where to put the board next, until there are enough poses;
+    ``c`` + Enter calibrates, ``q`` + Enter quits. With ``poses`` N it captures N poses without asking
+    (tests, scripted runs). On a virtual rig the board moves to the next preset pose before each capture.
+
+    Parameters
+    ----------
+    config : Path or None
+        Configuration file (None: the built-in virtual-rig defaults).
+    poses : int, optional
+        Non-interactive: number of poses to capture.
+    out : Path, optional
+        Calibration file to write (default: ``calibration_file`` of the configuration, else
+        ``calibration.yaml``); the report goes beside it.
+    stdin : text stream, optional
+        Where Enter presses are read (default ``sys.stdin``).
+    save_frames : Path, optional
+        Keep each pose's white frame per camera there (see :class:`LiveCalibration`).
+
+    Returns
+    -------
+    int
+        0 when a calibration was written, 1 when the operator quit.
+    """
+    from appliance.config.loader import load_config
+
+    cfg = load_config(config) if config is not None else AppConfig()
+    target = out or cfg.calibration_file or Path("calibration.yaml")
+    if poses is not None and poses < 3:
+        raise CalibrationError(f"calibrate --live --poses {poses}: need >= 3 poses (better >= 10)")
+    return await _live(cfg, poses, target, stdin if stdin is not None else sys.stdin, save_frames)
+
+
+async def _live(cfg: AppConfig, poses: int | None, out: Path, stdin: TextIO, save_frames: Path | None) -> int:
+    from appliance.hardware.registry import build_rig
+
+    rig = build_rig(cfg)
+    session = LiveCalibration(cfg, rig, poses_hint=poses or cfg.calibration.poses_wanted, save_frames=save_frames)
+    loop = asyncio.get_running_loop()
+    await session.open()
+    n_points = session.board.n_points
+    print(
+        f"calibrate --live: board {session.board.describe()}; {len(rig.cameras)} camera(s), projector "
+        f"{session.projector_size[0]}x{session.projector_size[1]}, "
+        f"{len(session.sequence or ())} frames per pose"
+    )
+    try:
+        if poses is not None:
+            for _ in range(poses):
+                cap = await session.capture()
+                print(cap.line(n_points))
+                print(session.progress())
+        else:
+            print("move the board, then press the button or Enter to capture a pose; "
+                  "'c' + Enter calibrates, 'q' + Enter quits")  # fmt: skip
+            lines = _stdin_lines(stdin, loop)
+            while True:
+                cmd = await _next_command(lines, rig.trigger)
+                if cmd is None or cmd.lower() in ("c", "calibrate", "done"):
+                    if session.good_poses() >= 3:
+                        break
+                    if cmd is None:
+                        print("end of input with fewer than 3 usable poses: nothing calibrated")
+                        return 1
+                    print(f"only {session.good_poses()} usable poses: capture at least 3 (better "
+                          f"{cfg.calibration.poses_wanted})")  # fmt: skip
+                    continue
+                if cmd.lower() in ("q", "quit"):
+                    print("quit: nothing calibrated")
+                    return 1
+                cap = await session.capture()
+                print(cap.line(n_points))
+                print(session.progress())
+        if session.good_poses() < 3:
+            raise CalibrationError(
+                f"calibrate --live: the board was found with projector coordinates in only "
+                f"{session.good_poses()} of {len(session.captures)} poses; need >= 3 (check the board "
+                "settings in calibration.board, focus and exposure)"
+            )
+        result = await loop.run_in_executor(None, session.calibrate)
+    finally:
+        await session.close()
+    print(result.summary())
+    page = await loop.run_in_executor(
+        None, write_rig_calibration, out, result, session.board, "Live calibration"
+    )
+    print(f"wrote {out} and report {page}")
+    return 0
