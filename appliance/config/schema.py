@@ -82,8 +82,26 @@ class ReconstructionConfig(_Strict):
         le=8,
         description="Keep a point when this many of its 8 neighbours are valid and near (8 drops mixed edge pixels).",
     )
-    max_neighbour_jump_mm: float = Field(
-        2.0, gt=0, description="A neighbour counts when nearer than this plus two pixel footprints at mid range (mm)."
+    max_neighbour_jump_mm: float | None = Field(
+        None,
+        gt=0,
+        description="Fixed jump limit: a neighbour counts when nearer than this plus two pixel footprints at mid "
+        "range (mm); unset: the limit of each point follows from its expected error and footprint (below).",
+    )
+    neighbour_jump_sigmas: float = Field(
+        6.0, ge=0, le=100, description="Jump limit per point: this many of its expected errors (sigma_mm) ..."
+    )
+    neighbour_jump_footprints: float = Field(
+        6.0, ge=0, le=100, description="... plus this many pixel footprints (depth / focal length, mm)."
+    )
+    max_sigma_mm: float | None = Field(
+        None, gt=0, description="Drop points whose expected 1-sigma error exceeds this (mm); unset: keep all."
+    )
+    camera_read_noise_dn: float = Field(
+        2.0, ge=0, le=10000, description="Camera read noise, 1 sigma, for the per-point error (DN of the frames)."
+    )
+    camera_electrons_per_dn: float = Field(
+        25.0, gt=0, description="Camera conversion gain for the shot noise of the per-point error (e- per DN)."
     )
     stereo_max_epipolar_px: float = Field(
         1.5, gt=0, description="Stereo: reject matches this far from the epipolar line (px)."

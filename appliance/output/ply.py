@@ -20,7 +20,7 @@ def _vertex_dtype(cloud: PointCloud, with_camera: bool, with_normals: bool) -> n
     fields += [("row", "<u2"), ("col", "<u2")]
     if with_camera:
         fields.append(("camera", "u1"))
-    fields += [("intensity", "u1"), ("quality", "<f4")]
+    fields += [("intensity", "u1"), ("quality", "<f4"), ("sigma_mm", "<f4")]
     return np.dtype(fields)
 
 
@@ -53,6 +53,7 @@ def cloud_to_records(cloud: PointCloud, *, camera_field: bool, normals: bool) ->
         rec["camera"] = cloud.camera
     rec["intensity"] = cloud.intensity
     rec["quality"] = cloud.quality
+    rec["sigma_mm"] = np.nan if cloud.sigma_mm is None else cloud.sigma_mm
     return rec
 
 
@@ -68,7 +69,8 @@ def write_ply(
 
     Vertex properties: ``x y z`` (float32, mm, world frame), ``nx ny nz`` (with ``normals``),
     ``row col`` (ushort, camera pixel), ``camera`` (uchar, when several cameras contributed or
-    ``camera_field``), ``intensity`` (uchar), ``quality`` (float32).
+    ``camera_field``), ``intensity`` (uchar), ``quality`` (float32), ``sigma_mm`` (float32: expected 1-sigma
+    error along the camera ray, mm; NaN where unknown).
 
     Parameters
     ----------

@@ -105,10 +105,11 @@ def row_counts(xyz):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def compact(xyz, quality, intensity, nrm, starts, o_xyz, o_row, o_col, o_q, o_i, o_n):  # type: ignore[no-untyped-def]
+def compact(xyz, quality, intensity, nrm, sig, starts, o_xyz, o_row, o_col, o_q, o_i, o_n, o_s):  # type: ignore[no-untyped-def]
     """Copy the valid points of the organised arrays into the cloud arrays (rows start at ``starts``)."""
     h, w = xyz.shape[0], xyz.shape[1]
     has_n = nrm.shape[0] == h
+    has_s = sig.shape[0] == h
     for r in prange(h):
         k = starts[r]
         for c in range(w):
@@ -125,20 +126,25 @@ def compact(xyz, quality, intensity, nrm, starts, o_xyz, o_row, o_col, o_q, o_i,
                 o_n[k, 0] = nrm[r, c, 0]
                 o_n[k, 1] = nrm[r, c, 1]
                 o_n[k, 2] = nrm[r, c, 2]
+            if has_s:
+                o_s[k] = sig[r, c]
             k += 1
 
 # Neighbour counting visits each pair of neighbouring pixels once (4 pairs per pixel: right, and the three
 # below) and credits both ends; every loop runs over whole rows with non-negative indices, so it vectorises.
+# Rows of points are padded (5, W + 2): x, y, z, sigma, jump limit (mm); a pair is near when closer than the
+# mean of its two limits.
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _near(px, py, pz, qx, qy, qz, j2, e):  # type: ignore[no-untyped-def]
-    """e[c] = 1 where points p[c] and q[c] are nearer than sqrt(j2), else 0 (NaN compares false)."""
+def _near(px, py, pz, pj, qx, qy, qz, qj, e):  # type: ignore[no-untyped-def]
+    """e[c] = 1 where points p[c] and q[c] are nearer than (pj[c] + qj[c]) / 2, else 0 (NaN compares false)."""
     for c in range(e.shape[0]):
         ex = qx[c] - px[c]
         ey = qy[c] - py[c]
         ez = qz[c] - pz[c]
-        e[c] = np.int32(ex * ex + ey * ey + ez * ez < j2)
+        j = np.float32(0.5) * (pj[c] + qj[c])
+        e[c] = np.int32(ex * ex + ey * ey + ez * ez < j * j)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -154,34 +160,41 @@ def _add1(n, a):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def pairs_in_row(p, j2, e, n):  # type: ignore[no-untyped-def]
-    """Credit both pixels of every near horizontal pair of padded row p (3, W + 2) to n (W + 2,)."""
+def pairs_in_row(p, e, n):  # type: ignore[no-untyped-def]
+    """Credit both pixels of every near horizontal pair of padded row p (5, W + 2) to n (W + 2,)."""
     w = p.shape[1] - 2
     # e[k]: padded columns k and k + 1 (the pads are NaN: pairs with them never count)
-    _near(p[0, 0 : w + 1], p[1, 0 : w + 1], p[2, 0 : w + 1], p[0, 1 : w + 2], p[1, 1 : w + 2], p[2, 1 : w + 2],
-          j2, e[: w + 1])  # fmt: skip
+    _near(p[0, 0 : w + 1], p[1, 0 : w + 1], p[2, 0 : w + 1], p[4, 0 : w + 1], p[0, 1 : w + 2], p[1, 1 : w + 2],
+          p[2, 1 : w + 2], p[4, 1 : w + 2], e[: w + 1])  # fmt: skip
     _add2(n[1 : w + 1], e[0:w], e[1 : w + 1])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def pairs_between_rows(p, q, j2, e, np_, nq):  # type: ignore[no-untyped-def]
+def pairs_between_rows(p, q, e, np_, nq):  # type: ignore[no-untyped-def]
     """Credit every near pair (p column c, q column c + off), off = -1, 0, 1, to np_ and nq (padded)."""
     w = p.shape[1] - 2
     for off in range(-1, 2):
         a = 1 + off
-        _near(p[0, 1 : w + 1], p[1, 1 : w + 1], p[2, 1 : w + 1], q[0, a : a + w], q[1, a : a + w],
-              q[2, a : a + w], j2, e[:w])  # fmt: skip
+        _near(p[0, 1 : w + 1], p[1, 1 : w + 1], p[2, 1 : w + 1], p[4, 1 : w + 1], q[0, a : a + w],
+              q[1, a : a + w], q[2, a : a + w], q[4, a : a + w], e[:w])  # fmt: skip
         _add1(np_[1 : w + 1], e[:w])
         _add1(nq[a : a + w], e[:w])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def keep_row(pz, n, min_nb, out):  # type: ignore[no-untyped-def]
-    """out = the depths of row pz kept by the neighbour count n; returns how many."""
+def keep_row(pz, ps, n, min_nb, max_sigma, out, out_s):  # type: ignore[no-untyped-def]
+    """out, out_s = the depths and sigmas of row pz with >= min_nb near neighbours and sigma <= max_sigma.
+
+    Returns how many had the neighbours and how many were kept (a NaN sigma passes).
+    """
+    with_nb = np.int64(0)
     kept = np.int64(0)
     for c in range(out.shape[0]):
         z = pz[c]
-        k = (z == z) & (n[c] >= min_nb)
+        b = (z == z) & (n[c] >= min_nb)
+        k = b & ~(ps[c] > max_sigma)
         out[c] = z if k else np.float32(np.nan)
+        out_s[c] = ps[c] if k else np.float32(np.nan)
+        with_nb += np.int64(b)
         kept += np.int64(k)
-    return kept
+    return with_nb, kept

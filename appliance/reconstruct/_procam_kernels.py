@@ -148,7 +148,7 @@ def tri_ray(u, v, mask, norm, und, origin, kmat, d, rcp, tcp, rwc, cwc, to_world
         for col in range(w):
             mx = np.float64(norm[r, col, 0])
             my = np.float64(norm[r, col, 1])
-            z = _z_ray(u[r, col], v[r, col], mx, my, und, origin, kmat, d, rcp, tcp) if mask[r, col] else np.nan
+            z = _z_ray(u[r, col], v[r, col], mx, my, und, origin, kmat, d, rcp, tcp)[0] if mask[r, col] else np.nan
             store_point(out, r, col, z, mx, my, zmin, zmax, to_world, rwc, cwc)
     return out
 
@@ -196,42 +196,52 @@ def _plane_cells(code, mask, fc, nc, nu, code0, cell, tu, tv):  # type: ignore[n
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _plane_gather(flat, nu, cell, tu, tv, q):  # type: ignore[no-untyped-def]
-    """Bilinear interpolation of the code-line table at each pixel's cell (NaN where none)."""
+def _plane_gather(flat, nu, cell, tu, tv, q, dq):  # type: ignore[no-untyped-def]
+    """Bilinear interpolation of the code-line table at each pixel's cell, and its slope per code px."""
     for c in range(cell.shape[0]):
         k = cell[c]
         if k < 0:
             q[c] = np.nan
+            dq[c] = np.nan
             continue
         q00 = np.float64(flat[k])
         q01 = np.float64(flat[k + 1])
         q10 = np.float64(flat[k + nu])
         q11 = np.float64(flat[k + nu + 1])
-        a = q00 + tu[c] * (q01 - q00)
-        b = q10 + tu[c] * (q11 - q10)
+        d0 = q01 - q00
+        d1 = q11 - q10
+        a = q00 + tu[c] * d0
+        b = q10 + tu[c] * d1
         q[c] = a + tv[c] * (b - a)
+        dq[c] = d0 + tv[c] * (d1 - d0)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _plane_depth(q, ba, bz, tc, ta, zmin, zmax, pz):  # type: ignore[no-untyped-def]
-    """Depth where the ray meets the light surface through normalised coordinate q (NaN: out of range)."""
+def _plane_depth(q, dq, ba, bz, tc, ta, pz, gz):  # type: ignore[no-untyped-def]
+    """Depth where the ray meets the light surface through q (NaN: behind), and |dz / du| (mm per code px)."""
     for c in range(q.shape[0]):
         qq = q[c]
-        z = (tc * qq - ta) / (ba[c] - bz[c] * qq)
-        good = (z >= zmin) & (z <= zmax) & (tc + z * bz[c] > 0.0)  # NaN and inf fail
+        den = ba[c] - bz[c] * qq
+        z = (tc * qq - ta) / den
+        good = tc + z * bz[c] > 0.0  # NaN and inf fail
         pz[c] = z if good else np.nan
+        gz[c] = abs((tc * ba[c] - ta * bz[c]) / (den * den) * dq[c])
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-untyped-def]
-    """Depth of the ray (mx, my, 1) nearest (projector px) to the projector ray of (cu, cv); NaN if none."""
+    """Depth of the ray (mx, my, 1) nearest (projector px) to the projector ray of (cu, cv); NaN if none.
+
+    Also returns ``g``: the depth error per px of equal, independent code errors on both axes (mm / px),
+    ``Zp sqrt(a1^2 + a2^2) / (a1^2 + a2^2)`` from the linearised least squares (Zp: projector-frame depth).
+    """
     hp, wp = und.shape[0], und.shape[1]
     fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
     fy, cy = kmat[1, 1], kmat[1, 2]
     fu = np.float64(cu) - origin
     fv = np.float64(cv) - origin
     if not (fu >= 0.0 and fv >= 0.0 and fu < wp - 1 and fv < hp - 1):
-        return np.nan
+        return np.nan, np.nan
     iu = int(fu)
     iv = int(fv)
     tu = fu - iu
@@ -260,37 +270,98 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
     a2 = fy * (by - yn * bz)
     b2 = fy * (yn * tcp[2] - tcp[1])
     nn = a1 * a1 + a2 * a2
-    z = (a1 * b1 + a2 * b2) / nn if nn > 0.0 else np.nan
-    return z if tcp[2] + z * bz > 0.0 else np.nan
+    if not nn > 0.0:
+        return np.nan, np.nan
+    z = (a1 * b1 + a2 * b2) / nn
+    zp = tcp[2] + z * bz
+    return (z if zp > 0.0 else np.nan), zp / math.sqrt(nn)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _sigma_row(pz, gz, mx, my, qr, wr, has_w, noise, zmin, zmax, ps):  # type: ignore[no-untyped-def]
+    """1-sigma error along the ray (mm) of every point of a row into ``ps``; depths out of range become NaN.
+
+    ``noise`` = (phase_px, stripe var, read + rounding var, 1 / e- per DN), see ``uncertainty.CodeNoise``.
+    Returns how many points were triangulated and how many are in range.
+    """
+    gain, svar, rvar, inv_e = noise[0], noise[1], noise[2], noise[3]
+    n_t = 0
+    n_r = 0
+    for c in range(pz.shape[0]):
+        z = pz[c]
+        q = np.float64(qr[c])
+        a = np.float64(wr[c]) - 0.5 * q if has_w else 0.5 * q
+        su = gain * math.sqrt(rvar + max(a, 0.0) * inv_e) / q
+        s = gz[c] * math.sqrt((su * su + svar) * (1.0 + mx[c] * mx[c] + my[c] * my[c]))
+        fin = z == z
+        inr = fin & (z >= zmin) & (z <= zmax)
+        n_t += np.int64(fin)
+        n_r += np.int64(inr)
+        pz[c] = z if inr else np.nan
+        ps[c] = s
+    return n_t, n_r
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _jump_row(pz, ps, jump, inv_f, pj):  # type: ignore[no-untyped-def]
+    """Per point, the distance (mm) within which a neighbour counts: const + k_fp footprint + k_sigma sigma."""
+    js = jump[2]
+    if js == 0.0:  # sigma may be unknown (NaN): leave it out
+        for c in range(pz.shape[0]):
+            pj[c] = jump[0] + jump[1] * pz[c] * inv_f
+    else:
+        for c in range(pz.shape[0]):
+            pj[c] = jump[0] + jump[1] * pz[c] * inv_f + js * ps[c]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _count_true(m):  # type: ignore[no-untyped-def]
+    n = 0
+    for c in range(m.shape[0]):
+        n += np.int64(m[c])
+    return n
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _depth_row(  # type: ignore[no-untyped-def]
-    r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
-    axis, zmin, zmax, mx, my, fc, ba, bz, scratch, scratch_i, p,
+    r, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin,
+    kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, mx, my, fc, ba, bz, scratch,
+    scratch_i, p, st,
 ):
-    """Camera-frame point of every pixel of row ``r`` into the padded rows ``p`` (3, W + 2) (NaN: none)."""
+    """Camera-frame points of row ``r`` into the padded rows ``p`` (5, W + 2): x, y, z, sigma, jump limit.
+
+    ``st`` (3,) receives the row's decoded, triangulated and in-range counts.
+    """
     w = mx.shape[0]
     ray_row(tx, ty, r, step, mx, my)
     px = p[0, 1 : w + 1]
     py = p[1, 1 : w + 1]
     pz = p[2, 1 : w + 1]
+    ps = p[3, 1 : w + 1]
+    pj = p[4, 1 : w + 1]
+    gz = scratch[3]
+    mr = mask[r]
     if ray:
         ur = u[r]
         vr = v[r]
-        mr = mask[r]
         for c in range(w):
             z = np.nan
+            g = np.nan
             if mr[c]:
-                z = _z_ray(ur[c], vr[c], mx[c], my[c], und, origin, kmat, d, rcp, tcp)
-            pz[c] = z if (z >= zmin and z <= zmax) else np.nan
+                z, g = _z_ray(ur[c], vr[c], mx[c], my[c], und, origin, kmat, d, rcp, tcp)
+            pz[c] = z
+            gz[c] = g
     else:
         nc, nu = table.shape[0], table.shape[1]
         cell, tu, tv, q = scratch_i[0], scratch[0], scratch[1], scratch[2]
         _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz)
-        _plane_cells(u[r] if axis == 0 else v[r], mask[r], fc, nc, nu, code0, cell, tu, tv)
-        _plane_gather(table.reshape(nc * nu), nu, cell, tu, tv, q)
-        _plane_depth(q, ba, bz, tcp[2], tcp[0] if axis == 0 else tcp[1], zmin, zmax, pz)
+        _plane_cells(u[r] if axis == 0 else v[r], mr, fc, nc, nu, code0, cell, tu, tv)
+        _plane_gather(table.reshape(nc * nu), nu, cell, tu, tv, q, tu)  # the slope overwrites tu
+        _plane_depth(q, tu, ba, bz, tcp[2], tcp[0] if axis == 0 else tcp[1], pz, gz)
+    st[0] = _count_true(mr)
+    st[1], st[2] = _sigma_row(pz, gz, mx, my, quality[r], white[r] if has_w else white[0], has_w, noise, zmin,
+                              zmax, ps)  # fmt: skip
+    _jump_row(pz, ps, jump, inv_f, pj)
     _scale_rays(pz, mx, my, px, py)
 
 
@@ -301,18 +372,22 @@ def _scale_rays(pz, mx, my, px, py):  # type: ignore[no-untyped-def]
         px[c] = z * mx[c]
         py[c] = z * my[c]
 
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def depth_filtered(  # type: ignore[no-untyped-def]
-    u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp, tcp,
-    axis, zmin, zmax, min_nb, jump, nchunks, nthreads, depth, counts,
+    u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin,
+    kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, min_nb, nchunks, nthreads, depth,
+    sigma, counts, stats,
 ):
-    """Triangulate to camera-frame depth (H, W) and drop points with < ``min_nb`` near neighbours (NaN).
+    """Triangulate to camera-frame depth and sigma (H, W), dropping points with < ``min_nb`` near neighbours.
 
-    ``counts[r + 1]`` receives the number of kept points of row r. Each chunk of rows keeps the points of
-    two rows (padded with a NaN column each side) in a small ring, so no organised cloud is written.
+    A neighbour is near when closer than the mean of the two points' limits ``jump[0] + jump[1] z inv_f +
+    jump[2] sigma`` (mm); after that filter, points with sigma over ``max_sigma`` are dropped.
+    ``counts[r + 1]`` receives the kept points of row r, ``stats[r]`` (5,) its decoded, triangulated,
+    in-range, with-neighbours and kept counts. Each chunk of rows keeps the points of two rows
+    (padded with a NaN column each side) in a small ring, so no organised cloud is written.
     """
     h, w = depth.shape[0], depth.shape[1]
-    j2 = np.float32(jump * jump)
     counts[0] = 0
     nthreads = min(nthreads, nchunks)
     for t in prange(nthreads):  # thread t takes chunks t, t + nthreads, ...: valid pixels cluster in rows
@@ -321,28 +396,31 @@ def depth_filtered(  # type: ignore[no-untyped-def]
         fc = np.empty(w, np.float64)
         ba = np.empty(w, np.float64)
         bz = np.empty(w, np.float64)
-        scratch = np.empty((3, w), np.float64)
+        scratch = np.empty((4, w), np.float64)
         scratch_i = np.empty((1, w), np.int32)
-        ring = np.full((2, 3, w + 2), np.nan, np.float32)  # (slot, x/y/z, padded column)
+        ring = np.full((2, 5, w + 2), np.nan, np.float32)  # (slot, x/y/z/sigma/jump, padded column)
         nb = np.zeros((2, w + 2), np.int32)
         e = np.empty(w + 1, np.int32)
+        st = np.zeros(3, np.int64)
         for ch in range(t, nchunks, nthreads):
             r0 = ch * h // nchunks
             r1 = (ch + 1) * h // nchunks
-            _depth_chunk(r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
-                         origin, kmat, d, rcp, tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, scratch,
-                         scratch_i, ring, nb, e, depth, counts)  # fmt: skip
+            _depth_chunk(r0, r1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo,
+                         inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma,
+                         jump, inv_f, min_nb, mx, my, fc, ba, bz, scratch, scratch_i, ring, nb, e, st, depth,
+                         sigma, counts, stats)  # fmt: skip
     return counts
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _depth_chunk(  # type: ignore[no-untyped-def]
-    r0, r1, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin, kmat, d, rcp,
-    tcp, axis, zmin, zmax, min_nb, j2, mx, my, fc, ba, bz, scratch, scratch_i, ring, nb, e, depth, counts,
+    r0, r1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
+    origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, min_nb, mx, my, fc, ba, bz,
+    scratch, scratch_i, ring, nb, e, st, depth, sigma, counts, stats,
 ):
     """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter).
 
-    ``ring`` (2, 3, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts;
+    ``ring`` (2, 5, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts;
     row r - 1 is complete once the pairs it shares with row r are counted.
     """
     h, w = depth.shape[0], depth.shape[1]
@@ -352,27 +430,35 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
         if r < 0 or r >= h:
             p.fill(np.nan)
         else:
-            _depth_row(r, u, v, mask, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
-                       origin, kmat, d, rcp, tcp, axis, zmin, zmax, mx, my, fc, ba, bz, scratch, scratch_i,
-                       p)  # fmt: skip
+            _depth_row(r, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc,
+                       min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f,
+                       mx, my, fc, ba, bz, scratch, scratch_i, p, st)  # fmt: skip
+            if r0 <= r < r1:
+                stats[r, 0:3] = st
         if min_nb > 0:
             nb[s].fill(0)
-            pairs_in_row(p, j2, e, nb[s])
+            pairs_in_row(p, e, nb[s])
             if r > r0 - 1:
-                pairs_between_rows(ring[1 - s], p, j2, e, nb[1 - s], nb[s])
+                pairs_between_rows(ring[1 - s], p, e, nb[1 - s], nb[s])
         if r - 1 >= r0:
-            counts[r] = keep_row(ring[1 - s][2, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, depth[r - 1])
+            q = ring[1 - s]
+            k_nb, k = keep_row(q[2, 1 : w + 1], q[3, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, max_sigma,
+                               depth[r - 1], sigma[r - 1])  # fmt: skip
+            counts[r] = k
+            stats[r - 1, 3] = k_nb
+            stats[r - 1, 4] = k
     return counts
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def emit_points(  # type: ignore[no-untyped-def]
-    depth, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads,
-    o_xyz, o_row, o_col, o_q, o_i,
+    depth, sigma, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads,
+    o_xyz, o_row, o_col, o_q, o_i, o_s,
 ):  # fmt: skip
     """Write the points of a depth map (world frame) and their pixel data at ``starts[r]`` per row."""
     h, w = depth.shape[0], depth.shape[1]
     has_i = intensity.shape[0] == h
+    has_s = sigma.shape[0] == h
     nthreads = min(nthreads, nchunks)
     for t in prange(nthreads):  # round-robin chunks: points cluster in rows
         mx = np.empty(w, np.float64)
@@ -382,12 +468,13 @@ def emit_points(  # type: ignore[no-untyped-def]
                 if starts[r + 1] == starts[r]:
                     continue
                 ray_row(tx, ty, r, step, mx, my)
-                _emit_row(r, depth[r], mx, my, quality[r], intensity[r] if has_i else intensity[0], has_i,
-                          rwc, cwc, to_world, starts[r], o_xyz, o_row, o_col, o_q, o_i)  # fmt: skip
+                _emit_row(r, depth[r], sigma[r] if has_s else sigma[0], mx, my, quality[r],
+                          intensity[r] if has_i else intensity[0], has_i, rwc, cwc, to_world, starts[r], o_xyz,
+                          o_row, o_col, o_q, o_i, o_s)  # fmt: skip
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _emit_row(r, dr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i):  # type: ignore[no-untyped-def]
+def _emit_row(r, dr, sr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i, o_s):  # type: ignore[no-untyped-def]
     for c in range(dr.shape[0]):
         z = np.float64(dr[c])
         if z != z:
@@ -406,6 +493,7 @@ def _emit_row(r, dr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row,
         o_col[k] = c
         o_q[k] = qr[c]
         o_i[k] = ir[c] if has_i else 0
+        o_s[k] = sr[c] if sr.shape[0] == dr.shape[0] else np.float32(np.nan)
         k += 1
 
 

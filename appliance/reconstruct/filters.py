@@ -178,6 +178,7 @@ def to_point_cloud(
     intensity: npt.NDArray[np.uint8] | None,
     camera_index: int,
     normals: F32 | None = None,
+    sigma: F32 | None = None,
 ) -> PointCloud:
     """The valid points of an organised cloud as a :class:`PointCloud`, with their source pixels.
 
@@ -193,6 +194,8 @@ def to_point_cloud(
         Index of the source camera (0..255).
     normals : ndarray, shape (H, W, 3), float32, optional
         Normals (see :func:`estimate_normals`); kept per point when given.
+    sigma : ndarray, shape (H, W), float32, optional
+        Per-pixel 1-sigma error (mm); kept per point as ``sigma_mm`` when given.
 
     Returns
     -------
@@ -211,6 +214,7 @@ def to_point_cloud(
         _organised(normals)
         if normals.shape != xyz_org.shape:
             raise ValueError(f"normals: {normals.shape}: must be {xyz_org.shape}")
+    sig = np.empty((0, 0), np.float32) if sigma is None else _image(sigma, shape, "sigma", np.float32)
     starts = np.cumsum(K.row_counts(xyz_org))
     n = int(starts[-1])
     o_n = np.empty((n, 3), np.float32) if normals is not None else np.empty((0, 3), np.float32)
@@ -222,9 +226,11 @@ def to_point_cloud(
         np.empty(n, np.uint8),
         np.empty(n, np.float32),
         o_n if normals is not None else None,
+        np.empty(n, np.float32) if sigma is not None else None,
     )
+    o_s = cloud.sigma_mm if cloud.sigma_mm is not None else np.empty(0, np.float32)
     nrm = normals if normals is not None else np.empty((0, 0, 3), np.float32)
     K.compact(
-        xyz_org, q, inten, nrm, starts, cloud.xyz, cloud.row, cloud.col, cloud.quality, cloud.intensity, o_n
+        xyz_org, q, inten, nrm, sig, starts, cloud.xyz, cloud.row, cloud.col, cloud.quality, cloud.intensity, o_n, o_s
     )
     return cloud

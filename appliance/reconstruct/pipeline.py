@@ -1,7 +1,16 @@
-"""Reconstruction of one scan: decoded maps -> triangulation -> filters -> PointCloud."""
+"""Reconstruction of one scan: decoded maps -> triangulation -> filters -> PointCloud.
+
+Camera-projector reconstruction goes through one depth pass per camera
+(:meth:`~appliance.reconstruct.triangulate.ProjectorTriangulator.triangulate_depth`): depth, the 1-sigma
+error of every point, the depth range, the sigma filter and the neighbour filter, whose jump limit follows
+from each point's expected error and pixel footprint, so that one default holds at 0.3 m and at 4 m.
+Each stage's rejections are counted (:class:`~appliance.reconstruct.types.StageCounts`), and a stage that
+rejects most of its candidates is said in plain words (:attr:`Reconstructor.warnings`).
+"""
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -11,13 +20,20 @@ from appliance.config.schema import ReconstructionConfig
 from appliance.errors import CalibrationError, ScanError
 from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
+from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, filter_isolated, to_point_cloud
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
-from appliance.reconstruct.types import DecodedMaps, PointCloud
+from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
+from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
 
 F32 = npt.NDArray[np.float32]
+
+MOST_REJECTED = 0.5
+"""A stage that rejects more than this share of its candidates is reported in words."""
+FIXED_JUMP_MM = 2.0
+"""Jump limit (plus two footprints) where no per-point error is known (stereo, or no sequence given)."""
 
 
 def _as_uint8(img: npt.NDArray[np.generic], shape: tuple[int, int], name: str) -> npt.NDArray[np.uint8]:
@@ -33,6 +49,53 @@ def _as_uint8(img: npt.NDArray[np.generic], shape: tuple[int, int], name: str) -
     return np.clip(np.asarray(img, np.float32), 0, 255).astype(np.uint8)
 
 
+def stage_warnings(stages: list[StageCounts], cfg: ReconstructionConfig) -> list[str]:
+    """Plain-words warnings for every stage that rejected most (> :data:`MOST_REJECTED`) of its candidates.
+
+    Parameters
+    ----------
+    stages : list of StageCounts
+        Per camera counts of one reconstruction.
+    cfg : ReconstructionConfig
+        The settings the limits came from (named in the messages).
+
+    Returns
+    -------
+    list of str
+        One line per offending (camera, stage), naming the share, the limit and what to do.
+    """
+    out: list[str] = []
+    for st in stages:
+        n = st.remaining()
+        for i, (stage, lost) in enumerate(st.rejected().items()):
+            if n[i] == 0 or lost <= MOST_REJECTED * n[i]:
+                continue
+            pct = f"{100.0 * lost / n[i]:.0f} %"
+            cam = st.camera
+            if stage == "decode":
+                msg = (f"{pct} of camera {cam}'s pixels decoded no code (shadow, unlit background or contrast "
+                       f"under reconstruction.min_contrast_dn = {cfg.min_contrast_dn:g} / relative_contrast = "
+                       f"{cfg.relative_contrast:g}): check exposure, focus and that the projector lights the object")
+            elif stage == "geometry":
+                msg = (f"{pct} of camera {cam}'s decoded pixels gave no point (codes off the projector's image, "
+                       "rays along the coded light planes, points behind a device): the calibration may not fit "
+                       "this rig or sequence; run scan3d verify or recalibrate")
+            elif stage == "depth_range":
+                msg = (f"{pct} of camera {cam}'s points lie outside reconstruction.min_depth_mm .. max_depth_mm = "
+                       f"{cfg.min_depth_mm:g} .. {cfg.max_depth_mm:g} mm: widen the range to where the object is")
+            elif stage == "sigma":
+                msg = (f"{pct} of camera {cam}'s points have an expected error over reconstruction.max_sigma_mm = "
+                       f"{cfg.max_sigma_mm} mm: raise it, or give the scan more contrast (exposure, projector "
+                       "brightness, a finer phase period)")
+            else:
+                msg = (f"{pct} of camera {cam}'s points have fewer than reconstruction.min_neighbours = "
+                       f"{cfg.min_neighbours} of 8 neighbours within their jump limit: the surface is noisy or "
+                       "fragmented (focus, camera noise settings); lower min_neighbours or set "
+                       "max_neighbour_jump_mm")
+            out.append(msg)
+    return out
+
+
 class Reconstructor:
     """Turns the decoded maps of one scan into a point cloud; every table is built once, here.
 
@@ -44,7 +107,14 @@ class Reconstructor:
         Coded projector axes (``'x'``/``'y'``: ray / light-surface, ``'xy'``: ray-ray).
     cfg : ReconstructionConfig
         ``mode`` ``'projector'`` (every camera with the projector, clouds concatenated, camera index per
-        point) or ``'stereo'`` (the first two cameras, cloud organised on the first), depth range, filters.
+        point) or ``'stereo'`` (the first two cameras, cloud organised on the first), depth range, filters,
+        camera noise.
+    sequence : Sequence, optional
+        The projected sequence: with it (mode ``'projector'``) every point gets its expected error
+        ``sigma_mm`` (:mod:`appliance.reconstruct.uncertainty`, camera noise from ``cfg``), and the
+        neighbour filter's limits follow from it; without it sigma is NaN and the jump limit fixed.
+    noise : CodeNoise, optional
+        The code noise model itself (overrides ``sequence``).
 
     Raises
     ------
@@ -52,11 +122,24 @@ class Reconstructor:
         When the calibration lacks what the mode needs or its geometry cannot triangulate the axes.
     """
 
-    def __init__(self, calibration: Calibration, axes: str, cfg: ReconstructionConfig) -> None:
+    def __init__(
+        self,
+        calibration: Calibration,
+        axes: str,
+        cfg: ReconstructionConfig,
+        sequence: Sequence | None = None,
+        noise: CodeNoise | None = None,
+    ) -> None:
         self.calibration, self.axes, self.cfg = calibration, axes, cfg
         names = calibration.camera_names
         if not names:
             raise CalibrationError("calibration holds no camera")
+        if noise is None and sequence is not None:
+            # both axes coded: the finer code of the two stands for both
+            cands = [code_noise_for_sequence(sequence, a, cfg.camera_read_noise_dn, cfg.camera_electrons_per_dn)
+                     for a in axes]  # fmt: skip
+            noise = min(cands, key=lambda c: c.phase_px if c.phase_px > 0 else c.stripe_px)
+        self.noise = noise
         self._proj_tri: dict[str, ProjectorTriangulator] = {}
         self._stereo: StereoTriangulator | None = None
         if cfg.mode == "projector":
@@ -83,42 +166,60 @@ class Reconstructor:
                 projector=calibration.projector,
             )
             self.outputs = [names[0]]
-        # camera-projector without normals needs no organised cloud: depth maps, filtered as they are made
-        self._fused = cfg.mode == "projector" and not cfg.normals
+        self._depth_path = cfg.mode == "projector"
         # clouds are views of blocks reused once the caller drops them (saves the page faults of ~26 B/point)
         self._pool = BufferPool()
         self._xyz: dict[str, F32] = {}
         self._depth: dict[str, F32] = {}
+        self._sigma: dict[str, F32] = {}
         self._counts: dict[str, npt.NDArray[np.int64]] = {}
+        self._stats: dict[str, npt.NDArray[np.int64]] = {}
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
         self._normals: dict[str, F32] = {}
-        self._jump_mm: dict[str, float] = {}
+        self._jump: dict[str, tuple[float, float, float]] = {}
+        self.stages: list[StageCounts] = []
+        """Per camera counts of the last :meth:`run` (mode ``'projector'``)."""
+        self.warnings: list[str] = []
+        """Plain-words warnings of the last :meth:`run` (see :func:`stage_warnings`)."""
         for n in self.outputs:
             cam = calibration.devices[n]
-            # neighbours are a pixel apart: allow the diagonal footprint of a pixel at mid range on top
-            footprint_mm = 0.5 * (cfg.min_depth_mm + cfg.max_depth_mm) / float(cam.K[0, 0])
-            self._jump_mm[n] = cfg.max_neighbour_jump_mm + 2.0 * footprint_mm
-            if self._fused:
+            # (constant mm, pixel footprints, sigmas) of each point's jump limit
+            if cfg.max_neighbour_jump_mm is not None or self.noise is None or not self._depth_path:
+                # neighbours are a pixel apart: allow the diagonal footprint of a pixel at mid range on top
+                const = cfg.max_neighbour_jump_mm if cfg.max_neighbour_jump_mm is not None else FIXED_JUMP_MM
+                footprint_mm = 0.5 * (cfg.min_depth_mm + cfg.max_depth_mm) / float(cam.K[0, 0])
+                self._jump[n] = (const + 2.0 * footprint_mm, 0.0, 0.0)
+            else:
+                self._jump[n] = (0.0, cfg.neighbour_jump_footprints, cfg.neighbour_jump_sigmas)
+            if self._depth_path:
                 self._depth[n] = np.full((cam.height, cam.width), np.nan, np.float32)
+                self._sigma[n] = np.full((cam.height, cam.width), np.nan, np.float32)
                 self._counts[n] = np.zeros(cam.height + 1, np.int64)
-                continue
-            self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
-            self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
+                self._stats[n] = np.zeros((cam.height, 5), np.int64)
+            else:
+                self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
+                self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
                 self._normals[n] = np.empty((cam.height, cam.width, 3), np.float32)
 
     def organised(self, name: str) -> F32:
         """The organised cloud (H, W, 3) of camera ``name`` from the last :meth:`run` (reused buffer).
 
-        Where the reconstruction keeps depth maps only (mode ``'projector'`` without normals), the cloud
-        is built from the depth map on this call.
+        In mode ``'projector'`` the cloud is built from the depth map (on this call, unless normals were
+        estimated, which needed it already).
         """
-        if self._fused:
+        if self._depth_path:
             cam = self.calibration.devices[name]
             if name not in self._xyz:
                 self._xyz[name] = np.empty((cam.height, cam.width, 3), np.float32)
             self._proj_tri[name].organised_from_depth(self._depth[name], self._xyz[name])
         return self._xyz[name]
+
+    def sigma_map(self, name: str) -> F32:
+        """The per-pixel 1-sigma error (H, W, mm) of camera ``name`` from the last :meth:`run` (NaN: none)."""
+        if not self._depth_path:
+            raise ScanError("reconstruct: per-pixel sigma exists in mode projector only")
+        return self._sigma[name]
 
     def run(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None = None
@@ -130,50 +231,49 @@ class Reconstructor:
         maps : dict of str to DecodedMaps
             Decoded maps per camera name (both cameras in mode ``'stereo'``).
         white : dict of str to ndarray (H, W), optional
-            Image under white light per camera, for the per-point intensity.
+            Image under white light per camera (DN of the frames), for the per-point intensity and the
+            shot noise of the per-point error.
 
         Returns
         -------
         cloud : PointCloud
-            Points of every output camera, world frame (mm), with their source pixel and camera index.
+            Points of every output camera, world frame (mm), with their source pixel, camera index and
+            ``sigma_mm``. :attr:`stages` and :attr:`warnings` describe what each stage rejected.
         timings : dict of str to float
-            ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``. In mode ``'projector'``
-            without normals the neighbour filter runs inside triangulation (``filter_ms`` is 0).
+            ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``. In mode ``'projector'`` the
+            filters run inside triangulation (``filter_ms`` is the normals' time, or 0).
         """
-        cfg = self.cfg
         needed = (
             [self.calibration.camera_names[i] for i in range(2)] if self._stereo is not None else self.outputs
         )
         for n in needed:
             if n not in maps:
                 raise ScanError(f"reconstruct: no decoded maps for camera {n!r} (have {sorted(maps)})")
-        if self._fused:
-            return self._run_fused(maps, white)
+        if self._depth_path:
+            return self._run_depth(maps, white)
+        return self._run_stereo(maps, white)
+
+    def _run_stereo(
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
+    ) -> tuple[PointCloud, dict[str, float]]:
+        cfg = self.cfg
+        assert self._stereo is not None
         t0 = time.perf_counter()
-        if self._stereo is not None:
-            n0, n1 = needed
-            self._stereo.triangulate(maps[n0], maps[n1], self._xyz[n0], cfg.min_depth_mm, cfg.max_depth_mm)
-        else:
-            for n, tri in self._proj_tri.items():
-                tri.triangulate(maps[n], self._xyz[n], cfg.min_depth_mm, cfg.max_depth_mm)
+        n0, n1 = self.calibration.camera_names[0], self.calibration.camera_names[1]
+        self._stereo.triangulate(maps[n0], maps[n1], self._xyz[n0], cfg.min_depth_mm, cfg.max_depth_mm)
         t1 = time.perf_counter()
-        for n in self.outputs:
-            filter_isolated(self._xyz[n], cfg.min_neighbours, self._jump_mm[n], self._scratch[n])
-            if cfg.normals:
-                eye = self.calibration.devices[n].center
-                r = cfg.normal_radius_px
-                estimate_normals(self._xyz[n], eye, self._normals[n], r, r * self._jump_mm[n])
+        jump = self._jump[n0][0]
+        filter_isolated(self._xyz[n0], cfg.min_neighbours, jump, self._scratch[n0])
+        if cfg.normals:
+            eye = self.calibration.devices[n0].center
+            r = cfg.normal_radius_px
+            estimate_normals(self._xyz[n0], eye, self._normals[n0], r, r * jump)
         t2 = time.perf_counter()
-        clouds = []
-        names = self.calibration.camera_names
-        for n in self.outputs:
-            shape = self._xyz[n].shape[:2]
-            inten = None if white is None or n not in white else _as_uint8(white[n], (shape[0], shape[1]), n)
-            clouds.append(
-                to_point_cloud(self._xyz[n], maps[n].quality, inten, names.index(n), self._normals.get(n))
-            )
-        cloud = clouds[0] if len(clouds) == 1 else PointCloud.concatenate(clouds)
+        shape = self._xyz[n0].shape[:2]
+        inten = None if white is None or n0 not in white else _as_uint8(white[n0], (shape[0], shape[1]), n0)
+        cloud = to_point_cloud(self._xyz[n0], maps[n0].quality, inten, 0, self._normals.get(n0))
         t3 = time.perf_counter()
+        self.stages, self.warnings = [], []
         timings = {
             "triangulate_ms": 1e3 * (t1 - t0),
             "filter_ms": 1e3 * (t2 - t1),
@@ -182,32 +282,62 @@ class Reconstructor:
         }
         return cloud, timings
 
-    def _run_fused(
+    def _run_depth(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
     ) -> tuple[PointCloud, dict[str, float]]:
-        """Depth + neighbour filter per camera (one pass), then every kept point into one cloud (one pass)."""
+        """Depth, sigma and filters per camera (one pass), then every kept point into one cloud (one pass)."""
         cfg = self.cfg
+        max_sigma = math.inf if cfg.max_sigma_mm is None else cfg.max_sigma_mm
         t0 = time.perf_counter()
         for n, tri in self._proj_tri.items():
+            const, fp, ks = self._jump[n]
             tri.triangulate_depth(
-                maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours,
-                self._jump_mm[n], self._counts[n],
+                maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours, const,
+                self._counts[n], noise=self.noise, white=None if white is None else white.get(n),
+                sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
+                stats=self._stats[n],
             )  # fmt: skip
         t1 = time.perf_counter()
+        stages = []
+        for n in self.outputs:
+            s = self._stats[n].sum(axis=0)
+            h, w = self._depth[n].shape
+            stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[2]), int(s[3]), int(s[4])))
+        self.stages = stages
+        self.warnings = stage_warnings(stages, cfg)
+        names = self.calibration.camera_names
+        if cfg.normals:
+            clouds = []
+            for n in self.outputs:
+                xyz = self.organised(n)
+                r = cfg.normal_radius_px
+                eye = self.calibration.devices[n].center
+                jump = self._jump[n][0] if self._jump[n][0] > 0 else FIXED_JUMP_MM
+                estimate_normals(xyz, eye, self._normals[n], r, r * jump)
+                shape = xyz.shape[:2]
+                inten = None if white is None or n not in white else _as_uint8(white[n], (shape[0], shape[1]), n)
+                clouds.append(to_point_cloud(xyz, maps[n].quality, inten, names.index(n), self._normals[n],
+                                             self._sigma[n]))  # fmt: skip
+            t2 = time.perf_counter()
+            cloud = clouds[0] if len(clouds) == 1 else PointCloud.concatenate(clouds)
+            t3 = time.perf_counter()
+            return cloud, {"triangulate_ms": 1e3 * (t1 - t0), "filter_ms": 1e3 * (t2 - t1),
+                           "cloud_ms": 1e3 * (t3 - t2), "total_ms": 1e3 * (t3 - t0)}  # fmt: skip
         sizes = [int(self._counts[n].sum()) for n in self.outputs]
         total = sum(sizes)
-        xyz, row, col, cam, inten8, qual = self._pool.arrays(
+        xyz, row, col, cam, inten8, qual, sig = self._pool.arrays(
             [((total, 3), np.float32), ((total,), np.int32), ((total,), np.int32), ((total,), np.uint8),
-             ((total,), np.uint8), ((total,), np.float32)]
+             ((total,), np.uint8), ((total,), np.float32), ((total,), np.float32)]
         )  # fmt: skip
-        cloud = PointCloud(xyz, row, col, cam, inten8, qual)  # type: ignore[arg-type]
-        names = self.calibration.camera_names
+        cloud = PointCloud(xyz, row, col, cam, inten8, qual, None, sig)  # type: ignore[arg-type]
         start = 0
         for n, size in zip(self.outputs, sizes, strict=True):
             shape = self._depth[n].shape
             inten = None if white is None or n not in white else _as_uint8(white[n], (shape[0], shape[1]), n)
             cloud.camera[start : start + size] = names.index(n)
-            self._proj_tri[n].write_points(self._depth[n], self._counts[n], maps[n].quality, inten, cloud, start)
+            self._proj_tri[n].write_points(
+                self._depth[n], self._counts[n], maps[n].quality, inten, cloud, start, self._sigma[n]
+            )
             start += size
         t2 = time.perf_counter()
         timings = {

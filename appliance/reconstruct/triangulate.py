@@ -39,6 +39,7 @@ from appliance.geometry.camera import CameraModel
 from appliance.geometry.rays import ROW_TABLE_STEP, RayTable
 from appliance.reconstruct import _procam_kernels as K
 from appliance.reconstruct.types import DecodedMaps, PointCloud
+from appliance.reconstruct.uncertainty import CodeNoise
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -272,13 +273,28 @@ class ProjectorTriangulator:
         min_neighbours: int = 0,
         max_jump_mm: float = math.inf,
         counts: npt.NDArray[np.int64] | None = None,
+        *,
+        noise: CodeNoise | None = None,
+        white: npt.NDArray[np.generic] | None = None,
+        sigma_out: F32 | None = None,
+        jump_footprints: float = 0.0,
+        jump_sigmas: float = 0.0,
+        max_sigma_mm: float = math.inf,
+        stats: npt.NDArray[np.int64] | None = None,
     ) -> tuple[F32, npt.NDArray[np.int64]]:
-        """Triangulate every decoded pixel to its depth, dropping isolated points, in one pass.
+        """Triangulate every decoded pixel to its depth and 1-sigma error, dropping isolated points, in one pass.
 
         Same geometry as :meth:`triangulate`, but rays come from the camera's coarse
         :meth:`~appliance.geometry.rays.RayTable.row_table` and only the depth is written (4 bytes per
-        pixel instead of 12); :meth:`write_points` turns it into points. The filter is
-        :func:`~appliance.reconstruct.filters.filter_isolated` (3-D distances, in the camera frame).
+        pixel instead of 12); :meth:`write_points` turns it into points. The filter is that of
+        :func:`~appliance.reconstruct.filters.filter_isolated` (3-D distances, in the camera frame), with a
+        limit per point: a neighbour counts when nearer than the mean of the two points' limits
+        ``max_jump_mm + jump_footprints * z / fx + jump_sigmas * sigma``.
+
+        The sigma of a point is its code noise (:class:`~appliance.reconstruct.uncertainty.CodeNoise`,
+        from the pixel's quality) times the derivative of the triangulated point along its ray with
+        respect to the code: for one axis ``dz/dq dq/du`` of the ray / light-surface intersection, for both
+        ``Zp / |a|`` of the linearised least squares (equal, independent errors on u and v).
 
         Parameters
         ----------
@@ -289,11 +305,24 @@ class ProjectorTriangulator:
         min_depth_mm, max_depth_mm : float
             Depth range (mm).
         min_neighbours : int
-            0..8: a point is kept when this many of its 8 neighbours lie within ``max_jump_mm``.
+            0..8: a point is kept when this many of its 8 neighbours lie within its jump limit.
         max_jump_mm : float
-            Largest distance of a neighbour that counts (mm).
+            Constant part of the jump limit (mm).
         counts : ndarray, shape (H + 1,), int64, optional
             Receives ``counts[r + 1]`` = kept points of row r (``counts[0]`` = 0); allocated when None.
+        noise : CodeNoise, optional
+            Code noise model; None: sigma is NaN (unknown), and so are limits that depend on it.
+        white : ndarray, shape (H, W), optional
+            Image under white light (DN of the decoded data), for the shot noise; else ``quality / 2``.
+        sigma_out : ndarray, shape (H, W), float32, optional
+            Receives the 1-sigma error (mm, along the ray) of every kept point, NaN elsewhere.
+        jump_footprints, jump_sigmas : float
+            Per-point parts of the jump limit: pixel footprints ``z / fx`` (mm) and sigmas.
+        max_sigma_mm : float
+            Points whose sigma exceeds this are dropped (after the neighbour filter, so that they still
+            support their neighbours).
+        stats : ndarray, shape (H, 5), int64, optional
+            Receives per row the decoded, triangulated, in-range, with-neighbours and kept counts.
 
         Returns
         -------
@@ -309,10 +338,26 @@ class ProjectorTriangulator:
         if self.axes == "x":
             v = u  # not read
         depth = check_depth(out, shape)
+        sigma = check_depth(sigma_out, shape)
         if counts is None:
             counts = np.empty(shape[0] + 1, np.int64)
         elif counts.shape != (shape[0] + 1,) or counts.dtype != np.int64:
             raise ValueError(f"counts: {counts.shape} {counts.dtype}: must be int64 {(shape[0] + 1,)}")
+        if stats is None:
+            stats = np.empty((shape[0], 5), np.int64)
+        elif stats.shape != (shape[0], 5) or stats.dtype != np.int64 or not stats.flags.c_contiguous:
+            raise ValueError(f"stats: {stats.shape} {stats.dtype}: must be C-contiguous int64 {(shape[0], 5)}")
+        quality = np.ascontiguousarray(maps.quality, np.float32)
+        if quality.shape != shape:
+            raise ValueError(f"{self.camera.name}: quality is {quality.shape}, camera is {shape} (H, W): must match")
+        if white is None:
+            wimg: npt.NDArray[np.generic] = np.zeros((1, 1), np.float32)
+        else:
+            wimg = np.ascontiguousarray(white if white.ndim == 2 else white.mean(axis=2, dtype=np.float32))
+            if wimg.shape != shape:
+                raise ValueError(f"{self.camera.name}: white image is {wimg.shape}, camera is {shape}: must match")
+        params = noise.params() if noise is not None else np.array([np.nan, np.nan, 0.0, 0.0])
+        jump = np.array([max_jump_mm, jump_footprints, jump_sigmas], np.float64)
         tx, ty, _ = self.rays.row_table()
         zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
         ray = self.axes == "xy"
@@ -324,9 +369,10 @@ class ProjectorTriangulator:
             table, code0, c_lo, inv_dc = self._table, self._code0, self._c_lo, self._inv_dc
             und, origin = np.zeros((2, 2, 2), np.float32), 0.0
         K.depth_filtered(
-            u, v, mask, tx, ty, ROW_TABLE_STEP, ray, table, code0, c_lo, inv_dc, MIN_LINE_SIN, und, origin,
-            self._kp, self._dp, self._rcp, self._tcp, axis, zmin, zmax, int(min_neighbours),
-            float(max_jump_mm), _chunks(shape[0]), numba.get_num_threads(), depth, counts,
+            u, v, mask, quality, wimg, white is not None, tx, ty, ROW_TABLE_STEP, ray, table, code0, c_lo, inv_dc,
+            MIN_LINE_SIN, und, origin, self._kp, self._dp, self._rcp, self._tcp, axis, zmin, zmax, params,
+            float(max_sigma_mm), jump, 1.0 / float(self.camera.K[0, 0]), int(min_neighbours), _chunks(shape[0]),
+            numba.get_num_threads(), depth, sigma, counts, stats,
         )  # fmt: skip
         return depth, counts
 
@@ -338,6 +384,7 @@ class ProjectorTriangulator:
         intensity: npt.NDArray[np.uint8] | None,
         cloud: PointCloud,
         start: int = 0,
+        sigma: F32 | None = None,
     ) -> int:
         """Write the points of a :meth:`triangulate_depth` result into ``cloud`` from index ``start``.
 
@@ -355,6 +402,9 @@ class ProjectorTriangulator:
             Destination (world frame, mm); its ``camera`` array is not touched.
         start : int
             Index of the first point.
+        sigma : ndarray, shape (H, W), float32, optional
+            Per-pixel 1-sigma error (mm) from :meth:`triangulate_depth`, written to ``cloud.sigma_mm``
+            (which must then exist); NaN when None.
 
         Returns
         -------
@@ -377,10 +427,13 @@ class ProjectorTriangulator:
         n = int(starts[-1]) - start
         if start < 0 or start + n > len(cloud):
             raise ValueError(f"cloud holds {len(cloud)} points: cannot write {n} from index {start}")
+        sig = np.full((1, 1), np.nan, np.float32) if sigma is None else check_depth(sigma, shape)
+        o_s = cloud.sigma_mm if cloud.sigma_mm is not None else np.empty(len(cloud), np.float32)
         tx, ty, _ = self.rays.row_table()
         K.emit_points(
-            depth, tx, ty, ROW_TABLE_STEP, q, inten, self._rwc, self._cwc, self._to_world, starts,
+            depth, sig, tx, ty, ROW_TABLE_STEP, q, inten, self._rwc, self._cwc, self._to_world, starts,
             _chunks(shape[0]), numba.get_num_threads(), cloud.xyz, cloud.row, cloud.col, cloud.quality, cloud.intensity,
+            o_s,
         )  # fmt: skip
         return n
 
