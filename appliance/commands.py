@@ -236,20 +236,30 @@ def _stripe_summary(maps: Any) -> dict[str, dict[str, float]]:
     return out
 
 
+def _jsonable(value: Any) -> Any:
+    """A report object as JSON-ready data (``as_dict``/``to_dict``, dataclasses, lists of them)."""
+    import dataclasses
+
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    for name in ("as_dict", "to_dict"):
+        fn = getattr(value, name, None)
+        if callable(fn):
+            return fn()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    return value
+
+
 def _reconstruction_report(recon: Any) -> dict[str, Any]:
-    """Per-stage counts and messages of the last reconstruction, where the reconstructor provides them."""
+    """Per-stage counts, warnings and matcher reports of the last reconstruction, where it provides them."""
     out: dict[str, Any] = {}
-    for name in ("last_report", "report", "rejections", "stats"):
+    for name in ("stages", "warnings", "report", "last_report", "stereo_report"):
         value = getattr(recon, name, None)
         if value is None or callable(value):
             continue
-        if hasattr(value, "to_dict"):
-            value = value.to_dict()
-        elif hasattr(value, "__dataclass_fields__"):
-            import dataclasses
-
-            value = dataclasses.asdict(value)
-        if isinstance(value, dict | list):
+        value = _jsonable(value)
+        if isinstance(value, dict | list) and value:
             out[name] = value
     return out
 
@@ -298,6 +308,8 @@ def _decode_one(
         white = {cam: _intensity8(st, plan, bits[cam]) for cam, st in stacks.items()}
         cloud, _ = recon.run(maps, white)
     t4 = time.perf_counter()
+    for warning in getattr(recon, "warnings", None) or ():
+        print(f"{tag}warning: {warning}")
     written: dict[str, str] = {}
     if maps_out is not None:
         path = _target(maps_out, manifest_path, ".npz", is_batch)

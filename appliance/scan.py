@@ -7,6 +7,8 @@ so a scan allocates nothing per frame. It drives devices only through the hardwa
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import re
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -39,6 +41,20 @@ def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
                                    inverses=cfg.inverses)
     return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,
                                inverses=cfg.inverses)
+
+
+def pixel_format_bits(pixel_format: str) -> int:
+    """Significant bits of a GenICam mono pixel format (``Mono8`` -> 8, ``Mono12`` -> 12, ``Mono12Packed`` -> 12).
+
+    Raises
+    ------
+    HardwareError
+        For a format that is not ``Mono<bits>`` with 8..16 bits.
+    """
+    match = re.fullmatch(r"Mono(\d+)(Packed|p)?", pixel_format)
+    if match is None or not 8 <= int(match.group(1)) <= 16:
+        raise HardwareError(f"pixel format {pixel_format!r}: not a Mono8..Mono16 format; set the camera to MonoN")
+    return int(match.group(1))
 
 
 def virtual_calibration(virtual: Any) -> Calibration:
@@ -94,6 +110,7 @@ class Scanner:
             (i for i, f in enumerate(self.sequence.frames) if isinstance(f, WhiteFrame)), None
         )
         self._buffers: dict[str, FrameArray] = {}
+        self._bits: dict[str, int] = {}
         self._decoders: dict[str, StreamingDecoder] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
         self._opened = False
@@ -111,11 +128,15 @@ class Scanner:
                     f"camera {name!r}: delivers {info.width}x{info.height} but is calibrated at "
                     f"{model.width}x{model.height}; set the camera's resolution or recalibrate"
                 )
-            dtype = np.uint8 if info.pixel_format == "Mono8" else np.uint16
-            if name not in self._buffers or self._buffers[name].shape != (n, *shape):
+            bits = pixel_format_bits(info.pixel_format)
+            dtype = np.uint8 if bits == 8 else np.uint16
+            if name not in self._buffers or self._buffers[name].shape != (n, *shape) or self._bits.get(name) != bits:
                 buf: FrameArray = np.zeros((n, *shape), dtype)  # type: ignore[assignment]
                 self._buffers[name] = buf
-                self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, self.params)
+                self._bits[name] = bits
+                # thresholds in the camera's own scale (Mono12: 0..4095 in uint16)
+                params = dataclasses.replace(self.params, max_value=float((1 << bits) - 1))
+                self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, params)
                 self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
         await self.rig.projector.open()
         await self.rig.projector.load(self.sequence)
@@ -153,7 +174,7 @@ class Scanner:
         finished = await asyncio.gather(
             *(loop.run_in_executor(self._executors[n], warm_decode, n) for n in names)
         )
-        white: dict[str, npt.NDArray[np.generic]] = {n: self._white_u8(self._buffers[n]) for n in names}
+        white: dict[str, npt.NDArray[np.generic]] = {n: self._white_u8(self._buffers[n], n) for n in names}
         await loop.run_in_executor(None, self.reconstructor.run, dict(zip(names, finished, strict=True)), white)
 
     async def scan(self) -> ScanResult:
@@ -222,7 +243,7 @@ class Scanner:
         )
         maps = dict(zip(self._decoders, finished, strict=True))
         timings["decode_finish_ms"] = (time.perf_counter() - t1) * 1e3
-        white = {name: self._white_u8(buf) for name, buf in self._buffers.items()}
+        white = {name: self._white_u8(buf, name) for name, buf in self._buffers.items()}
         t2 = time.perf_counter()
         white_any: dict[str, npt.NDArray[np.generic]] = dict(white)
         cloud, rtimes = await loop.run_in_executor(None, self.reconstructor.run, maps, white_any)
@@ -233,13 +254,14 @@ class Scanner:
         shapes = {name: (int(b.shape[1]), int(b.shape[2])) for name, b in self._buffers.items()}
         return ScanResult(cloud, maps, white, timings, shapes, dict(self._buffers))
 
-    def _white_u8(self, buf: FrameArray) -> npt.NDArray[np.uint8]:
+    def _white_u8(self, buf: FrameArray, name: str) -> npt.NDArray[np.uint8]:
         if self._white_index is None:
             return np.zeros(buf.shape[1:], np.uint8)
         w = buf[self._white_index]
         if w.dtype == np.uint8:
             return np.asarray(w, dtype=np.uint8)
-        return np.asarray(w >> 8, dtype=np.uint8)
+        shift = self._bits.get(name, 16) - 8  # the camera's significant bits, not the container's
+        return np.asarray(np.minimum(w >> shift, 255), dtype=np.uint8)
 
     async def _abort(self) -> None:
         try:
