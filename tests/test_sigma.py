@@ -16,9 +16,12 @@ import pytest
 from plyfile import PlyData
 
 from appliance.config.schema import ImagingConfig, ReconstructionConfig, VirtualRigConfig
+from appliance.errors import CalibrationError
 from appliance.output.ply import write_ply
 from appliance.patterns.sequence import Sequence, gray_code_sequence, gray_phase_sequence
 from appliance.reconstruct.decode import DecodeParams, decode
+from appliance.reconstruct.fuse import fuse_depths
+from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
 from appliance.reconstruct.pipeline import Reconstructor, stage_warnings
 from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
 from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
@@ -141,3 +144,40 @@ def test_stage_warnings_in_plain_words() -> None:
     assert msg.startswith("89 % of camera cam0's points lie outside reconstruction.min_depth_mm .. max_depth_mm")
     assert "300 .. 900 mm" in msg
     assert bad.rejected() == {"decode": 100, "geometry": 10, "depth_range": 790, "neighbours": 5, "sigma": 0}
+
+
+def test_fusion_weights_by_sigma_and_flags_disagreement() -> None:
+    rng = np.random.default_rng(5)
+    h, w = 200, 300
+    truth = 600.0 + np.linspace(0.0, 50.0, w)[None, :] + np.zeros((h, 1))
+    s1 = np.full((h, w), 0.1, np.float32)
+    s2 = np.where(np.arange(w)[None, :] < w // 2, 0.1, 0.3).astype(np.float32) + np.zeros((h, 1), np.float32)
+    z1 = (truth + rng.normal(0.0, 1.0, (h, w)) * s1).astype(np.float32)
+    z2 = (truth + rng.normal(0.0, 1.0, (h, w)) * s2).astype(np.float32)
+    z1[:10] = np.nan  # only the second there
+    z2[-10:] = np.nan  # only the first there
+    z2[50:60, 100:110] += 5.0  # a wrong match in the second estimate
+    f = fuse_depths(z1, s1, z2, s2)
+    both = f.source == 3
+    err = (f.depth - truth)[both] / f.sigma[both]
+    assert 0.95 < float(np.sqrt(np.mean(err**2))) < 1.05  # the fused sigma is the fused error
+    np.testing.assert_allclose(f.sigma[both & (s2 == np.float32(0.1))], 0.1 / np.sqrt(2), rtol=1e-5)
+    assert f.disagree[50:60, 100:110].all() and np.isnan(f.depth[50:60, 100:110]).all()
+    assert f.counts()["disagree"] < 100 + 0.01 * h * w  # 3 sigma: ~0.3 % of honest pixels are flagged too
+    assert (f.source[:10] == 2).all() and (f.source[-10:] == 1).all()
+    kept = fuse_depths(z1, s1, z2, s2, keep_disagreeing=True)
+    np.testing.assert_array_equal(kept.depth[50:60, 100:110], z1[50:60, 100:110])
+    with pytest.raises(ValueError, match="must all be the same"):
+        fuse_depths(z1, s1, z2[:5], s2)
+
+
+def test_depth_range_from_geometry_covers_the_virtual_scene() -> None:
+    rig, _, _, _ = _render(2.0)
+    calib = virtual_calibration(rig)
+    zmin, zmax = depth_range_from_geometry(calib)
+    depth = rig.ground_truth("cam0").depth
+    seen = depth[rig.ground_truth("cam0").lit]
+    assert zmin < float(seen.min()) and float(seen.max()) < zmax
+    assert 0.0 < zmin < 600.0 < zmax < 20_000.0
+    with pytest.raises(CalibrationError, match="needs two cameras"):
+        depth_range_from_geometry(calib, "stereo")
