@@ -29,6 +29,11 @@ class ScanMetadata:
         ``points``, per-camera ``decoded_pixels`` and ``points``.
     timings_ms : dict
         Per-stage wall times (ms).
+    stages : list of dict
+        Per camera, the candidates left after each reconstruction stage and the rejections per stage
+        (:meth:`appliance.reconstruct.types.StageCounts.as_dict`).
+    warnings : list of str
+        Plain-words warnings of the reconstruction (a stage that rejected most of its candidates).
     """
 
     scan_id: str
@@ -42,6 +47,8 @@ class ScanMetadata:
     cameras: list[str] = field(default_factory=list)
     files: dict[str, str] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+    stages: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:
         """Pretty JSON text."""
