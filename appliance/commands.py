@@ -219,21 +219,12 @@ def _target(base: Path | None, manifest: Path, suffix: str, batch: bool) -> Path
     return base
 
 
-def _stripe_summary(maps: Any) -> dict[str, dict[str, float]]:
+def _stripe_summary(maps: Any, plan: Any) -> dict[str, dict[str, float]]:
     """Share of decoded pixels per effective stripe width (projector px; 0 = sub-pixel phase), per axis."""
-    out: dict[str, dict[str, float]] = {}
-    stripe = getattr(maps, "stripe", None)
-    if stripe is None:
-        return out
-    n = max(int(maps.mask.sum()), 1)
-    for a, axis in enumerate(("x", "y")):
-        vals = stripe[a][maps.mask]
-        vals = vals[np.isfinite(vals)]
-        if vals.size == 0:
-            continue
-        widths, counts = np.unique(vals, return_counts=True)
-        out[axis] = {f"{w:g}": round(float(c) / n, 6) for w, c in zip(widths, counts, strict=True)}
-    return out
+    from appliance.reconstruct.decode import stripe_widths
+
+    return {axis: {f"{w:g}": round(share, 6) for w, share in d.items()}
+            for axis, d in stripe_widths(maps, plan).items()}  # fmt: skip
 
 
 def _jsonable(value: Any) -> Any:
@@ -302,7 +293,12 @@ def _decode_one(
     for note in plan.ignored:
         print(f"{tag}ignored: {note}")
     for cam, m in maps.items():
-        print(f"{tag}{cam}: {int(m.mask.sum())} of {m.mask.size} pixels decoded ({100 * m.mask.mean():.1f} %)")
+        line = f"{tag}{cam}: {int(m.mask.sum())} of {m.mask.size} pixels decoded ({100 * m.mask.mean():.1f} %)"
+        for axis, shares in _stripe_summary(m, plan).items():
+            if len(shares) > 1:  # some pixels could not resolve the finest stripes
+                line += f"; stripe widths {axis}: " + ", ".join(
+                    f"{w} px {100 * v:.1f} %" for w, v in shares.items())  # fmt: skip
+        print(line)
     cloud = None
     if recon is not None:
         white = {cam: _intensity8(st, plan, bits[cam]) for cam, st in stacks.items()}
@@ -364,7 +360,7 @@ def _write_report(
         entry: dict[str, Any] = {"decoded_pixels": int(m.mask.sum()), "pixels": int(m.mask.size)}
         if cloud is not None:
             entry["points"] = int(np.sum(cloud.camera == i)) if mode != "stereo" or i == 0 else 0
-        stripes = _stripe_summary(m)
+        stripes = _stripe_summary(m, plan)
         if stripes:
             entry["stripe_widths"] = stripes
         per_cam[cam] = entry

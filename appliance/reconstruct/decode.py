@@ -619,6 +619,39 @@ def decode(
     return out
 
 
+def stripe_widths(maps: DecodedMaps, sequence: Sequence | DecodePlan) -> dict[str, dict[float, float]]:
+    """Distribution of effective code widths over the decoded pixels, per coded axis.
+
+    Parameters
+    ----------
+    maps : DecodedMaps
+        A decode of ``sequence`` (with ``levels``).
+    sequence : Sequence or DecodePlan
+        What was decoded.
+
+    Returns
+    -------
+    dict of axis to {width: share}
+        ``width`` in projector px: ``stripe * 2**level`` for a Gray-only axis, 0.0 for an axis whose phase
+        gives sub-pixel coordinates; ``share`` of the decoded pixels (0..1).
+    """
+    plan = _as_plan(sequence)
+    decoded = maps.mask
+    n = int(decoded.sum())
+    out: dict[str, dict[float, float]] = {}
+    for a, axis in enumerate(_AXES):
+        if axis not in plan.axes:
+            continue
+        if any(p.axis == axis for p in plan.phase) or n == 0:
+            out[axis] = {0.0: 1.0} if n else {}
+            continue
+        stripe = _gray_stripe(plan, axis)
+        lev = maps.levels[a][decoded] if maps.levels is not None else np.zeros(n, np.uint8)
+        counts = np.bincount(lev, minlength=1)
+        out[axis] = {float(stripe << k): float(c) / n for k, c in enumerate(counts) if c}
+    return out
+
+
 # --------------------------------------------------------------------------------------------------
 # Streaming
 # --------------------------------------------------------------------------------------------------
