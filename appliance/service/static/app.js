@@ -1,0 +1,323 @@
+// scan3d status page: live state from /api/events, scans from /api/scans, a point-cloud view on a canvas.
+// Plain browser JavaScript, no libraries: the appliance has no internet and serves only its own files.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const TOKEN_KEY = "scan3d-token";
+let lastScanShown = "";
+let statusTimer = null;
+
+function text(id, value) { $(id).textContent = value; }
+
+function fmtMs(v) { return typeof v === "number" ? `${Math.round(v)} ms` : "–"; }
+
+function fmtTime(iso) {
+  if (!iso) return "–";
+  return iso.replace("T", " ").replace(/\.\d+/, "").replace(/\+00:00$/, "");
+}
+
+async function getJSON(url) {
+  const r = await fetch(url, { cache: "no-store" });
+  if (!r.ok) throw new Error(`${url}: HTTP ${r.status}`);
+  return r.json();
+}
+
+// --- state -------------------------------------------------------------------------------------------
+
+function showState(s) {
+  const el = $("state");
+  el.textContent = s.state;
+  el.className = `state state-${s.state}`;
+  let detail = s.detail || "";
+  if (s.state === "starting" || s.state === "fault") detail = `${s.phase}${detail ? ": " + detail : ""}`;
+  text("detail", detail);
+  const c = s.counters || {};
+  text("counters", `${c.scans_done ?? s.scans_done ?? 0} scans, ${c.scans_failed ?? 0} failed, ` +
+       `${c.triggers_refused ?? 0} refused` + (s.queue_length ? `, ${s.queue_length} queued` : ""));
+  if (s.serial) text("serial", s.serial);
+  if (s.version) text("version", `v${s.version}`);
+  showError(s.last_error);
+  $("trigger").disabled = s.state !== "idle" && s.state !== "scanning" && s.state !== "processing" &&
+    s.state !== "writing";
+}
+
+function showError(err) {
+  const el = $("error");
+  if (!err) { el.textContent = "none"; el.className = "muted"; text("advice", ""); return; }
+  el.textContent = `${fmtTime(err.time_utc)} ${err.where}: ${err.message}`;
+  el.className = "bad";
+  text("advice", err.advice ? `What to do: ${err.advice}` : "");
+}
+
+function showShare(share) {
+  const dl = $("share");
+  dl.replaceChildren();
+  const rows = Object.entries(share || {});
+  if (!rows.length) { dl.textContent = "unknown"; return; }
+  for (const [k, v] of rows) {
+    const dt = document.createElement("dt");
+    dt.textContent = k.replaceAll("_", " ");
+    const dd = document.createElement("dd");
+    dd.textContent = typeof v === "object" && v !== null ? JSON.stringify(v) : String(v);
+    dl.append(dt, dd);
+  }
+}
+
+async function refreshStatus() {
+  try {
+    const st = await getJSON("/api/status");
+    showState(st);
+    showShare(st.share);
+    if (st.config && st.config.error) showRejected(st.config.error);
+  } catch (e) { /* the event stream shows the link state */ }
+}
+
+function scheduleStatus() {  // at most one status request per second, however many events arrive
+  if (statusTimer !== null) return;
+  statusTimer = setTimeout(() => { statusTimer = null; refreshStatus(); }, 1000);
+}
+
+// --- scans -------------------------------------------------------------------------------------------
+
+function healthNumber(h) {
+  if (typeof h === "number") return h;
+  if (h && typeof h === "object") {
+    for (const key of ["score", "value", "rms_px", "reprojection_rms_px", "rms_mm"]) {
+      if (typeof h[key] === "number") return h[key];
+    }
+    for (const v of Object.values(h)) if (typeof v === "number") return v;
+  }
+  return null;
+}
+
+function showScans(scans) {
+  const body = $("scans");
+  body.replaceChildren();
+  if (!scans.length) {
+    const tr = body.insertRow();
+    const td = tr.insertCell();
+    td.colSpan = 8; td.className = "muted"; td.textContent = "none yet";
+  }
+  for (const s of scans) {
+    const t = s.timings_ms || {};
+    const tr = body.insertRow();
+    if (!s.ok) tr.className = "failed";
+    const cells = [s.scan_id || "(refused)", fmtTime(s.started_utc), s.ok ? String(s.points) : s.error,
+      fmtMs(t.trigger_to_file_ms), fmtMs(t.capture_ms), fmtMs(t.reconstruct_ms), fmtMs(t.write_ms),
+      s.location || "–"];
+    for (const c of cells) tr.insertCell().textContent = c;
+  }
+  const ok = scans.filter((s) => s.ok);
+  drawHealth(ok.slice().reverse());
+  if (ok.length) showLast(ok[0]);
+}
+
+function showLast(scan) {
+  text("last-id", scan.scan_id);
+  if (scan.scan_id === lastScanShown) return;
+  lastScanShown = scan.scan_id;
+  const base = `/api/scans/${encodeURIComponent(scan.scan_id)}`;
+  const img = $("preview");
+  img.onload = () => { img.hidden = false; $("preview-none").hidden = true; };
+  img.onerror = () => { img.hidden = true; $("preview-none").hidden = false; };
+  img.src = `${base}/preview.png`;
+  loadCloud(`${base}/cloud.bin`, scan);
+}
+
+async function refreshScans() {
+  try {
+    const data = await getJSON("/api/scans?limit=20");
+    showScans(data.scans || []);
+  } catch (e) { /* shown by the link state */ }
+}
+
+// --- calibration health plot ---------------------------------------------------------------------------
+
+function drawHealth(scans) {
+  const cv = $("health");
+  const g = cv.getContext("2d");
+  g.clearRect(0, 0, cv.width, cv.height);
+  const pts = scans.map((s) => [Date.parse(s.started_utc), healthNumber(s.calibration_health)])
+    .filter((p) => p[1] !== null && !Number.isNaN(p[0]));
+  if (!pts.length) {
+    text("health-text", "not measured");
+    g.fillStyle = "#8b98a5"; g.font = "14px sans-serif"; g.fillText("not measured", 12, cv.height / 2);
+    return;
+  }
+  const last = scans.filter((s) => s.calibration_health != null).pop();
+  text("health-text", `last: ${JSON.stringify(last.calibration_health)}`);
+  const xs = pts.map((p) => p[0]), ys = pts.map((p) => p[1]);
+  const x0 = Math.min(...xs), x1 = Math.max(...xs) || x0 + 1;
+  let y0 = Math.min(...ys), y1 = Math.max(...ys);
+  if (y1 - y0 < 1e-9) { y0 -= 1; y1 += 1; }
+  const pad = 28, w = cv.width - 2 * pad, h = cv.height - 2 * pad;
+  const X = (x) => pad + (x1 > x0 ? (x - x0) / (x1 - x0) : 0.5) * w;
+  const Y = (y) => pad + h - ((y - y0) / (y1 - y0)) * h;
+  g.strokeStyle = "#2b3642"; g.strokeRect(pad, pad, w, h);
+  g.fillStyle = "#8b98a5"; g.font = "11px sans-serif";
+  g.fillText(y1.toPrecision(3), 2, pad + 4); g.fillText(y0.toPrecision(3), 2, pad + h);
+  g.strokeStyle = "#58a6ff"; g.lineWidth = 2; g.beginPath();
+  pts.forEach((p, i) => (i ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1]))));
+  g.stroke();
+  g.fillStyle = "#58a6ff";
+  for (const p of pts) { g.beginPath(); g.arc(X(p[0]), Y(p[1]), 3, 0, 2 * Math.PI); g.fill(); }
+}
+
+// --- point-cloud view (software rendering with a depth buffer) ------------------------------------------
+
+const view = { xyz: null, center: [0, 0, 0], radius: 1, yaw: 0.5, pitch: -0.4, zoom: 1 };
+
+async function loadCloud(url, scan) {
+  try {
+    const r = await fetch(url, { cache: "force-cache" });
+    if (!r.ok) throw new Error(`HTTP ${r.status}`);
+    const xyz = new Float32Array(await r.arrayBuffer());
+    const n = xyz.length / 3;
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (let i = 0; i < n; i++) {
+      for (let k = 0; k < 3; k++) {
+        const v = xyz[3 * i + k];
+        if (v < lo[k]) lo[k] = v;
+        if (v > hi[k]) hi[k] = v;
+      }
+    }
+    view.xyz = xyz;
+    view.center = lo.map((v, k) => (v + hi[k]) / 2);
+    view.radius = Math.max(1e-6, ...hi.map((v, k) => (v - lo[k]) / 2));
+    view.lo = lo[2]; view.hi = hi[2];
+    text("cloud-info", `${n.toLocaleString()} of ${Number(scan.points).toLocaleString()} points shown; drag to rotate`);
+  } catch (e) {
+    view.xyz = null;
+    text("cloud-info", `no cloud (${e.message})`);
+  }
+  drawCloud();
+}
+
+function drawCloud() {
+  const cv = $("cloud");
+  const g = cv.getContext("2d");
+  const W = cv.width, H = cv.height;
+  const img = g.createImageData(W, H);
+  const px = img.data;
+  for (let i = 3; i < px.length; i += 4) { px[i - 3] = 11; px[i - 2] = 15; px[i - 1] = 20; px[i] = 255; }
+  const xyz = view.xyz;
+  if (xyz) {
+    const depth = new Float32Array(W * H).fill(Infinity);
+    const cy = Math.cos(view.yaw), sy = Math.sin(view.yaw), cp = Math.cos(view.pitch), sp = Math.sin(view.pitch);
+    const s = (0.45 * Math.min(W, H) * view.zoom) / view.radius;
+    const [mx, my, mz] = view.center;
+    const zr = view.hi - view.lo || 1;
+    for (let i = 0; i < xyz.length; i += 3) {
+      const x = xyz[i] - mx, y = xyz[i + 1] - my, z = xyz[i + 2] - mz;
+      const x1 = cy * x + sy * z, z1 = -sy * x + cy * z;       // yaw about y
+      const y2 = cp * y - sp * z1, z2 = sp * y + cp * z1;      // pitch about x
+      const u = Math.round(W / 2 + s * x1), v = Math.round(H / 2 + s * y2);  // camera y points down
+      if (u < 0 || v < 0 || u >= W - 1 || v >= H - 1) continue;
+      const t = (xyz[i + 2] - view.lo) / zr;                    // colour by distance from the camera
+      const r = 90 + 165 * (1 - t), gr = 160 + 60 * (1 - t), b = 255 - 120 * t;
+      for (let dv = 0; dv < 2; dv++) {
+        for (let du = 0; du < 2; du++) {
+          const k = (v + dv) * W + u + du;
+          if (z2 < depth[k]) {
+            depth[k] = z2;
+            px[4 * k] = r; px[4 * k + 1] = gr; px[4 * k + 2] = b;
+          }
+        }
+      }
+    }
+  }
+  g.putImageData(img, 0, 0);
+}
+
+function setupCloudControls() {
+  const cv = $("cloud");
+  let drag = null;
+  cv.addEventListener("pointerdown", (e) => { drag = [e.clientX, e.clientY]; cv.setPointerCapture(e.pointerId); });
+  cv.addEventListener("pointermove", (e) => {
+    if (!drag) return;
+    view.yaw += (e.clientX - drag[0]) * 0.01;
+    view.pitch = Math.max(-1.5, Math.min(1.5, view.pitch + (e.clientY - drag[1]) * 0.01));
+    drag = [e.clientX, e.clientY];
+    requestAnimationFrame(drawCloud);
+  });
+  const end = () => { drag = null; };
+  cv.addEventListener("pointerup", end);
+  cv.addEventListener("pointercancel", end);
+  cv.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    view.zoom = Math.max(0.2, Math.min(10, view.zoom * (e.deltaY < 0 ? 1.1 : 1 / 1.1)));
+    requestAnimationFrame(drawCloud);
+  }, { passive: false });
+}
+
+// --- configuration ------------------------------------------------------------------------------------
+
+function showRejected(msg) {
+  const el = $("rejected");
+  el.hidden = !msg;
+  el.textContent = msg ? `Last edit REJECTED (the last good configuration keeps running):\n${msg}` : "";
+}
+
+async function refreshConfig() {
+  try {
+    const c = await getJSON("/api/config");
+    text("config-file", `${c.path} (loaded ${fmtTime(c.loaded_utc)})`);
+    showRejected(c.rejected_edit);
+    text("config", JSON.stringify(c.running, null, 2));
+  } catch (e) { /* retried on the next state event */ }
+}
+
+// --- trigger ------------------------------------------------------------------------------------------
+
+async function trigger() {
+  let token = localStorage.getItem(TOKEN_KEY);
+  if (!token) {
+    token = window.prompt("Token for scans from this page (the content of service.http.token_file):");
+    if (!token) return;
+    localStorage.setItem(TOKEN_KEY, token.trim());
+    token = token.trim();
+  }
+  $("forget").hidden = false;
+  text("trigger-result", "…");
+  try {
+    const r = await fetch("/api/trigger", { method: "POST", headers: { Authorization: `Bearer ${token}` } });
+    const body = await r.json().catch(() => ({}));
+    if (r.status === 401) {
+      localStorage.removeItem(TOKEN_KEY);
+      text("trigger-result", "wrong token (asked again on the next press)");
+      return;
+    }
+    text("trigger-result", body.ok ? `scan ${body.result}` : (body.error || `HTTP ${r.status}`));
+  } catch (e) {
+    text("trigger-result", `no answer: ${e.message}`);
+  }
+}
+
+// --- live updates -------------------------------------------------------------------------------------
+
+function connectEvents() {
+  const link = $("link");
+  const es = new EventSource("/api/events");
+  es.onopen = () => { link.textContent = "live"; link.className = "link on"; refreshScans(); refreshStatus(); };
+  es.onerror = () => { link.textContent = "reconnecting"; link.className = "link off"; };
+  es.addEventListener("state", (e) => {
+    const s = JSON.parse(e.data);
+    showState(s);
+    if (s.last_scan_id && s.last_scan_id !== $("last-id").textContent) refreshScans();
+    showRejected(s.config_error);
+    scheduleStatus();
+  });
+  es.addEventListener("scan", () => { refreshScans(); scheduleStatus(); refreshConfig(); });
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  $("trigger").addEventListener("click", trigger);
+  $("forget").addEventListener("click", () => { localStorage.removeItem(TOKEN_KEY); $("forget").hidden = true; });
+  $("forget").hidden = !localStorage.getItem(TOKEN_KEY);
+  setupCloudControls();
+  drawCloud();
+  refreshStatus();
+  refreshScans();
+  refreshConfig();
+  connectEvents();
+});
