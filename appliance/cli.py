@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", type=Path, default=None,
                     help="output cloud (.ply), or a folder for <manifest stem>.ply (always a folder for a batch)")
     sp.add_argument("--maps", type=Path, default=None,
-                    help="write u, v, mask, quality per camera (.npz; a folder for a batch)")
+                    help="write u, v, mask, quality, levels per camera (.npz; a folder for a batch)")
     sp.add_argument("--report", type=Path, default=None, help="write the capture's JSON sidecar (one capture)")
     sp.add_argument("--timings", action="store_true",
                     help="print one JSON line of stage timings (ms) per capture and a summary line")

@@ -313,6 +313,8 @@ def _decode_one(
         for cam, m in maps.items():
             arrays[f"{cam}_u"], arrays[f"{cam}_v"] = m.u, m.v
             arrays[f"{cam}_mask"], arrays[f"{cam}_quality"] = m.mask, m.quality
+            if m.levels is not None:
+                arrays[f"{cam}_levels"] = m.levels  # Gray bits dropped per axis (finest resolvable bit)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(path, allow_pickle=False, **arrays)

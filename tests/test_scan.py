@@ -125,7 +125,7 @@ def test_decode_command_on_a_recorded_capture(tmp_path: Path) -> None:
     assert set(timings) == {"capture", "load_ms", "setup_ms", "decode_ms", "triangulate_ms", "write_ms", "total_ms"}
     assert summary["summary"] and summary["captures"] == 1
     maps = np.load(tmp_path / "m.npz")
-    assert set(maps.files) == {"cam0_u", "cam0_v", "cam0_mask", "cam0_quality"}
+    assert set(maps.files) == {"cam0_u", "cam0_v", "cam0_mask", "cam0_quality", "cam0_levels"}
     v = PlyData.read(str(tmp_path / "c.ply"))["vertex"]
     gt = rig.virtual.ground_truth("cam0")
     truth = gt.xyz[v["row"], v["col"]]
