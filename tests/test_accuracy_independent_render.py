@@ -1,12 +1,12 @@
 """Accuracy on a scene from a renderer that shares no geometry code with the reconstruction (issue 12).
 
 The renderer lives here, in plain numpy and OpenCV: camera rays by ``cv2.undistortPoints`` refined by Newton
-steps, an analytic tilted plane and sphere, projector coordinates by ``cv2.projectPoints``, projector
-shadows by an analytic segment-sphere test, Lambertian shading with an albedo texture, camera defocus
-(``cv2.GaussianBlur``), read and shot noise, 8-bit rounding. Patterns follow the manifest specification (SEQUENCE-MANIFEST.md): Gray bit
-``bit`` of ``floor(c / stripe)`` at projector pixel ``c = floor(u + 0.5)``, phase
-``(1 + cos(2 pi u / P + offset + 2 pi step / steps)) / 2`` (a projector defocused enough that its pixel grid
-is invisible in the sinusoid). Nothing of ``appliance.geometry`` or ``appliance.sim`` is used to make the
+steps, an analytic tilted plane and sphere, projector coordinates by ``cv2.projectPoints``, projector shadows
+by an analytic segment-sphere test, Lambertian shading with an albedo texture, camera defocus
+(``cv2.GaussianBlur``), read and shot noise, 8-bit rounding. Patterns follow the manifest specification
+(SEQUENCE-MANIFEST.md): Gray bit ``bit`` of ``floor(c / stripe)`` at projector pixel ``c = floor(u + 0.5)``,
+phase ``(1 + cos(2 pi u / P + offset + 2 pi step / steps)) / 2`` (a projector defocused enough that its pixel
+grid is invisible in the sinusoid). Nothing of ``appliance.geometry`` or ``appliance.sim`` is used to make the
 images or the truth; the product only gets the frames, the sequence and the calibration (K, dist, R, T).
 """
 
