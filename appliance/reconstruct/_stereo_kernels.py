@@ -240,6 +240,27 @@ def box_mean(src, radius, max_span, scratch, out):  # type: ignore[no-untyped-de
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _bounds(tab, y, idx, max_gap, extrapolate):  # type: ignore[no-untyped-def]
+    """Crossings of levels ``idx`` and ``idx + 1`` on row y; NaN pair where not consistent. With
+    ``extrapolate``, one missing (NaN: an edge of the decoded area, not inf: ambiguous) comes from the next
+    level's spacing: used on a pixel's own row only, where the pixel itself proves the stripe is there."""
+    nk = tab.shape[1]
+    xa = np.float64(tab[y, idx])
+    xb = np.float64(tab[y, idx + 1])
+    if extrapolate and xa != xa and idx >= 0 and idx + 2 < nk and math.isfinite(xb):
+        xn = np.float64(tab[y, idx + 2])
+        if abs(xn - xb) <= max_gap:
+            xa = xb - (xn - xb)
+    elif extrapolate and xb != xb and idx >= 1 and math.isfinite(xa):
+        xp = np.float64(tab[y, idx - 1])
+        if abs(xa - xp) <= max_gap:
+            xb = xa + (xa - xp)
+    if not abs(xb - xa) <= max_gap:  # also rejects NaN / inf
+        return np.nan, np.nan
+    return xa, xb
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignore[no-untyped-def]
     """Sub-pixel x on fractional row ``y + w`` where the code (level units) equals ``fu``; NaN if none."""
     k = math.floor(fu)
@@ -247,11 +268,9 @@ def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignor
     idx = int(k) + code_offset
     if idx < 0 or idx + 1 >= tab.shape[1] or y < 0 or y + 1 >= tab.shape[0]:
         return np.nan
-    xa0 = np.float64(tab[y, idx])
-    xb0 = np.float64(tab[y, idx + 1])
-    xa1 = np.float64(tab[y + 1, idx])
-    xb1 = np.float64(tab[y + 1, idx + 1])
-    if not (abs(xb0 - xa0) <= max_gap and abs(xb1 - xa1) <= max_gap):  # also rejects NaN / inf
+    xa0, xb0 = _bounds(tab, y, idx, max_gap, False)
+    xa1, xb1 = _bounds(tab, y + 1, idx, max_gap, False)
+    if xa0 != xa0 or xa1 != xa1:
         return np.nan
     x0 = xa0 + t * (xb0 - xa0)
     x1 = xa1 + t * (xb1 - xa1)
@@ -267,11 +286,9 @@ def _level_at(tab, y, w, x, k, code_offset, max_gap, max_row_jump):  # type: ign
     idx = k + code_offset
     if idx < 0 or idx + 1 >= tab.shape[1] or y < 0 or y + 1 >= tab.shape[0]:
         return np.nan
-    xa0 = np.float64(tab[y, idx])
-    xb0 = np.float64(tab[y, idx + 1])
-    xa1 = np.float64(tab[y + 1, idx])
-    xb1 = np.float64(tab[y + 1, idx + 1])
-    if not (abs(xb0 - xa0) <= max_gap and abs(xb1 - xa1) <= max_gap):
+    xa0, xb0 = _bounds(tab, y, idx, max_gap, True)
+    xa1, xb1 = _bounds(tab, y + 1, idx, max_gap, True)
+    if xa0 != xa0 or xa1 != xa1:
         return np.nan
     if not (abs(xa1 - xa0) <= max_row_jump and abs(xb1 - xb0) <= max_row_jump):
         return np.nan

@@ -136,17 +136,19 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5) -> CodeGr
     d = d[np.isfinite(d)]
     d = d[d < 64.0]  # not across an occlusion
     per_px = float(d.mean()) if d.size else 1.0
-    twice = 2.0 * vals
-    on_grid = np.abs(twice - np.round(twice)) < 1e-3
-    if on_grid.mean() >= 0.99:
-        uniq = np.unique(vals[on_grid])
-        gaps = np.diff(uniq)
-        gaps = gaps[gaps > 0.25]
-        if gaps.size:
-            step = float(np.min(gaps))
-            if step >= 1.0 - 1e-6:
-                origin = float(np.median(np.mod(uniq, step)))
-                return CodeGrid(True, step, origin, max(per_px, 1e-3))
+    uniq, counts = np.unique(vals, return_counts=True)
+    if uniq.size < 2:
+        return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
+    # stripe centres repeat; a rare value in between (a pixel on an edge) must not set the step
+    common = uniq[counts >= max(2.0, 0.05 * float(np.median(counts)))]
+    gaps = np.diff(common)
+    gaps = gaps[gaps > 0.25]
+    if gaps.size and counts.max() >= 3:
+        step = float(np.min(gaps))
+        origin = float(np.median(np.mod(common, step)))
+        k = (vals - origin) / step
+        if step >= 1.0 - 1e-6 and np.mean(np.abs(k - np.round(k)) < 1e-3) >= 0.99:
+            return CodeGrid(True, step, origin, max(per_px, 1e-3))
     return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
 
 
