@@ -3,9 +3,9 @@
 Run as ``python tests/share_hangfs.py ROOT MOUNTPOINT`` (root, with /dev/fuse and libfuse2). It mounts,
 prints ``ready`` on stdout and then reads commands from stdin, one a line, answering ``ok`` to each:
 
-``hang``
-    Every later operation blocks (in the kernel's view: the server does not answer), like a hard-mounted
-    NFS/SMB share whose server stopped answering.
+``hang [OP ...]``
+    Every later operation (or only the FUSE operations named, e.g. ``hang write``) blocks (in the kernel's
+    view: the server does not answer), like a hard-mounted NFS/SMB share whose server stopped answering.
 ``go``
     Blocked operations continue, new ones pass.
 ``quota N``
@@ -32,13 +32,13 @@ class HangFS(Operations):  # type: ignore[misc]
 
     def __init__(self, root: str) -> None:
         self.root = os.path.realpath(root)
-        self.gate = threading.Event()
+        self.gate = threading.Event()  # set: operations pass
         self.gate.set()
+        self.blocked: set[str] | None = None  # the operations the gate holds (None: all)
         self.quota = -1
         self._qlock = threading.Lock()
 
     def _p(self, path: str) -> str:
-        self.gate.wait()
         return os.path.join(self.root, path.lstrip("/"))
 
     def _take_quota(self) -> None:
@@ -49,6 +49,8 @@ class HangFS(Operations):  # type: ignore[misc]
                 self.quota -= 1
 
     def __call__(self, op: str, path: str, *args: Any) -> Any:
+        if not self.gate.is_set() and (self.blocked is None or op in self.blocked):
+            self.gate.wait()
         try:
             return super().__call__(op, path, *args)
         except OSError as exc:
@@ -112,11 +114,9 @@ class HangFS(Operations):  # type: ignore[misc]
         return os.open(self._p(path), flags)
 
     def read(self, path: str, size: int, offset: int, fh: int) -> bytes:
-        self.gate.wait()
         return os.pread(fh, size, offset)
 
     def write(self, path: str, data: bytes, offset: int, fh: int) -> int:
-        self.gate.wait()
         return os.pwrite(fh, data, offset)
 
     def truncate(self, path: str, length: int, fh: int | None = None) -> None:
@@ -124,23 +124,23 @@ class HangFS(Operations):  # type: ignore[misc]
             f.truncate(length)
 
     def flush(self, path: str, fh: int) -> None:
-        self.gate.wait()
+        pass
 
     def release(self, path: str, fh: int) -> None:
         os.close(fh)
 
     def fsync(self, path: str, datasync: int, fh: int) -> None:
-        self.gate.wait()
         os.fsync(fh)
 
     def fsyncdir(self, path: str, datasync: int, fh: int) -> None:
-        self.gate.wait()
+        pass
 
 
 def _commands(fs: HangFS, mountpoint: str) -> None:
     for line in sys.stdin:
         cmd = line.split()
-        if cmd == ["hang"]:
+        if cmd and cmd[0] == "hang":
+            fs.blocked = set(cmd[1:]) or None
             fs.gate.clear()
         elif cmd == ["go"]:
             fs.gate.set()

@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from share_watch import DirWatch
 
 from appliance.config.schema import OutputConfig
 from appliance.errors import OutputError
@@ -19,7 +20,6 @@ from appliance.output.atomic import TMP_PREFIX
 from appliance.output.ply import read_ply_vertices
 from appliance.output.sidecar import ScanMetadata
 from appliance.reconstruct.types import PointCloud
-from share_watch import DirWatch
 
 SHAPES = [(24, 32)]
 
@@ -328,7 +328,7 @@ def test_spool_folder_without_entry_json_is_quarantined_at_start(dirs: SimpleNam
 
 
 def test_spool_entry_json_names_sizes_and_checksums(dirs: SimpleNamespace) -> None:
-    w, entries = spool_two_scans(dirs)
+    _, entries = spool_two_scans(dirs)
     info = json.loads((entries[0] / S.ENTRY_FILE).read_text())
     assert info["day"] == "2026-01-01" and info["scan_id"] == meta(1).scan_id
     assert [f["name"] for f in info["files"]] == [f"{meta(1).scan_id}{s}" for s in (".ply", ".png", ".json")]
