@@ -42,8 +42,10 @@ def _rig() -> VirtualRig:
             center_mm=(-80.0, 20.0, 700.0), axis=(0.1, 1.0, 0.2), radius_mm=25.0, height_mm=120.0, texture=0.3
         ),
     )
-    imaging = ImagingConfig(projector_gain_dn=150.0, ambient_dn=20.0, read_noise_dn=READ_NOISE_DN,
-                            electrons_per_dn=ELECTRONS_PER_DN, projector_blur_px=0.9, camera_blur_px=0.6, seed=23)  # fmt: skip
+    imaging = ImagingConfig(
+        projector_gain_dn=150.0, ambient_dn=20.0, read_noise_dn=READ_NOISE_DN, electrons_per_dn=ELECTRONS_PER_DN,
+        projector_blur_px=0.9, camera_blur_px=0.6, seed=23,
+    )  # fmt: skip
     return VirtualRig(VirtualRigConfig(cameras={"cam0": camera}, projector=projector, scene=scene, imaging=imaging))
 
 
