@@ -105,14 +105,46 @@ def choose_decode_mode(calib: Any, cameras: list[str] | tuple[str, ...], request
     return requested
 
 
+def reconstruction_settings(path: Path) -> ReconstructionConfig:
+    """The ``reconstruction:`` section of a configuration file; every other section is ignored (an offline
+    decode needs no hardware entries, and a full appliance configuration may be given as it is).
+
+    Raises
+    ------
+    ConfigError
+        ``file:line: reconstruction.key = value: rule`` for a bad setting, or why the file is unreadable.
+    """
+    import yaml
+    from pydantic import BaseModel, ConfigDict, ValidationError
+
+    from appliance.config.loader import format_validation_error
+
+    class _Reconstruction(BaseModel):
+        model_config = ConfigDict(extra="ignore")
+        reconstruction: ReconstructionConfig = ReconstructionConfig()
+
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+        root, doc = yaml.compose(text), yaml.safe_load(text)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read ({exc.strerror}); check --config") from exc
+    except (UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: not a YAML text file ({' '.join(str(exc).split())[:200]})") from exc
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: not a YAML mapping; give a file with a 'reconstruction:' section")
+    try:
+        return _Reconstruction.model_validate(doc).reconstruction
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, str(path), doc, root)) from exc
+
+
 class _DecodeBatch:
     """What a batch of offline decodes shares: plans, calibrations and reconstructors are built once."""
 
     def __init__(self, calibration: Path | None, config: Path | None, mode: str | None) -> None:
         self.calibration_path = calibration
         self.mode_requested = mode
-        cfg = load_config(config) if config is not None else None
-        self.rc = cfg.reconstruction if cfg is not None else ReconstructionConfig()
+        self.rc = reconstruction_settings(config) if config is not None else ReconstructionConfig()
         self.depth_given = bool({"min_depth_mm", "max_depth_mm"} & self.rc.model_fields_set)
         self._plans: dict[Any, Any] = {}
         self._calibs: dict[tuple[int, int], Any] = {}
@@ -200,14 +232,15 @@ def _intensity8(stack: Any, plan: Any, bits: int) -> npt.NDArray[np.uint8]:
     """Grey value (0..255) per pixel: the white frame, else the mean of the phase frames, else the brightest."""
     from appliance.patterns.sequence import PhaseFrame
 
+    img: npt.NDArray[np.float32]
     if plan.white >= 0:
         img = np.asarray(stack[plan.white], np.float32)
     else:
         phase = [i for i, f in enumerate(plan.sequence.frames) if isinstance(f, PhaseFrame)]
-        img = (np.mean(stack[phase], axis=0, dtype=np.float32) if phase
-               else np.max(stack[list(plan.used)], axis=0).astype(np.float32))  # fmt: skip
+        img = np.asarray(np.mean(stack[phase], axis=0, dtype=np.float32) if phase
+                         else np.max(stack[list(plan.used)], axis=0), np.float32)  # fmt: skip
     scale = 255.0 / float((1 << bits) - 1)
-    return np.clip(img * scale + 0.5, 0, 255).astype(np.uint8)
+    return np.asarray(np.clip(img * scale + 0.5, 0, 255), np.uint8)
 
 
 def _target(base: Path | None, manifest: Path, suffix: str, batch: bool) -> Path:
