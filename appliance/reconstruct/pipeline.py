@@ -87,11 +87,16 @@ def stage_warnings(stages: list[StageCounts], cfg: ReconstructionConfig) -> list
                 msg = (f"{pct} of camera {cam}'s points have an expected error over reconstruction.max_sigma_mm = "
                        f"{cfg.max_sigma_mm} mm: raise it, or give the scan more contrast (exposure, projector "
                        "brightness, a finer phase period)")
+            elif cfg.max_neighbour_jump_mm is not None:
+                msg = (f"{pct} of camera {cam}'s points have fewer than reconstruction.min_neighbours = "
+                       f"{cfg.min_neighbours} of 8 neighbours within the fixed max_neighbour_jump_mm = "
+                       f"{cfg.max_neighbour_jump_mm:g} mm: the limit is below this scan's depth noise; unset it "
+                       "(limits from each point's expected error) or raise it")
             else:
                 msg = (f"{pct} of camera {cam}'s points have fewer than reconstruction.min_neighbours = "
                        f"{cfg.min_neighbours} of 8 neighbours within their jump limit: the surface is noisy or "
-                       "fragmented (focus, camera noise settings); lower min_neighbours or set "
-                       "max_neighbour_jump_mm")
+                       "fragmented (focus, camera noise settings); lower min_neighbours or raise "
+                       "neighbour_jump_sigmas")
             out.append(msg)
     return out
 
