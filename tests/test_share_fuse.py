@@ -186,6 +186,8 @@ def test_hung_share_spools_within_the_deadline_and_status_answers(hangfs: HangFs
     for _ in range(5):
         assert not bounded(w.status, 5)[0]["available"]
     assert bounded(w.flush_spool, 5)[0] == []
+    again = make_writer(hangfs, tmp_path)  # as a reload makes a new writer: it shares the hung share's slot
+    assert "does not answer" in bounded(again.share_problem, 5)[0]
     assert len(share_op_threads()) == 1, "at most one outstanding operation per share"
     # the share answers again: the abandoned operation ends, a fresh probe succeeds, the spool moves in order
     hangfs.send("go")

@@ -249,6 +249,29 @@ class ShareGate:
         raise value
 
 
+_GATES: dict[str, ShareGate] = {}
+_GATES_LOCK = threading.Lock()
+
+
+def gate_for(directory: Path, timeout_s: float) -> ShareGate:
+    """The one :class:`ShareGate` of a share in this process (a writer made anew on a reload shares it, so an
+    operation hung on the old one still keeps every other off the mount)."""
+    key = os.path.abspath(directory)
+    with _GATES_LOCK:
+        gate = _GATES.get(key)
+        if gate is None:
+            gate = _GATES[key] = ShareGate(str(directory), timeout_s)
+        gate.timeout_s = timeout_s
+        return gate
+
+
+def _unlink_if_there(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
 @dataclass(frozen=True)
 class _SpoolFile:
     name: str
@@ -285,7 +308,7 @@ class ShareWriter:
         self.dropped = 0
         self.quarantined = 0
         self.last_reason = ""
-        self.gate = ShareGate(str(self.directory), cfg.share_timeout_s)
+        self.gate = gate_for(self.directory, cfg.share_timeout_s)
         self.delivered: deque[str] = deque(maxlen=10_000)  # scan ids, in the order their sidecars appeared
         self._state = threading.Lock()
         self._failure: tuple[str, float] | None = None
@@ -383,12 +406,16 @@ class ShareWriter:
 
     def _set_journal(self, records: list[dict[str, str]]) -> None:
         path = self.spool / JOURNAL_FILE
-        if records:
-            self.spool.mkdir(parents=True, exist_ok=True)
-            write_bytes_atomic(path, json.dumps(records).encode())
-        elif path.exists():
-            path.unlink()
-            fsync_dir(self.spool)
+        try:
+            if records:
+                self.spool.mkdir(parents=True, exist_ok=True)
+                write_bytes_atomic(path, json.dumps(records).encode())
+            elif path.exists():
+                path.unlink()
+                fsync_dir(self.spool)
+        except OSError as exc:
+            raise OutputError(f"spool {self.spool}: the share journal {JOURNAL_FILE} cannot be written "
+                              f"({exc.strerror or exc}); check the local disk") from exc
 
     def _clean_share_leftovers(self) -> int:
         """Remove what the journal says may be half-written on the share: temporary files, and a scan's
@@ -415,7 +442,7 @@ class ShareWriter:
             complete = f"{sid}.json" in names
             for n in names:
                 if n.startswith(f"{TMP_PREFIX}{sid}") or (not complete and n in (f"{sid}.ply", f"{sid}.png")):
-                    self._op(f"removing {n}", partial(os.unlink, folder / n))
+                    self._op(f"removing {n}", partial(_unlink_if_there, folder / n))
                     log.info("share: removed %s left by an unfinished write", folder / n)
                     removed += 1
             if removed:
@@ -525,8 +552,10 @@ class ShareWriter:
             except OutputError as exc:
                 log.warning("share: leftovers of scan %s stay until it answers (%s)", scan_id, exc)
             raise
-        records = [r for r in self._journal() if r["scan_id"] != scan_id]
-        self._set_journal(records)
+        try:
+            self._set_journal([r for r in self._journal() if r["scan_id"] != scan_id])
+        except OutputError as exc:  # the scan is complete on the share; a stale note only costs a listing
+            log.warning("%s", exc)
         self.delivered.append(scan_id)
         return [dst for dst, _ in placed]
 
@@ -723,6 +752,15 @@ class ShareWriter:
             dropped.append(e.name)
             why = "older than output.spool_max_age_days" if too_old else "spool over output.spool_max_mb"
             log.warning("spool retention dropped %s (%s)", e.name, why)
+        qdir = self.spool / QUARANTINE_DIR
+        try:
+            for q in qdir.iterdir():  # kept for a look, as long as spooled scans are
+                if now - q.stat().st_mtime > max_age:
+                    shutil.rmtree(q, ignore_errors=True)
+                    log.warning("spool retention dropped quarantined %s (older than output.spool_max_age_days)",
+                                q.name)
+        except OSError:
+            pass
         self.dropped += len(dropped)
         return dropped
 
