@@ -354,3 +354,17 @@ def test_share_out_of_inodes_is_not_available(dirs: SimpleNamespace, monkeypatch
     out = w.write_scan("2026-01-01", meta(1), cloud(), SHAPES)
     assert out.location == "spool" and "inodes" in out.reason
     assert not w.status()["available"]
+
+
+def test_start_removes_old_temporary_files_not_a_write_in_progress(dirs: SimpleNamespace) -> None:
+    """A temporary file an older writer (without the journal) left an hour ago goes at start; a fresh one,
+    perhaps another appliance's write in progress on the same share, stays."""
+    folder = dirs.share / "2026-01-02"
+    folder.mkdir()
+    old, fresh = folder / f"{TMP_PREFIX}x-000001.ply.123", folder / f"{TMP_PREFIX}y-000001.ply.456"
+    old.write_bytes(b"partial")
+    fresh.write_bytes(b"in progress")
+    t = time.time() - S.STALE_TMP_S - 60
+    os.utime(old, (t, t))
+    assert writer(dirs).cleanup_incomplete() == 1
+    assert not old.exists() and fresh.exists()

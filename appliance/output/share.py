@@ -65,6 +65,7 @@ MB = 1024 * 1024
 CHUNK = 4 * MB  # one write to the share, one deadline
 FAILURE_HOLD_S = 30.0  # after a failed operation the share counts as away this long (s)
 MIN_FREE_INODES = 16  # fewer free inodes than this on the share (where it counts them): full
+STALE_TMP_S = 3600.0  # at start, temporary files this old in the newest day folders are removed (s)
 STATUS_WAIT_S = 0.5  # status waits this long for a probe, then answers from the last one (s)
 _DAY = re.compile(r"\d{4}-\d{2}-\d{2}")
 
@@ -654,8 +655,29 @@ class ShareWriter:
             self._quarantine_strays()
         try:
             removed += self._clean_share_leftovers()
+            removed += self._op("sweeping old temporary files", self._sweep_stale_tmp)
         except OutputError as exc:
             log.warning("share: leftovers of an unfinished write are removed when it answers (%s)", exc)
+        return removed
+
+    def _sweep_stale_tmp(self) -> int:
+        """Temporary files older than :data:`STALE_TMP_S` in the two newest day folders (left by a writer
+        without a journal, e.g. an older version; a write in progress, also another appliance's, is younger)."""
+        if not self.directory.is_dir():
+            return 0
+        days = sorted(n for n in os.listdir(self.directory) if _DAY.fullmatch(n))[-2:]
+        removed = 0
+        now = time.time()
+        for day in days:
+            folder = self.directory / day
+            for n in os.listdir(folder):
+                p = folder / n
+                if n.startswith(TMP_PREFIX) and p.is_file() and now - p.stat().st_mtime > STALE_TMP_S:
+                    _unlink_if_there(p)
+                    log.info("share: removed %s, a temporary file left by an unfinished write", p)
+                    removed += 1
+            if removed:
+                fsync_dir(folder)
         return removed
 
     def _write_spool(self, day: str, scan_id: str, contents: list[FileContent]) -> list[Path]:
