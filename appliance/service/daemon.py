@@ -205,7 +205,7 @@ class Service:
     async def status_async(self) -> dict[str, Any]:
         """What ``scan3d status --json`` shows, with a fresh look at the share."""
         snap = self.status()
-        snap["share"] = await self.output.call(self.writer.status)
+        snap["share"] = await asyncio.to_thread(self.writer.status)  # any thread; waits for neither share nor writer
         return snap
 
     # --- lifecycle -------------------------------------------------------------------------------
