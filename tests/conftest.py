@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 import importlib.machinery
 import importlib.util
 import os
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -32,3 +36,72 @@ def without_pygame(monkeypatch: pytest.MonkeyPatch) -> None:
         return None if name.split(".")[0] == "pygame" else real(name, package)
 
     monkeypatch.setattr(importlib.util, "find_spec", find_spec)
+
+
+# --- the event-loop guard: no blocking call inside the loop, no leaked thread ------------------------------
+
+# A loop callback (a task step included) that computes on the loop thread for longer than this (s, CPU time)
+# fails the test: work that belongs in a thread.
+SLOW_CALLBACK_S = 0.02
+# A callback that keeps the loop for longer than this (s, wall time less the time the thread waited for a
+# CPU) fails the test: a blocking call (sleep, connect, a wait for a thread, I/O). Larger than the CPU limit
+# because waiting for the GIL, held meanwhile by a worker thread (numba loading kernels, numpy), counts here.
+BLOCKED_CALLBACK_S = 0.25
+# Threads started by a test get this long (s) to end after it before they count as leaked.
+THREAD_GRACE_S = 5.0
+
+
+def _run_delay_s() -> float:
+    """Time this thread has spent runnable but waiting for a CPU (s), from the scheduler's statistics."""
+    try:
+        with open("/proc/thread-self/schedstat", "rb") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return 0.0  # no schedstat: plain wall time
+
+
+@pytest.fixture
+def loop_guard(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Fail the test when one event-loop callback (a task step included) computes on the loop for more than
+    :data:`SLOW_CALLBACK_S` or blocks it for more than :data:`BLOCKED_CALLBACK_S`, or when a thread the test
+    started is still running :data:`THREAD_GRACE_S` after it.
+
+    Computing is the loop thread's CPU time; blocking is wall time less the time the thread waited for a CPU
+    (other processes on a busy machine). asyncio's debug mode would measure plain wall time and add its own
+    bookkeeping to every callback, which alone pushes task steps past 20 ms on a loaded machine. Warm numba's
+    kernels before the measured part: the first call of a kernel compiles or loads it.
+    """
+    before = set(threading.enumerate())
+    slow: list[str] = []
+    real_run = asyncio.events.Handle._run
+
+    def timed_run(handle: asyncio.events.Handle) -> None:
+        t0, c0, d0 = time.perf_counter(), time.thread_time(), _run_delay_s()
+        try:
+            real_run(handle)
+        finally:
+            cpu = time.thread_time() - c0
+            held = time.perf_counter() - t0 - (_run_delay_s() - d0)
+            if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S:
+                slow.append(f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held, in {_describe(handle)}")
+
+    monkeypatch.setattr(asyncio.events.Handle, "_run", timed_run)
+    yield
+    end = time.monotonic() + THREAD_GRACE_S
+    leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+    while leaked and time.monotonic() < end:
+        time.sleep(0.05)
+        leaked = [t for t in leaked if t.is_alive()]
+    assert not slow, "the event loop was blocked: " + "; ".join(slow[:5])
+    assert not leaked, f"threads left running after the test: {[t.name for t in leaked]}"
+
+
+def _describe(handle: asyncio.events.Handle) -> str:
+    cb = getattr(handle, "_callback", None)
+    task = getattr(cb, "__self__", None)
+    if isinstance(task, asyncio.Task):
+        coro = task.get_coro()
+        frame = getattr(coro, "cr_frame", None)
+        where = f" at {frame.f_code.co_filename.rsplit('/', 1)[-1]}:{frame.f_lineno}" if frame is not None else ""
+        return f"task {task.get_name()} ({getattr(coro, '__qualname__', coro)}{where})"
+    return repr(handle)[:200]

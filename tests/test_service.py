@@ -34,6 +34,9 @@ from appliance.service.control import request
 from appliance.service.notify import SdNotifier
 from appliance.service.state import Phase, State
 
+
+pytestmark = pytest.mark.usefixtures("loop_guard")
+
 # --- fakes -----------------------------------------------------------------------------------------------
 
 

@@ -59,6 +59,8 @@ SMALL_RIG = {
 }
 
 
+pytestmark = pytest.mark.usefixtures("loop_guard")
+
 def write_config(
     tmp: Path,
     *,

@@ -51,6 +51,9 @@ def change_rig(config: Path) -> None:
     config.write_text(yaml.safe_dump(doc))
 
 
+
+pytestmark = pytest.mark.usefixtures("loop_guard")
+
 # --- the reload / trigger race ------------------------------------------------------------------------------
 
 

@@ -50,6 +50,8 @@ __all__ = ["STATE_FILE", "Service", "TriggerEvent", "run_service"]
 
 log = logging.getLogger(__name__)
 
+AFTER_SCAN_GRACE_S = 10.0  # at stop, the last scan's bookkeeping gets this long
+
 StateListener = Callable[[StatusBoard], None]
 ScanListener = Callable[[ScanRecord], None]
 
@@ -127,6 +129,7 @@ class Service:
         self.control: ControlServer | None = None
         self.watcher: ConfigWatcher | None = None
         self.successful_scans = 0
+        select_threading_layer()  # before any parallel kernel runs
         self.scan_lock = asyncio.Lock()  # held by a scan and by every change of the rig
         self.output = ScanOutput(self, self.cfg)
         self.jobs = ScanJobs(self)
@@ -217,13 +220,18 @@ class Service:
         reason; systemd's ``Restart=on-failure`` starts it again).
         """
         loop = asyncio.get_running_loop()
-        select_threading_layer()
         self._install_signals(loop)
         self.board.subscribe(self.publisher.publish)
         self.board.set_state(State.STARTING, "loading configuration", Phase.LOAD_CONFIG)
-        await self.output.start()
-        self.control = ControlServer(self.socket_path, self.handlers.handle)
-        await self.control.start()
+        try:
+            await self.output.start()
+            self.control = ControlServer(self.socket_path, self.handlers.handle)
+            await self.control.start()
+        except BaseException:  # e.g. another service on the socket: nothing may be left running
+            self.control = None
+            await asyncio.to_thread(self.output.close)
+            self.board.unsubscribe(self.publisher.publish)
+            raise
         self.spawn(self.publisher.start_mdns(), "mdns", critical=False)  # probing takes ~2 s: never delays the start
         self.watcher = ConfigWatcher(self.config_path, self._apply_config, self._config_rejected,
                                      self.cfg.service.config_poll_s)
@@ -317,6 +325,8 @@ class Service:
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await current
         self.jobs.abort_active(self.jobs.abort_reason)  # the waiting client gets its reply
+        if self.jobs.after_scan:  # the last scan's state file (and ground-truth line) are still being written
+            await asyncio.wait(set(self.jobs.after_scan), timeout=AFTER_SCAN_GRACE_S)
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

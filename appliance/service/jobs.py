@@ -7,15 +7,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import importlib
 import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from appliance.errors import ApplianceError, OutputError
 from appliance.hardware.base import TriggerEvent
+from appliance.output.scanfiles import make_scan_id
 from appliance.output.share import WriteOutcome, estimate_scan_bytes
+from appliance.scan import scan_metadata
 from appliance.service.state import ScanRecord, State
 
 if TYPE_CHECKING:
@@ -52,6 +55,7 @@ class ScanJobs:
         self.active: Job | None = None  # taken from the queue, not finished (waiting for the lock included)
         self.scan_id = ""  # of the running scan
         self.abort_reason = "aborted (stopping)"
+        self.after_scan: set[asyncio.Task[None]] = set()  # bookkeeping of finished scans, still running
         self.heartbeat = time.monotonic()  # the worker's last sign of life (idle: every HEARTBEAT_S)
         self.deadline: float | None = None  # monotonic time by which the running job must be done
 
@@ -172,9 +176,6 @@ class ScanJobs:
             return rec
 
     async def _scan(self, event: TriggerEvent, started: dt.datetime) -> ScanRecord:
-        from appliance.output.scanfiles import make_scan_id
-        from appliance.scan import scan_metadata
-
         svc = self.svc
         out = svc.output
         scanner, cfg, b = svc.scanner, svc.cfg, svc.board
@@ -237,15 +238,26 @@ class ScanJobs:
         svc.successful_scans += 1
         b.counters["scans_done"] += 1
         b.add_scan(rec)
-        b.share = await out.call(out.writer.status)
-        await out.save_state()
         log.info("scan %s: %d points, %.0f ms trigger to file; %s: %s", scan_id, len(result.cloud),
                  timings["trigger_to_file_ms"], outcome.location, outcome.files[0] if outcome.files else "-")
         b.set_state(svc.hardware.idle_state(), "ready")
+        # the bookkeeping goes on beside the next scan (the writer thread keeps the order of the files)
         virtual = getattr(svc.rig, "virtual", None)
-        if svc.ground_truth and virtual is not None:  # after "ready": a demonstration aid, off the loop
-            from appliance.sim.accuracy import compare_to_ground_truth
-
-            report = await out.call(compare_to_ground_truth, result.cloud, virtual, list(cfg.cameras))
-            log.info("scan %s: error against ground truth: %s", scan_id, report.line())
+        cloud = result.cloud if svc.ground_truth and virtual is not None else None
+        self._after(self._bookkeeping(scan_id, cloud, virtual, list(cfg.cameras)))
         return rec
+
+    def _after(self, coro: Any) -> None:
+        task = self.svc.spawn(coro, "after-scan", critical=False)
+        self.after_scan.add(task)
+        task.add_done_callback(self.after_scan.discard)
+
+    async def _bookkeeping(self, scan_id: str, cloud: Any, virtual: Any, cameras: list[str]) -> None:
+        """After a scan: the share's state, the state file, and (a demonstration aid) the ground-truth error."""
+        out = self.svc.output
+        self.svc.board.share = await out.call(out.writer.status)
+        await out.save_state()
+        if cloud is not None:
+            accuracy = await asyncio.to_thread(importlib.import_module, "appliance.sim.accuracy")
+            report = await out.call(accuracy.compare_to_ground_truth, cloud, virtual, cameras)
+            log.info("scan %s: error against ground truth: %s", scan_id, report.line())

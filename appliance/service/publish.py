@@ -8,6 +8,7 @@ is refused).
 from __future__ import annotations
 
 import asyncio
+import importlib
 import logging
 import time
 from typing import TYPE_CHECKING, Any
@@ -106,10 +107,9 @@ class Publisher:
         m = self.svc.cfg.service.mdns
         if not m.enabled:
             return
-        from appliance.output.mdns import MdnsAnnouncer
-
+        mdns = await asyncio.to_thread(importlib.import_module, "appliance.output.mdns")  # zeroconf: slow import
         try:
-            ann = MdnsAnnouncer(m)
+            ann = mdns.MdnsAnnouncer(m)
             await ann.start(self.txt_record())
         except (OSError, ApplianceError) as exc:
             self.svc.board.error("mdns", f"mDNS announcement on {list(m.interfaces)} failed: {exc}")
