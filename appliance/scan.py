@@ -202,8 +202,9 @@ class Scanner:
 
             return on_frame
 
-        for dec in self._decoders.values():
-            dec.reset()
+        # each decoder is reset in its own thread (clearing its state is ~100 MB of writes): after any push
+        # still queued there from an earlier scan, and off the event loop
+        await asyncio.gather(*(loop.run_in_executor(self._executors[n], d.reset) for n, d in self._decoders.items()))
         try:
             for name, cam in self.rig.cameras.items():
                 await cam.arm(n, self._buffers[name], on_frame_factory(name))
@@ -231,10 +232,15 @@ class Scanner:
             await asyncio.sleep(0)  # let the last call_soon_threadsafe callbacks run
             await asyncio.gather(*pushes)
         except (CameraError, HardwareError) as exc:
+            await self._settle(pushes)
             await self._abort()
             raise ScanError(f"scan failed: {exc}") from exc
         except ApplianceError:
+            await self._settle(pushes)
             await self._abort()
+            raise
+        except BaseException:  # cancelled (timeout, stop) or a bug: the pushes in flight still finish first
+            await asyncio.shield(self._settle(pushes))
             raise
         timings["capture_ms"] = (time.perf_counter() - t0) * 1e3
         t1 = time.perf_counter()
@@ -263,6 +269,12 @@ class Scanner:
         shift = self._bits.get(name, 16) - 8  # the camera's significant bits, not the container's
         return np.asarray(np.minimum(w >> shift, 255), dtype=np.uint8)
 
+    @staticmethod
+    async def _settle(pushes: list[asyncio.Future[None]]) -> None:
+        """Wait for the frame pushes already handed to the decode threads (a failed scan ends after them)."""
+        await asyncio.sleep(0)  # the last call_soon_threadsafe callbacks add their futures
+        await asyncio.gather(*pushes, return_exceptions=True)
+
     async def _abort(self) -> None:
         try:
             await self.rig.projector.stop()
@@ -275,9 +287,10 @@ class Scanner:
             await cam.close()
         await self.rig.projector.stop()
         await self.rig.projector.close()
-        for ex in self._executors.values():
-            ex.shutdown(wait=True)
+        executors = list(self._executors.values())
         self._executors.clear()
+        if executors:  # waits for the decode threads: not on the event loop
+            await asyncio.get_running_loop().run_in_executor(None, lambda: [ex.shutdown(wait=True) for ex in executors])
         self._opened = False
 
 
