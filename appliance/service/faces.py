@@ -190,6 +190,7 @@ class ServiceFaces:
         self._cloud_cache: tuple[str, bytes] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self.disabled: dict[str, str] = {}  # face -> why it is off although configured
+        self.started = asyncio.Event()  # set once every configured face is up or disabled
 
     # --- the view ----------------------------------------------------------------------------------
 
@@ -387,6 +388,7 @@ class ServiceFaces:
         self.host.subscribe(self._on_board, self._on_scan)
         for name, section in self._wanted(self.cfg).items():
             await self._start_face(name, section)
+        self.started.set()
 
     async def apply(self, new: AppConfig) -> None:
         """Take a new configuration: restart only the faces whose section changed."""

@@ -200,7 +200,15 @@ class HttpFace:
             log.warning("HTTP: %s %s from %s: 429 (over service.http.rate_per_s = %g)", request.method,
                         request.path, peer, self.cfg.rate_per_s)
             return web.json_response({"ok": False, "error": "too many requests; slow down"}, status=429)
+        limit = self.cfg.max_request_kb * 1024
+        if request.body_exists and (request.content_length or 0) > limit:
+            log.warning("HTTP: %s %s from %s: 413 (body of %d bytes, over service.http.max_request_kb = %d)",
+                        request.method, request.path, peer, request.content_length, self.cfg.max_request_kb)
+            return web.json_response({"ok": False, "error": f"request body over {self.cfg.max_request_kb} KiB"},
+                                     status=413)
         try:
+            if request.body_exists:
+                await request.read()  # bounded by client_max_size (a chunked body too)
             resp = await handler(request)
         except web.HTTPException as exc:
             if exc.status == 413:

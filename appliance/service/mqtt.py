@@ -69,6 +69,12 @@ class MqttFace:
         self.connected = asyncio.Event()
         self.connects = 0
         self.dropped = 0
+        self.sent = 0  # outbox messages the broker took
+
+    @property
+    def queued(self) -> int:
+        """Messages waiting for the broker."""
+        return len(self._outbox)
 
     def topic(self, name: str) -> str:
         """``<prefix>/<name>``."""
@@ -187,6 +193,7 @@ class MqttFace:
                 await client.publish(topic, payload, qos=1)
                 if self._outbox and self._outbox[0] == (topic, payload):
                     self._outbox.popleft()  # sent: only now (a failed send stays queued)
+                self.sent += 1
 
     async def _listen(self, client: aiomqtt.Client) -> None:
         async for message in client.messages:

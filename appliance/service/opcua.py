@@ -76,7 +76,7 @@ class _Users:
 
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
                  certificate: Any = None) -> User | None:
-        if username is None and password is None and certificate is None:
+        if username is None and password is None:  # anonymous token (a certificate here is the channel's)
             return User(role=UserRole.Anonymous)
         if (self.username is not None and self.password is not None and username == self.username
                 and hmac.compare_digest(str(password or "").encode(), self.password.encode())):

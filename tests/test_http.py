@@ -1,0 +1,175 @@
+"""The HTTP face on 127.0.0.1: the API with a real aiohttp client against the service on the small virtual
+rig (a copy of config/appliance.yaml with service.http enabled): the token on every write, the files of known
+scans only, server-sent events, request bounds, and a missing aiohttp disabling only this face."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import numpy as np
+import pytest
+import yaml
+from faces_helpers import TOKEN, appliance_copy, faces_of, free_port, running_service, token_file
+from plyfile import PlyData
+
+from appliance.service.control import request
+
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def http_config(tmp: Path, **http: Any) -> tuple[Path, str]:
+    port = free_port()
+    cfg = appliance_copy(tmp, http={"listen": f"127.0.0.1:{port}", "token_file": str(token_file(tmp)), **http})
+    return cfg, f"http://127.0.0.1:{port}"
+
+
+def test_reference_config_leaves_http_off(tmp_path: Path) -> None:
+    doc = yaml.safe_load(appliance_copy(tmp_path).read_text())
+    assert doc["service"]["http"]["listen"] is None
+
+    async def main() -> None:
+        async with running_service(appliance_copy(tmp_path)) as svc:
+            assert faces_of(svc).face("http") is None and not faces_of(svc).disabled
+
+    asyncio.run(main())
+
+
+def test_trigger_needs_the_token_and_the_scan_is_served(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    cfg, base = http_config(tmp_path)
+    caplog.set_level(logging.INFO)
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            async with http.post(f"{base}/api/trigger") as r:
+                assert r.status == 401 and r.headers["WWW-Authenticate"].startswith("Bearer")
+            async with http.post(f"{base}/api/trigger", headers={"Authorization": "Bearer wrong-guess-42"}) as r:
+                assert r.status == 401
+            assert svc.board.counters["triggers"] == 0  # refused before the service saw it
+
+            async with http.post(f"{base}/api/trigger?wait=1", headers=AUTH) as r:
+                assert r.status == 200
+                reply = await r.json()
+            scan = reply["scan"]
+            assert reply["ok"] and reply["result"] == "started" and scan["trigger"] == "http" and scan["points"] > 1000
+            async with http.get(f"{base}/api/scans?limit=5") as r:
+                listed = (await r.json())["scans"]
+            assert listed[0]["scan_id"] == scan["scan_id"] and listed[0]["timings_ms"]["trigger_to_file_ms"] > 0
+            assert "calibration_health" in listed[0]
+
+            async with http.get(f"{base}/api/status") as r:
+                st = await r.json()
+            ctl = (await asyncio.to_thread(request, svc.socket_path, {"cmd": "status"}))["status"]
+            assert set(st) == set(ctl) and st["counters"] == ctl["counters"] and st["state"] == "idle"
+            assert st["last_scans"][-1]["scan_id"] == scan["scan_id"]
+
+            sid = scan["scan_id"]
+            async with http.get(f"{base}/api/scans/{sid}/preview.png") as r:
+                assert r.status == 200 and (await r.read())[:8] == b"\x89PNG\r\n\x1a\n"
+            async with http.get(f"{base}/api/scans/{sid}/sidecar.json") as r:
+                assert json.loads(await r.read())["scan_id"] == sid
+            ply = tmp_path / "got.ply"
+            async with http.get(f"{base}/api/scans/{sid}/cloud.ply") as r:
+                await asyncio.to_thread(ply.write_bytes, await r.read())
+            v = (await asyncio.to_thread(PlyData.read, str(ply)))["vertex"]
+            assert v.count == scan["points"]
+            async with http.get(f"{base}/api/scans/{sid}/cloud.bin") as r:
+                xyz = np.frombuffer(await r.read(), "<f4").reshape(-1, 3)
+            assert 1000 < len(xyz) <= 20000 and int(r.headers["X-Points"]) == len(xyz)
+            full = np.stack([v["x"], v["y"], v["z"]], 1)
+            assert np.all(xyz.min(0) >= full.min(0)) and np.all(xyz.max(0) <= full.max(0))
+            np.testing.assert_array_equal(xyz[0], full[0])
+
+            # only files of known scans: no traversal, no unknown ids, no other names
+            for path in ("/api/scans/..%2F..%2F..%2Fetc%2Fpasswd/cloud.ply", f"/api/scans/{sid}/..%2Fx.ply",
+                         f"/api/scans/{sid[:-1]}9/cloud.ply", f"/api/scans/{sid}/cloud.ply.tmp",
+                         "/static/../faces.py", "/static/%2e%2e%2ffaces.py"):
+                async with http.get(base + path) as r:
+                    assert r.status == 404, path
+
+    asyncio.run(main())
+    text = caplog.text
+    assert text.count("refused: 401") == 2 and "127.0.0.1" in text
+    assert TOKEN not in text and "wrong-guess-42" not in text
+
+
+def test_events_stream_state_and_finished_scan(tmp_path: Path) -> None:
+    cfg, base = http_config(tmp_path)
+
+    async def main() -> None:
+        async with running_service(cfg), aiohttp.ClientSession() as http:
+            async with http.get(f"{base}/api/events") as stream:
+                assert stream.headers["Content-Type"].startswith("text/event-stream")
+
+                async def next_event() -> tuple[str, dict[str, Any]]:
+                    kind, data = "", ""
+                    while True:
+                        line = (await stream.content.readline()).decode().rstrip("\n")
+                        if line.startswith("event: "):
+                            kind = line[7:]
+                        elif line.startswith("data: "):
+                            data = line[6:]
+                        elif not line and kind:
+                            return kind, json.loads(data)
+
+                kind, first = await asyncio.wait_for(next_event(), 5)
+                assert kind == "state" and first["state"] == "idle"
+                async with http.post(f"{base}/api/trigger", headers=AUTH) as r:
+                    assert (await r.json())["result"] == "started"
+                states, scan = [], None
+                while scan is None:
+                    kind, ev = await asyncio.wait_for(next_event(), 10)
+                    if kind == "state":
+                        states.append(ev["state"])
+                    else:
+                        scan = ev
+                assert "scanning" in states and scan["ok"] and scan["trigger"] == "http"
+                assert scan["calibration_health"] is None  # this rig's sidecars carry none
+            async with http.get(f"{base}/api/scans?limit=1") as r:
+                assert (await r.json())["scans"][0]["scan_id"] == scan["scan_id"]
+
+    asyncio.run(main())
+
+
+def test_request_size_rate_and_stream_bounds(tmp_path: Path) -> None:
+    cfg, base = http_config(tmp_path, rate_per_s=3, max_request_kb=4, max_event_clients=1)
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            async with http.post(f"{base}/api/trigger", headers=AUTH, data=b"x" * 64 * 1024) as r:
+                assert r.status == 413
+            await asyncio.sleep(1.0)  # refill the bucket
+            codes = []
+            for _ in range(12):
+                async with http.get(f"{base}/api/status") as r:
+                    codes.append(r.status)
+            assert codes[:6] == [200] * 6 and 429 in codes  # a burst of twice the rate, then refused
+            await asyncio.sleep(1.0)
+            async with http.get(f"{base}/api/events") as first:
+                assert first.status == 200
+                async with http.get(f"{base}/api/events") as second:
+                    assert second.status == 503
+            assert svc.board.counters["triggers"] == 0
+
+    asyncio.run(main())
+
+
+def test_missing_aiohttp_disables_only_the_http_face(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg, _ = http_config(tmp_path)
+    monkeypatch.setitem(sys.modules, "aiohttp", None)  # import aiohttp raises ImportError
+    monkeypatch.delitem(sys.modules, "appliance.service.http", raising=False)
+
+    async def main() -> None:
+        async with running_service(cfg) as svc:
+            why = faces_of(svc).disabled["http"]
+            assert "aiohttp" in why and "pip install" in why
+            assert svc.board.last_error is not None and "http face disabled" in svc.board.last_error.message
+            reply = await asyncio.to_thread(request, svc.socket_path, {"cmd": "trigger", "wait": True})
+            assert reply["ok"] and reply["scan"]["points"] > 1000
+
+    asyncio.run(main())

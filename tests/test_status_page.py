@@ -1,0 +1,92 @@
+"""The status page in a real headless Chromium (Debian's ``chromium``, driven over its DevTools socket on
+127.0.0.1): it shows the state, follows the service live over /api/events (a new scan id within 5 s), draws
+the preview and the cloud, triggers with the token it asks for once, refuses a wrong one, and fits a phone."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from pathlib import Path
+
+import aiohttp
+from faces_helpers import TOKEN, Chromium, appliance_copy, free_port, running_service, token_file
+
+SHOT = os.environ.get("SCAN3D_STATUS_PAGE_SCREENSHOT")  # set to write the README's screenshot
+
+
+def test_page_follows_the_service_live(tmp_path: Path) -> None:
+    port = free_port()
+    cfg = appliance_copy(tmp_path, http={"listen": f"127.0.0.1:{port}", "token_file": str(token_file(tmp_path))})
+    base = f"http://127.0.0.1:{port}"
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            browser = Chromium(base + "/")
+            try:
+                await browser.connect()
+                await browser.call("Runtime.enable")
+                el = "document.getElementById"
+
+                async def until(expr: str, timeout_s: float) -> float:
+                    t0 = time.monotonic()
+                    while not await browser.evaluate(expr):
+                        if time.monotonic() - t0 > timeout_s:
+                            raise AssertionError(f"page: {expr} not true within {timeout_s} s")
+                        await asyncio.sleep(0.05)
+                    return time.monotonic() - t0
+
+                await until(f"{el}('state').textContent === 'idle' && {el}('link').textContent === 'live'", 30)
+                assert await browser.evaluate(f"{el}('last-id').textContent") == "none yet"
+
+                # a scan from elsewhere shows up live
+                async with http.post(f"{base}/api/trigger?wait=1", headers={"Authorization": f"Bearer {TOKEN}"}) as r:
+                    sid = (await r.json())["scan"]["scan_id"]
+                shown_after = await until(f"{el}('last-id').textContent === '{sid}'", 5.0)
+                assert shown_after < 5.0
+                await until(f"{el}('scans').textContent.includes('{sid}')", 5)
+                await until(f"{el}('preview').naturalWidth > 0 && !{el}('preview').hidden", 5)
+                await until(f"{el}('cloud-info').textContent.includes('points shown')", 5)
+                lit = await browser.evaluate(
+                    f"(() => {{ const c = {el}('cloud'); const d = c.getContext('2d').getImageData(0, 0, c.width,"
+                    " c.height).data; let n = 0; for (let i = 0; i < d.length; i += 4) if (d[i] > 40) n++;"
+                    " return n; })()")
+                assert lit > 2000  # the cloud is drawn
+                assert await browser.evaluate(f"{el}('health-text').textContent") == "not measured"
+                assert "SIM-0001" in await browser.evaluate(f"{el}('config').textContent")
+
+                # the trigger button asks for the token once; a wrong one is refused and forgotten
+                await browser.evaluate("window.prompt = () => 'not-the-token'; "
+                                       f"{el}('trigger').click()")
+                await until(f"{el}('trigger-result').textContent.includes('wrong token')", 5)
+                assert svc.board.counters["triggers"] == 1
+                await browser.evaluate(f"window.prompt = () => '{TOKEN}'; {el}('trigger').click()")
+                await until(f"{el}('last-id').textContent !== '{sid}' && "
+                            f"{el}('last-id').textContent.endsWith('000002')", 10)
+                assert svc.board.last_scans[-1].trigger == "http" and svc.board.counters["scans_done"] == 2
+                await browser.evaluate("window.prompt = () => { throw new Error('asked twice'); }; "
+                                       f"{el}('trigger').click()")
+                await until(f"{el}('last-id').textContent.endsWith('000003')", 10)  # token remembered
+
+                if SHOT:
+                    await browser.call("Emulation.setDeviceMetricsOverride", width=1100, height=1180,
+                                       deviceScaleFactor=1, mobile=False)
+                    await asyncio.sleep(0.5)
+                    await browser.screenshot(Path(SHOT))
+                # a phone: nothing wider than the screen
+                await browser.call("Emulation.setDeviceMetricsOverride", width=390, height=844,
+                                   deviceScaleFactor=2, mobile=True)
+                await asyncio.sleep(1.0)
+                wide = await browser.evaluate(  # which cards overflow, to say so when one does
+                    "[...document.querySelectorAll('.card')].filter(c => c.scrollWidth > c.clientWidth + 1)"
+                    ".map(c => c.querySelector('h2') ? c.querySelector('h2').textContent : c.className).join('; ')")
+                assert await browser.evaluate("document.documentElement.scrollWidth") <= 390, wide
+                shot = tmp_path / "phone.png"
+                await browser.screenshot(shot)
+                assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+                errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
+                assert not errors, errors
+            finally:
+                await browser.close()
+
+    asyncio.run(main())
