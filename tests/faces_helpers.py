@@ -72,10 +72,8 @@ def token_file(tmp: Path, token: str = TOKEN) -> Path:
 
 def faces_of(svc: D.Service) -> ServiceFaces:
     """The service's line-integration faces."""
-    for ext in getattr(svc, "_extensions", []):
-        if isinstance(ext, ServiceFaces):
-            return ext
-    raise AssertionError("the service has no ServiceFaces extension")
+    assert isinstance(svc.faces, ServiceFaces)
+    return svc.faces
 
 
 async def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0, what: str = "condition") -> None:
@@ -90,9 +88,7 @@ async def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0, what: st
 @contextlib.asynccontextmanager
 async def running_service(config: Path) -> AsyncIterator[D.Service]:
     """The service of ``config`` running in this loop, ready (idle); stopped (and awaited) on exit."""
-    svc = D.Service(config)
-    if not any(isinstance(e, ServiceFaces) for e in getattr(svc, "_extensions", [])):  # TEMP until wired
-        svc.add_extension(ServiceFaces(svc))
+    svc = await asyncio.to_thread(D.Service, config)  # loading the configuration is file work
     task = asyncio.create_task(svc.run())
     try:
         await wait_until(lambda: (svc.board.state == "idle" and str(svc.board.phase) == "ready") or task.done(),

@@ -36,6 +36,7 @@ from appliance.config import AppConfig, load_config
 from appliance.hardware.base import TriggerEvent
 from appliance.output.share import ShareWriter
 from appliance.service.control import ControlServer
+from appliance.service.faces import ServiceFaces
 from appliance.service.handlers import ControlHandlers
 from appliance.service.health import HealthCheck
 from appliance.service.jobs import Job, ScanJobs
@@ -143,6 +144,8 @@ class Service:
         self.health = HealthCheck(self)
         self.exit_status = 0
         self._extensions: list[Extension] = []
+        self.faces = ServiceFaces(self)  # HTTP + status page, MQTT, OPC UA: each off unless configured
+        self.add_extension(self.faces)
 
     # --- the public surface ----------------------------------------------------------------------
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import importlib
 import json
 import logging
 import re
@@ -352,22 +353,16 @@ class ServiceFaces:
             want["opcua"] = s.opcua
         return want
 
-    def _make(self, name: str, section: Any) -> Face:
-        if name == "http":
-            from appliance.service.http import HttpFace
-
-            return HttpFace(section, self)
-        if name == "mqtt":
-            from appliance.service.mqtt import MqttFace
-
-            return MqttFace(section, self)
-        from appliance.service.opcua import OpcUaFace
-
-        return OpcUaFace(section, self)
+    async def _make(self, name: str, section: Any) -> Face:
+        # imported in a thread: asyncua and aiohttp take a while to import, the loop never waits for that
+        module = await asyncio.to_thread(importlib.import_module, f"appliance.service.{name}")
+        cls = {"http": "HttpFace", "mqtt": "MqttFace", "opcua": "OpcUaFace"}[name]
+        face: Face = getattr(module, cls)(section, self)
+        return face
 
     async def _start_face(self, name: str, section: Any) -> None:
         try:
-            face = self._make(name, section)
+            face = await self._make(name, section)
             await face.start()
         except ImportError as exc:
             pkg = {"http": "aiohttp", "mqtt": "aiomqtt", "opcua": "asyncua"}[name]
