@@ -208,11 +208,11 @@ def test_status_does_not_wait_for_a_probe_on_a_hung_share(hangfs: HangFs, tmp_pa
     assert w.status()["available"]
     hangfs.send("hang")
     st, took = bounded(w.status, 5)  # its probe hangs: it answers from the last one after S.STATUS_WAIT_S
-    assert took < S.STATUS_WAIT_S + 0.3
+    assert took < S.STATUS_WAIT_S + 0.5
     assert st["available"]  # not yet known to be away
     time.sleep(TIMEOUT_S + 0.1)
     st, took = bounded(w.status, 5)
-    assert took < 0.2 and not st["available"] and "does not answer" in st["problem"]
+    assert took < 0.3 and not st["available"] and "does not answer" in st["problem"]
     assert len(share_op_threads()) == 1
 
 
