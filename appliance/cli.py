@@ -69,6 +69,12 @@ def _cmd_trigger(a: argparse.Namespace) -> int:
     return trigger_command(a.config, a.socket, wait=a.wait)
 
 
+def _cmd_fleet(a: argparse.Namespace) -> int:
+    from appliance.fleet import fleet_command
+
+    return fleet_command(a.interface, a.timeout, a.json)
+
+
 def _cmd_devices(a: argparse.Namespace) -> int:
     from appliance.commands import devices_command
 
@@ -187,6 +193,12 @@ def build_parser() -> argparse.ArgumentParser:
             sp.add_argument("--json", action="store_true", help="machine-readable output")
         else:
             sp.add_argument("--wait", action="store_true", help="wait for the scan to finish")
+
+    sp = cmd("fleet", _cmd_fleet, "list the appliances announcing _scan3d._tcp (mDNS) on one interface")
+    sp.add_argument("--interface", default="127.0.0.1",
+                    help="IP address of the interface to browse on (default: %(default)s); never all of them")
+    sp.add_argument("--timeout", type=float, default=2.0, help="seconds to listen (default: %(default)s)")
+    sp.add_argument("--json", action="store_true", help="machine-readable output")
 
     sp = cmd("devices", _cmd_devices, "list the configured devices and whether they answer")
     config_arg(sp)
