@@ -138,7 +138,7 @@ def level_crossings(rect, code_offset, max_step, out):  # type: ignore[no-untype
 def _fit_line(tab, y, k, sy, sk, half, max_res):  # type: ignore[no-untyped-def]
     """Robust local line fit at (y, k) over the entries (y + d sy, k + d sk), |d| <= half."""
     hr, nk = tab.shape[0], tab.shape[1]
-    x0 = np.float64(tab[y, k])
+    x0 = float(tab[y, k])
     a = x0
     b = 0.0
     for it in range(2):
@@ -333,16 +333,22 @@ def cc_match(  # type: ignore[no-untyped-def]
     tol,
     zmin,
     zmax,
+    quality0,
+    noise,
     out,
     epi,
+    sigma,
     status,
 ):
     """Match every cam0 pixel on its rectified row of cam1 and triangulate (world frame, mm).
 
     ``lev0`` holds the pixels' codes in level units; ``geom`` = (a0min, a1min, bmin, step, baseline_mm);
     ``shift`` = (s0, sx, sy): cam1's row is ``y + s0 + sx * x + sy * y`` (a measured epipolar offset);
-    ``tol`` = (max_gap_px, max_row_jump_px, max_own_px, own_margin). ``epi`` receives the epipolar
-    residual (rectified px, NaN without v) and ``status`` the outcome (``ST_*``).
+    ``tol`` = (max_gap_px, max_row_jump_px, max_own_px, own_margin). ``noise`` = (phase_px, var_quant_px2,
+    var_intensity_dn2, 1 / e- per DN, 1 / level step): a continuous code's 1-sigma error is
+    ``phase_px sqrt(var_I) / quality`` projector px (the same in both cameras), a quantised code's match is
+    off by ``sqrt(var_quant_px2)`` rectified px. ``epi`` receives the epipolar residual (rectified px, NaN
+    without v), ``sigma`` each point's 1-sigma error along cam0's ray (mm) and ``status`` the outcome.
     """
     h, w = lev0.shape[0], lev0.shape[1]
     hr = cross1.shape[0]
@@ -354,6 +360,7 @@ def cc_match(  # type: ignore[no-untyped-def]
             out[r, col, 1] = _NAN
             out[r, col, 2] = _NAN
             epi[r, col] = _NAN
+            sigma[r, col] = _NAN
             fu = np.float64(lev0[r, col])
             if not (mask0[r, col] and fu == fu):
                 status[r, col] = ST_NONE
@@ -411,6 +418,19 @@ def cc_match(  # type: ignore[no-untyped-def]
             out[r, col, 1] = py
             out[r, col, 2] = pz
             status[r, col] = ST_OK
+            # 1-sigma of cam1's match position (rect px), from the code noise and cam1's code gradient there
+            if quantised:
+                sx = math.sqrt(noise[1])
+            else:
+                q = np.float64(quality0[r, col])
+                var_i = noise[2] + max(0.5 * q, 0.0) * noise[3]
+                su = noise[0] * math.sqrt(var_i) / q * noise[4] if q > 0.0 else np.inf  # level units
+                xa = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu), code_offset, max_gap, max_row_jump)
+                xb = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu) + 1.0, code_offset, max_gap, max_row_jump)
+                per_level = abs(xb - xa) if xa == xa and xb == xb else 1.0
+                sx = math.sqrt(2.0) * su * per_level
+            rng = math.sqrt((px - c0[0]) ** 2 + (py - c0[1]) ** 2 + (pz - c0[2]) ** 2)
+            sigma[r, col] = zr * rng / base * sx * step  # d(range)/d(disparity) = range * zr / base
     return out
 
 
@@ -469,3 +489,43 @@ def status_counts(status, n, out):  # type: ignore[no-untyped-def]
             if s < n:
                 out[r, s] += 1
     return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def isolated_keep_sigma(xyz, sigma, min_nb, const_mm, k_sigma, k_footprint, inv_f, max_sigma, keep):  # type: ignore[no-untyped-def]
+    """Keep a point with >= ``min_nb`` of its 8 neighbours within its own jump limit and sigma <= max_sigma.
+
+    The limit of a point is ``const_mm + k_sigma * sigma + k_footprint * depth / f`` (``inv_f`` = 1 / f px,
+    depth taken as the distance to the origin's z, i.e. the point's z).
+    """
+    h, w = xyz.shape[0], xyz.shape[1]
+    for r in prange(h):
+        for c in range(w):
+            keep[r, c] = False
+            x = np.float64(xyz[r, c, 0])
+            if x != x:
+                continue
+            s = np.float64(sigma[r, c])
+            if not s <= max_sigma and s == s:
+                continue
+            y = np.float64(xyz[r, c, 1])
+            z = np.float64(xyz[r, c, 2])
+            lim = const_mm + k_footprint * abs(z) * inv_f + (k_sigma * s if s == s else 0.0)
+            lim2 = lim * lim
+            n = 0
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= h:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
+                        continue
+                    qx = np.float64(xyz[rr, cc, 0])
+                    if qx != qx:
+                        continue
+                    d2 = (qx - x) ** 2 + (np.float64(xyz[rr, cc, 1]) - y) ** 2 + (np.float64(xyz[rr, cc, 2]) - z) ** 2
+                    if d2 <= lim2:
+                        n += 1
+            keep[r, c] = n >= min_nb
+    return keep

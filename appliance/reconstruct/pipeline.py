@@ -22,7 +22,7 @@ from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
-from appliance.reconstruct.filters import estimate_normals, filter_isolated, to_point_cloud
+from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
@@ -189,7 +189,9 @@ class Reconstructor:
         for n in self.outputs:
             cam = calibration.devices[n]
             # (constant mm, pixel footprints, sigmas) of each point's jump limit
-            if cfg.max_neighbour_jump_mm is not None or self.noise is None or not self._depth_path:
+            # stereo points always carry a sigma (the matcher's own model for quantised codes)
+            knows_sigma = self.noise is not None or not self._depth_path
+            if cfg.max_neighbour_jump_mm is not None or not knows_sigma:
                 # neighbours are a pixel apart: allow the diagonal footprint of a pixel at mid range on top
                 const = cfg.max_neighbour_jump_mm if cfg.max_neighbour_jump_mm is not None else FIXED_JUMP_MM
                 footprint_mm = 0.5 * (cfg.min_depth_mm + cfg.max_depth_mm) / float(cam.K[0, 0])
@@ -206,6 +208,11 @@ class Reconstructor:
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
                 self._normals[n] = np.empty((cam.height, cam.width, 3), np.float32)
+
+    @property
+    def stereo_report(self) -> dict[str, object] | None:
+        """What the camera-camera matcher did in the last :meth:`run`, stage by stage (mode ``'stereo'``)."""
+        return None if self._stereo is None else self._stereo.report.as_dict()
 
     def organised(self, name: str) -> F32:
         """The organised cloud (H, W, 3) of camera ``name`` from the last :meth:`run` (reused buffer).
@@ -265,10 +272,17 @@ class Reconstructor:
         assert self._stereo is not None
         t0 = time.perf_counter()
         n0, n1 = self.calibration.camera_names[0], self.calibration.camera_names[1]
-        self._stereo.triangulate(maps[n0], maps[n1], self._xyz[n0], cfg.min_depth_mm, cfg.max_depth_mm)
+        xyz = self._xyz[n0]
+        self._stereo.triangulate(maps[n0], maps[n1], xyz, cfg.min_depth_mm, cfg.max_depth_mm, self.noise)
         t1 = time.perf_counter()
-        jump = self._jump[n0][0]
-        filter_isolated(self._xyz[n0], cfg.min_neighbours, jump, self._scratch[n0])
+        matched = int(np.count_nonzero(np.isfinite(xyz[::1, ::1, 2])))
+        const, fp, ks = self._jump[n0]
+        sigma = self._stereo.sigma
+        with_nb = self._stereo.filter_neighbours(xyz, cfg.min_neighbours, const, ks, fp, self._scratch[n0])
+        kept = with_nb
+        if cfg.max_sigma_mm is not None:
+            kept = self._stereo.filter_sigma(xyz, cfg.max_sigma_mm, self._scratch[n0])
+        jump = const if const > 0 else FIXED_JUMP_MM
         if cfg.normals:
             eye = self.calibration.devices[n0].center
             r = cfg.normal_radius_px
@@ -276,9 +290,13 @@ class Reconstructor:
         t2 = time.perf_counter()
         shape = self._xyz[n0].shape[:2]
         inten = None if white is None or n0 not in white else _as_uint8(white[n0], (shape[0], shape[1]), n0)
-        cloud = to_point_cloud(self._xyz[n0], maps[n0].quality, inten, 0, self._normals.get(n0))
+        cloud = to_point_cloud(xyz, maps[n0].quality, inten, 0, self._normals.get(n0), sigma)
         t3 = time.perf_counter()
-        self.stages, self.warnings = [], []
+        rep = self._stereo.report
+        h, w = xyz.shape[:2]
+        # geometry: matched (the matcher's own stages are in stereo_report); depth range is inside the matcher
+        self.stages = [StageCounts(n0, h * w, rep.candidates, matched, matched, with_nb, kept)]
+        self.warnings = list(rep.warnings) + stage_warnings(self.stages, cfg)
         timings = {
             "triangulate_ms": 1e3 * (t1 - t0),
             "filter_ms": 1e3 * (t2 - t1),

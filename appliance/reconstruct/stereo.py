@@ -47,6 +47,7 @@ from appliance.geometry.rays import RayTable
 from appliance.reconstruct import _stereo_kernels as C
 from appliance.reconstruct.triangulate import check_maps, check_out, distortion12
 from appliance.reconstruct.types import DecodedMaps
+from appliance.reconstruct.uncertainty import CodeNoise
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -324,6 +325,8 @@ class StereoTriangulator:
         self._scr0 = np.empty((h, w), np.float32)
         self._epi = np.empty((h, w), np.float32)
         self._err3 = np.empty((h, w), np.float32)
+        self.sigma = np.empty((h, w), np.float32)
+        """1-sigma error of each point of the last :meth:`triangulate` along cam0's ray (mm); NaN where none."""
         self._status = np.zeros((h, w), np.uint8)
         self._counts = np.zeros((h, _N_STATUS), np.int64)
         self._tabs: dict[str, F32] = {}
@@ -343,8 +346,10 @@ class StereoTriangulator:
         out: F32 | None = None,
         min_depth_mm: float = 1e-6,
         max_depth_mm: float = math.inf,
+        noise: CodeNoise | None = None,
     ) -> F32:
-        """Match and triangulate; :attr:`report` tells what each stage rejected.
+        """Match and triangulate; :attr:`report` tells what each stage rejected, :attr:`sigma` each point's
+        expected error.
 
         Parameters
         ----------
@@ -354,6 +359,10 @@ class StereoTriangulator:
             Preallocated output.
         min_depth_mm, max_depth_mm : float
             Depth range (z in cam0's frame, mm).
+        noise : CodeNoise, optional
+            Noise of continuous codes (phase: finest period and steps, camera noise) for :attr:`sigma`; without
+            it a continuous code's sigma is NaN. A quantised code's match error follows from the stripe and
+            the pixel grid (each stripe boundary is known to a pixel / sqrt 12 before the local fit).
 
         Returns
         -------
@@ -397,6 +406,7 @@ class StereoTriangulator:
         cross0, cross1 = self._table("c0", nk), self._table("c1", nk)
         C.level_crossings(self._u0r, CODE_OFFSET, max_step, cross0)
         C.level_crossings(self._u1r, CODE_OFFSET, max_step, cross1)
+        levels = 0
         if grid.quantised:
             levels = int(min(SMOOTH_MAX_LEVELS, max(1, math.ceil(SMOOTH_SPAN_PX * per_lev))))
             s0, s1 = self._table("s0", nk), self._table("s1", nk)
@@ -417,9 +427,12 @@ class StereoTriangulator:
                 C.box_mean(self._v1r, radius, span, self._scr1, self._v1s)
                 v0m, v1m = self._v0s, self._v1s
         tol = np.array([max_gap, MAX_ROW_JUMP_PX, MAX_OWN_PX, margin])
+        noise_p = self._noise_params(grid, noise, levels if grid.quantised else 0)
         zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
         shift = np.zeros(3)
-        args = (self._rr_t, self._c0, self._r0z, self._t0z, tol, zmin, zmax, xyz, self._epi, self._status)
+        q0 = np.ascontiguousarray(maps0.quality, dtype=np.float32)
+        args = (self._rr_t, self._c0, self._r0z, self._t0z, tol, zmin, zmax, q0, noise_p, xyz, self._epi,
+                self.sigma, self._status)  # fmt: skip
         C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v, CODE_OFFSET,
                    self._geom, shift, *args)  # fmt: skip
         stated = _stated_rms(self.cam0, self.cam1)
@@ -460,6 +473,62 @@ class StereoTriangulator:
             C.reject(xyz, self._err3, limit3, C.ST_THREE_VIEW, self._status)
         self._summarise(rep)
         return xyz
+
+    def filter_neighbours(
+        self,
+        xyz: F32,
+        min_neighbours: int,
+        const_mm: float,
+        k_sigma: float,
+        k_footprint: float,
+        scratch: npt.NDArray[np.bool_],
+    ) -> int:
+        """Remove points of the last :meth:`triangulate` with too few near neighbours, in place.
+
+        Parameters
+        ----------
+        xyz : ndarray, shape (H0, W0, 3), float32
+            The organised cloud the last :meth:`triangulate` wrote.
+        min_neighbours : int
+            Keep a point when this many of its 8 neighbours lie within its jump limit (0..8).
+        const_mm, k_sigma, k_footprint : float
+            A point's jump limit: ``const_mm + k_sigma * sigma + k_footprint * z / f`` (mm; f of cam0, px).
+        scratch : ndarray, shape (H0, W0), bool
+            Work buffer.
+
+        Returns
+        -------
+        int
+            Points kept.
+        """
+        C.isolated_keep_sigma(xyz, self.sigma, min_neighbours, const_mm, k_sigma, k_footprint,
+                              1.0 / float(self.cam0.K[0, 0]), math.inf, scratch)  # fmt: skip
+        return self._apply(xyz, scratch)
+
+    def filter_sigma(self, xyz: F32, max_sigma_mm: float, scratch: npt.NDArray[np.bool_]) -> int:
+        """Remove points whose expected error (:attr:`sigma`) exceeds ``max_sigma_mm``, in place; points kept."""
+        C.isolated_keep_sigma(xyz, self.sigma, 0, math.inf, 0.0, 0.0, 0.0, float(max_sigma_mm), scratch)
+        return self._apply(xyz, scratch)
+
+    def _apply(self, xyz: F32, keep: npt.NDArray[np.bool_]) -> int:
+        np.logical_not(keep, out=keep)
+        xyz[keep] = np.nan
+        self.sigma[keep] = np.nan
+        return int(keep.size - np.count_nonzero(keep))
+
+    @staticmethod
+    def _noise_params(grid: CodeGrid, noise: CodeNoise | None, levels: int) -> F64:
+        """(phase_px, var_quant_px2, var_intensity_dn2, 1 / e- per DN, 1 / level step) for the matcher."""
+        if grid.quantised:
+            # a boundary is known to a pixel / sqrt 12 in each camera; the local fit averages the boundaries
+            # of (2 levels + 1) x (2 rows + 1) crossings, of which only one per pixel is independent when
+            # stripes are narrower than a pixel
+            n_eff = (2 * levels + 1) * min(1.0, grid.stripe_px) * (2 * SMOOTH_ROWS + 1)
+            return np.array([0.0, 2.0 / 12.0 / max(n_eff, 1.0), 0.0, 0.0, 1.0])
+        if noise is None or noise.phase_px <= 0.0:
+            return np.array([math.nan, 0.0, 0.0, 0.0, 1.0 / grid.step])
+        p = noise.params()
+        return np.array([p[0], 0.0, p[2], p[3], 1.0 / grid.step])
 
     def _fit_offset(self, med: float, sig: float) -> F64:
         """Plane ``s0 + sx x + sy y`` (rectified px) through the epipolar residuals near their median."""
