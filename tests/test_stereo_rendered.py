@@ -13,12 +13,21 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from appliance.config.schema import BoxObject, DeviceOptics, PlaneObject, SphereObject, VirtualRigConfig
+from appliance.config.schema import (
+    BoxObject,
+    DeviceOptics,
+    PlaneObject,
+    ReconstructionConfig,
+    SphereObject,
+    VirtualRigConfig,
+)
+from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.camera import CameraModel
-from appliance.patterns.sequence import gray_code_sequence
+from appliance.patterns.sequence import Sequence, gray_code_sequence, gray_phase_sequence
 from appliance.reconstruct.decode import decode
+from appliance.reconstruct.pipeline import Reconstructor
 from appliance.reconstruct.stereo import StereoTriangulator, code_grid
-from appliance.reconstruct.types import DecodedMaps
+from appliance.reconstruct.types import DecodedMaps, PointCloud
 from appliance.sim.rig import VirtualRig
 
 F64 = npt.NDArray[np.float64]
@@ -119,6 +128,8 @@ def test_gray_only_stereo_at_3m_with_a_perturbed_calibration(case: str, axes: st
     assert completeness >= 0.97
     assert median <= 1.0
     assert np.mean(err[ok] > 20.0) < 1e-3  # no gross mismatches
+    ratio = float(np.median(err[ok] / tri.sigma[ok]))  # |e| / sigma: 0.67 for Gaussian, 0.87 for uniform errors
+    assert 0.4 <= ratio <= 1.5, ratio
     assert tri.report.points == ok.sum()
     assert tri.report.candidates == m0.mask.sum()
 
@@ -155,3 +166,49 @@ def test_exact_calibration_reads_no_warning() -> None:
     assert abs(tri.report.epipolar["median_px"]) < 0.2
     assert tri.report.three_view["median_px"] < 1.0
     assert tri.report.points > 0.9 * tri.report.candidates
+
+
+@cache
+def _phase_capture() -> tuple[VirtualRig, Sequence, dict[str, DecodedMaps]]:
+    rig = _rig(1280)
+    seq = gray_phase_sequence(rig.projector.width, rig.projector.height, "x", period=16, steps=4)
+    return rig, seq, {n: decode(rig.render(seq, n), seq) for n in rig.camera_names()}
+
+
+def _reference_errors(cloud: PointCloud, truth: F64) -> tuple[F64, F64]:
+    sel = cloud.camera == 0
+    err = np.linalg.norm(cloud.xyz[sel] - truth[cloud.row[sel], cloud.col[sel]], axis=1)
+    return err, cloud.sigma_mm[sel].astype(np.float64)  # type: ignore[union-attr]
+
+
+@pytest.mark.slow
+def test_mode_both_fuses_by_sigma_and_flags_disagreement() -> None:
+    """Gray + phase at 3 m: the reference camera's points fuse camera-projector and camera-camera."""
+    rig, seq, maps = _phase_capture()
+    truth = rig.ground_truth("cam0").xyz
+    cfg = ReconstructionConfig(mode="both", min_depth_mm=2000.0, max_depth_mm=4000.0)
+    exact = Calibration({"cam0": rig.cameras["cam0"], "cam1": rig.cameras["cam1"], "projector": rig.projector})
+    alone = {}
+    for mode in ("projector", "stereo"):
+        rec = Reconstructor(exact, "x", cfg.model_copy(update={"mode": mode}), seq)
+        err, _ = _reference_errors(rec.run(maps)[0], truth)
+        alone[mode] = float(np.median(err))
+    rec = Reconstructor(exact, "x", cfg, seq)
+    cloud, _ = rec.run(maps)
+    err, sigma = _reference_errors(cloud, truth)
+    fused = rec.fusion["fused"]
+    print(f"alone {alone}, both: median {np.median(err):.3f} mm, {rec.fusion}")
+    assert fused > 0.8 * len(err) and rec.fusion["disagree"] < 0.01 * fused
+    assert np.median(err) < alone["projector"]  # the longer camera-camera baseline helps ...
+    assert 0.7 <= np.sqrt(np.mean((err / sigma) ** 2)) <= 1.4  # ... and the fused sigma says how much
+    assert set(np.unique(cloud.camera)) == {0, 1}  # cam1 keeps its camera-projector points
+    # the second camera's principal point 1.5 px off: the estimates disagree, they are left out and said
+    k = rig.cameras["cam1"].K.copy()
+    k[0, 2] += 1.5
+    c1 = rig.cameras["cam1"]
+    bad = Calibration({"cam0": rig.cameras["cam0"], "cam1": CameraModel("cam1", k, c1.dist, c1.width, c1.height,
+                                                                         c1.R, c1.T, 0.3), "projector": rig.projector})
+    rec = Reconstructor(bad, "x", cfg, seq)
+    rec.run(maps)
+    assert rec.fusion["disagree"] > 0.5 * (rec.fusion["disagree"] + rec.fusion["fused"])
+    assert any("disagree by more than 3 sigma" in w and "recalibrate" in w for w in rec.warnings)

@@ -62,8 +62,10 @@ class SequenceConfig(_Strict):
 class ReconstructionConfig(_Strict):
     """Decoding thresholds, triangulation and filters."""
 
-    mode: Literal["projector", "stereo"] = Field(
-        "projector", description="Camera-projector per camera, or camera-camera (needs two cameras)."
+    mode: Literal["projector", "stereo", "both"] = Field(
+        "projector",
+        description="Camera-projector per camera, camera-camera (needs two cameras), or both: camera-projector "
+        "for every camera, the first camera's points fused with camera-camera by their expected errors.",
     )
     min_contrast_dn: float = Field(
         6.0, ge=0, le=65535, description="Floor of the white-black contrast for a lit pixel (DN, 8-bit scale)."
@@ -103,8 +105,11 @@ class ReconstructionConfig(_Strict):
     camera_electrons_per_dn: float = Field(
         25.0, gt=0, description="Camera conversion gain for the shot noise of the per-point error (e- per DN)."
     )
-    stereo_max_epipolar_px: float = Field(
-        1.5, gt=0, description="Stereo: reject matches this far from the epipolar line (px)."
+    stereo_max_epipolar_px: float | None = Field(
+        None,
+        gt=0,
+        description="Stereo with rows coded: reject matches this far from the epipolar line (rectified px); "
+        "unset: from the calibration's stated RMS and this scan's own residuals.",
     )
     normals: bool = Field(False, description="Estimate normals from the organised cloud.")
     normal_radius_px: int = Field(
@@ -545,8 +550,10 @@ class AppConfig(_Strict):
                     f"camera {name!r} is type sim but virtual_rig.cameras has no {name!r} "
                     f"(it has {sorted(self.virtual_rig.cameras)}); add its optics there"
                 )
-        if self.reconstruction.mode == "stereo" and len(names) < 2:
-            raise ValueError("reconstruction.mode 'stereo' needs two cameras; add one or use mode 'projector'")
+        if self.reconstruction.mode in ("stereo", "both") and len(names) < 2:
+            raise ValueError(
+                f"reconstruction.mode '{self.reconstruction.mode}' needs two cameras; add one or use mode 'projector'"
+            )
         if self.calibration_file is None and (
             self.projector.type != "sim" or any(c.type != "sim" for c in self.cameras.values())
         ):

@@ -23,6 +23,7 @@ from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
+from appliance.reconstruct.fuse import fuse_depths
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
@@ -147,20 +148,20 @@ class Reconstructor:
         self.noise = noise
         self._proj_tri: dict[str, ProjectorTriangulator] = {}
         self._stereo: StereoTriangulator | None = None
-        if cfg.mode == "projector":
+        if cfg.mode in ("projector", "both"):
             projector = calibration.projector
             if projector is None:
                 raise CalibrationError(
-                    "reconstruction.mode = projector: the calibration has no 'projector'; "
+                    f"reconstruction.mode = {cfg.mode}: the calibration has no 'projector'; "
                     "calibrate it or use mode stereo"
                 )
             for n in names:
                 self._proj_tri[n] = ProjectorTriangulator(calibration.devices[n], projector, axes)
             self.outputs = list(names)
-        else:
+        if cfg.mode in ("stereo", "both"):
             if len(names) < 2:
                 raise CalibrationError(
-                    f"reconstruction.mode = stereo: needs two cameras, the calibration has {names}"
+                    f"reconstruction.mode = {cfg.mode}: needs two cameras, the calibration has {names}"
                 )
             cam0, cam1 = calibration.devices[names[0]], calibration.devices[names[1]]
             self._stereo = StereoTriangulator(
@@ -170,8 +171,9 @@ class Reconstructor:
                 max_epipolar_px=cfg.stereo_max_epipolar_px,
                 projector=calibration.projector,
             )
-            self.outputs = [names[0]]
-        self._depth_path = cfg.mode == "projector"
+            if cfg.mode == "stereo":
+                self.outputs = [names[0]]
+        self._depth_path = cfg.mode in ("projector", "both")
         # clouds are views of blocks reused once the caller drops them (saves the page faults of ~26 B/point)
         self._pool = BufferPool()
         self._xyz: dict[str, F32] = {}
@@ -208,6 +210,39 @@ class Reconstructor:
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
                 self._normals[n] = np.empty((cam.height, cam.width, 3), np.float32)
+        self.fusion: dict[str, int] = {}
+        """Mode ``'both'``: reference-camera pixels by source of the last :meth:`run` (see ``fuse_depths``)."""
+        if cfg.mode == "both":  # the reference camera's camera-camera estimate, fused into its depth map
+            cam = calibration.devices[names[0]]
+            self._xyz[names[0]] = np.empty((cam.height, cam.width, 3), np.float32)
+            self._scratch[names[0]] = np.empty((cam.height, cam.width), np.bool_)
+            self._zs = np.empty((cam.height, cam.width), np.float32)
+
+    def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> None:
+        """Mode ``'both'``: camera-camera on the reference camera, fused with its camera-projector depth by
+        inverse-variance weighting; pixels where the two disagree beyond 3 sigma are left out (counted)."""
+        assert self._stereo is not None
+        cfg = self.cfg
+        n0, n1 = self.calibration.camera_names[0], self.calibration.camera_names[1]
+        xyz = self._xyz[n0]
+        self._stereo.triangulate(maps[n0], maps[n1], xyz, cfg.min_depth_mm, cfg.max_depth_mm, self.noise)
+        const, fp, ks = self._jump[n0]
+        self._stereo.filter_neighbours(xyz, cfg.min_neighbours, const, ks, fp, self._scratch[n0])
+        if cfg.max_sigma_mm is not None:
+            self._stereo.filter_sigma(xyz, cfg.max_sigma_mm, self._scratch[n0])
+        cam = self.calibration.devices[n0]
+        r, t = cam.R[2].astype(np.float32), np.float32(cam.T[2])
+        np.multiply(xyz[..., 0], r[0], out=self._zs)
+        self._zs += xyz[..., 1] * r[1]
+        self._zs += xyz[..., 2] * r[2]
+        self._zs += t
+        fused = fuse_depths(self._depth[n0], self._sigma[n0], self._zs, self._stereo.sigma)
+        self._depth[n0][...] = fused.depth
+        self._sigma[n0][...] = fused.sigma
+        counts = self._counts[n0]
+        counts[0] = 0
+        counts[1:] = np.count_nonzero(np.isfinite(fused.depth), axis=1)
+        self.fusion = fused.counts()
 
     @property
     def stereo_report(self) -> dict[str, object] | None:
@@ -255,9 +290,9 @@ class Reconstructor:
             ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``. In mode ``'projector'`` the
             filters run inside triangulation (``filter_ms`` is the normals' time, or 0).
         """
-        needed = (
-            [self.calibration.camera_names[i] for i in range(2)] if self._stereo is not None else self.outputs
-        )
+        needed = list(self.outputs)
+        if self._stereo is not None:
+            needed += [n for n in self.calibration.camera_names[:2] if n not in needed]
         for n in needed:
             if n not in maps:
                 raise ScanError(f"reconstruct: no decoded maps for camera {n!r} (have {sorted(maps)})")
@@ -320,6 +355,8 @@ class Reconstructor:
                 sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
                 stats=self._stats[n],
             )  # fmt: skip
+        if self._stereo is not None:
+            self._fuse_stereo(maps)
         t1 = time.perf_counter()
         stages = []
         for n in self.outputs:
@@ -328,6 +365,16 @@ class Reconstructor:
             stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[2]), int(s[3]), int(s[4])))
         self.stages = stages
         self.warnings = stage_warnings(stages, cfg)
+        if self._stereo is not None:
+            self.warnings = list(self._stereo.report.warnings) + self.warnings
+            disagree = self.fusion.get("disagree", 0)
+            both = disagree + self.fusion.get("fused", 0)
+            if both and disagree > 0.05 * both:
+                self.warnings.append(
+                    f"{100.0 * disagree / both:.0f} % of the pixels both camera-projector and camera-camera "
+                    "reconstruct disagree by more than 3 sigma (left out): the calibration may no longer fit "
+                    "the rig; run scan3d verify or recalibrate"
+                )
         names = self.calibration.camera_names
         if cfg.normals:
             clouds = []
