@@ -29,7 +29,7 @@ def http_config(tmp: Path, **http: Any) -> tuple[Path, str]:
     return cfg, f"http://127.0.0.1:{port}"
 
 
-def test_reference_config_leaves_http_off(tmp_path: Path) -> None:
+def test_reference_config_leaves_http_off(tmp_path: Path, loop_guard: None) -> None:
     doc = yaml.safe_load(appliance_copy(tmp_path).read_text())
     assert doc["service"]["http"]["listen"] is None
 
@@ -40,7 +40,9 @@ def test_reference_config_leaves_http_off(tmp_path: Path) -> None:
     asyncio.run(main())
 
 
-def test_trigger_needs_the_token_and_the_scan_is_served(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_trigger_needs_the_token_and_the_scan_is_served(
+    tmp_path: Path, loop_guard: None, caplog: pytest.LogCaptureFixture
+) -> None:
     cfg, base = http_config(tmp_path)
     caplog.set_level(logging.INFO)
 
@@ -98,7 +100,7 @@ def test_trigger_needs_the_token_and_the_scan_is_served(tmp_path: Path, caplog: 
     assert TOKEN not in text and "wrong-guess-42" not in text
 
 
-def test_events_stream_state_and_finished_scan(tmp_path: Path) -> None:
+def test_events_stream_state_and_finished_scan(tmp_path: Path, loop_guard: None) -> None:
     cfg, base = http_config(tmp_path)
 
     async def main() -> None:
@@ -136,7 +138,7 @@ def test_events_stream_state_and_finished_scan(tmp_path: Path) -> None:
     asyncio.run(main())
 
 
-def test_request_size_rate_and_stream_bounds(tmp_path: Path) -> None:
+def test_request_size_rate_and_stream_bounds(tmp_path: Path, loop_guard: None) -> None:
     cfg, base = http_config(tmp_path, rate_per_s=3, max_request_kb=4, max_event_clients=1)
 
     async def main() -> None:
@@ -159,7 +161,9 @@ def test_request_size_rate_and_stream_bounds(tmp_path: Path) -> None:
     asyncio.run(main())
 
 
-def test_missing_aiohttp_disables_only_the_http_face(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_missing_aiohttp_disables_only_the_http_face(
+    tmp_path: Path, loop_guard: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
     cfg, _ = http_config(tmp_path)
     monkeypatch.setitem(sys.modules, "aiohttp", None)  # import aiohttp raises ImportError
     monkeypatch.delitem(sys.modules, "appliance.service.http", raising=False)
@@ -173,3 +177,25 @@ def test_missing_aiohttp_disables_only_the_http_face(tmp_path: Path, monkeypatch
             assert reply["ok"] and reply["scan"]["points"] > 1000
 
     asyncio.run(main())
+
+
+def test_systemd_unit_allows_the_faces_ports_and_stays_exposed_at_most_2(tmp_path: Path) -> None:
+    import re
+    import shutil
+    import subprocess
+
+    from faces_helpers import REPO
+
+    unit = (REPO / "systemd" / "scan3d.service").read_text()
+    allowed = re.findall(r"^SocketBindAllow=(\S+)", unit, re.M)
+    assert {"tcp:8080", "tcp:4840"} <= set(allowed) and "SocketBindDeny=any" in unit
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze not installed (apt package systemd)")
+    copy = tmp_path / "scan3d.service"
+    copy.write_text(unit.replace("/opt/scan3d/venv/bin/scan3d run", f"{sys.executable} -m appliance run"))
+    r = subprocess.run([analyze, "security", "--offline=true", str(copy)], capture_output=True, text=True,
+                       timeout=60)
+    m = re.search(r"Overall exposure level for scan3d\.service: ([0-9.]+)", r.stdout)
+    assert m is not None, r.stdout + r.stderr
+    assert float(m.group(1)) <= 2.0

@@ -173,7 +173,8 @@ class HttpFace:
             await self._runner.cleanup()
             self._runner = None
             raise OSError(exc.errno, f"HTTP: cannot listen on {self.cfg.listen} ({exc.strerror}); is another "
-                          "service on that port? change service.http.listen") from exc
+                          "service on that port? change service.http.listen (under systemd, a port must also be "
+                          "in scan3d.service's SocketBindAllow=)") from exc
         server = getattr(site, "_server", None)
         sockets = getattr(server, "sockets", None) or []
         if sockets:

@@ -63,7 +63,7 @@ class _Rules(PermissionRuleset):  # type: ignore[misc]
             return False
         if user is None or user.role == UserRole.Anonymous:
             return action_type_id not in (_CALL, _WRITE)
-        return user.role == UserRole.User
+        return bool(user.role == UserRole.User)
 
 
 class _Users:
@@ -224,7 +224,8 @@ class OpcUaFace:
             await server.start()
         except OSError as exc:
             raise ApplianceError(f"OPC UA: cannot listen on {cfg.endpoint} ({exc.strerror or exc}); is another "
-                                 "server on that port? change service.opcua.endpoint") from exc
+                                 "server on that port? change service.opcua.endpoint (under systemd, a port must "
+                                 "also be in scan3d.service's SocketBindAllow=)") from exc
         self._ready.set_result(None)
         try:
             await self._stop.wait()
