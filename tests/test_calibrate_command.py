@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_calibration_boards import procam_white_detections
 from test_calibration_projector import PROCAM, procam_manifests
 
-from appliance.calibration.boards import BoardSpec, Detection, detect
+from appliance.calibration.boards import BoardSpec, Detection
 from appliance.calibration.intrinsics import CameraResult, calibrate_camera
 from appliance.calibration.projector import ProcamView
 from appliance.calibration.report import report_paths
@@ -61,10 +62,7 @@ def projector_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
 
 @pytest.fixture(scope="module")
 def white_detections() -> list[Detection]:
-    import cv2
-
-    spec = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
-    dets = [detect(cv2.imread(str(p), cv2.IMREAD_UNCHANGED), spec) for p in WHITE]
+    dets = list(procam_white_detections())
     assert all(d is not None for d in dets)
     return dets  # type: ignore[return-value]
 
@@ -104,6 +102,7 @@ def test_projector_command_on_procam(projector_run: tuple[Path, str], clean_pair
     for device in ("cam0", "projector"):
         block = text.split(f"{device}: distortion model ", 1)[1].split("why:", 1)[0]
         assert re.search(r"k2p +RMS [\d.]+ px, held-out [\d.]+ px", block)
+        assert re.search(r"k3p +RMS [\d.]+ px, held-out (not computed \(refused\)|[\d.]+ px)", block)
         assert "k3p" in block and "rational" in block and "<- chosen" in block
     assert "k3p refused: the views do not determine it (k3 std" in text
     html = report_paths(out)[0].read_text()

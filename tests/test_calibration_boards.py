@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from appliance.calibration.boards import BoardSpec, board_from_args, detect, render_board
+from appliance.calibration.boards import BoardSpec, Detection, board_from_args, detect, render_board
 from appliance.errors import CalibrationError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -54,12 +55,19 @@ def test_charuco_occluded_view_gives_visible_corners_only() -> None:
     np.testing.assert_allclose(occ.object_points, CHARUCO_SPEC.object_points()[occ.ids])
 
 
+@functools.cache
+def procam_white_detections() -> tuple[Detection | None, ...]:
+    """The board in the 5 procam white frames (detected once per test session; other tests reuse it)."""
+    spec = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
+    return tuple(
+        detect(cv2.imread(str(PROCAM / f"capture_{pose}" / "graycode_40.png"), cv2.IMREAD_GRAYSCALE), spec)
+        for pose in range(5)
+    )
+
+
 def test_chessboard_on_procam_white_frames() -> None:
     _need(PROCAM)
-    spec = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
-    for pose in range(5):
-        img = cv2.imread(str(PROCAM / f"capture_{pose}" / "graycode_40.png"), cv2.IMREAD_GRAYSCALE)
-        det = detect(img, spec)
+    for pose, det in enumerate(procam_white_detections()):
         assert det is not None, f"capture_{pose}"
         assert len(det) == 63
         assert det.image_size == (1280, 1024)

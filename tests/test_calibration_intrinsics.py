@@ -7,8 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from test_calibration_boards import procam_white_detections
 
-from appliance.calibration.boards import BoardSpec, Detection, detect
+from appliance.calibration.boards import BoardSpec, Detection
 from appliance.calibration.intrinsics import calibrate_camera, coverage_map, model_flags
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
@@ -20,11 +21,7 @@ SPEC = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
 def test_procam_camera_matches_published_intrinsics() -> None:
     if not PROCAM.is_dir():
         pytest.skip(f"test data {PROCAM} is absent")
-    dets = [
-        detect(cv2.imread(str(PROCAM / f"capture_{i}" / "graycode_40.png"), cv2.IMREAD_GRAYSCALE), SPEC)
-        for i in range(5)
-    ]
-    res = calibrate_camera(dets, (1280, 1024), "k3p")
+    res = calibrate_camera(procam_white_detections(), (1280, 1024), "k3p")
     K = res.camera.K
     assert K[0, 0] == pytest.approx(3452.39, rel=0.005)
     assert K[1, 1] == pytest.approx(3449.92, rel=0.005)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from appliance.calibration._kernels import cholesky_solve
 from appliance.calibration.intrinsics import MODEL_ALIASES, model_flags
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
@@ -25,6 +26,8 @@ F64 = npt.NDArray[np.float64]
 
 MAX_ITERATIONS = 100
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+CONVERGED_REL = 1e-10
+"""Levenberg-Marquardt stops when a step lowers the cost by less than this share."""
 OUTLIER_SIGMAS = 5.0
 """After a first solve, points whose residual exceeds this many robust sigmas (and 1 px) are dropped."""
 
@@ -165,12 +168,18 @@ def _rmat(r: F64) -> F64:
 
 def _evaluate(
     x: F64, lay: _Layout, obs: Sequence[Observation], keep: list[npt.NDArray[np.bool_]], jac: bool
-) -> tuple[F64, F64 | None]:
+) -> tuple[F64, tuple[F64, F64] | None]:
+    """Residuals, and with ``jac`` the normal equations ``(J^T J, J^T r)``.
+
+    Each observation touches only its device's intrinsics and pose and its view's board pose, so the normal
+    equations are accumulated block by block instead of from a dense Jacobian.
+    """
     import cv2
 
     rows = sum(2 * int(k.sum()) for k in keep)
     r = np.empty(rows)
-    J = np.zeros((rows, lay.size)) if jac else None
+    A = np.zeros((lay.size, lay.size)) if jac else None
+    g = np.zeros(lay.size) if jac else None
     at = 0
     for o, k in zip(obs, keep, strict=True):
         m = int(k.sum())
@@ -189,49 +198,58 @@ def _evaluate(
         px, jp = cv2.projectPoints(o.object_points[k].reshape(-1, 1, 3), r3, t3, K, d)
         sl = slice(at, at + 2 * m)
         r[sl] = (px.reshape(-1, 2) - o.image_points[k]).ravel()
-        if J is not None:
+        if A is not None and g is not None:
             Jr, Jt = jp[:, 0:3], jp[:, 3:6]
+            blocks: list[F64] = []
+            cols: list[int] = []
             ii = lay.intr[o.device]
             if o.device not in lay.fixed:
-                J[sl, ii : ii + 2] = jp[:, 6:8]
-                J[sl, ii + 2 : ii + 4] = jp[:, 8:10]
                 free = list(lay.dist_free[o.device])
-                if free:
-                    J[sl, ii + 4 : ii + lay.n_intr(o.device)] = jp[:, 10:][:, free]
+                blocks += [jp[:, 6:8], jp[:, 8:10], jp[:, 10:][:, free]]
+                cols += list(range(ii, ii + lay.n_intr(o.device)))
             if comp is None:
-                J[sl, vi : vi + 3] = Jr
-                J[sl, vi + 3 : vi + 6] = Jt
+                blocks += [Jr, Jt]
             else:
                 _, _, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = comp
-                J[sl, vi : vi + 3] = Jr @ dr3dr1 + Jt @ dt3dr1
-                J[sl, vi + 3 : vi + 6] = Jr @ dr3dt1 + Jt @ dt3dt1
+                blocks += [Jr @ dr3dr1 + Jt @ dt3dr1, Jr @ dr3dt1 + Jt @ dt3dt1]
+            cols += list(range(vi, vi + 6))
+            if comp is not None:
                 pi = lay.pose[o.device]
-                J[sl, pi : pi + 3] = Jr @ dr3dr2 + Jt @ dt3dr2
-                J[sl, pi + 3 : pi + 6] = Jr @ dr3dt2 + Jt @ dt3dt2
+                blocks += [Jr @ dr3dr2 + Jt @ dt3dr2, Jr @ dr3dt2 + Jt @ dt3dt2]
+                cols += list(range(pi, pi + 6))
+            Jl = np.concatenate(blocks, axis=1)
+            idx = np.asarray(cols)
+            A[np.ix_(idx, idx)] += Jl.T @ Jl
+            g[idx] += Jl.T @ r[sl]
         at += 2 * m
-    return r, J
+    return r, (A, g) if A is not None and g is not None else None
 
 
 def _levenberg_marquardt(
-    x: F64, lay: _Layout, obs: Sequence[Observation], keep: list[npt.NDArray[np.bool_]]
+    x: F64,
+    lay: _Layout,
+    obs: Sequence[Observation],
+    keep: list[npt.NDArray[np.bool_]],
+    rel_tol: float,
+    max_iterations: int = MAX_ITERATIONS,
 ) -> tuple[F64, F64, int]:
+    """Minimise the squared residuals from ``x``; returns x, the final ``J^T J`` and the iterations."""
     lam = 1e-3
-    r, J = _evaluate(x, lay, obs, keep, True)
-    assert J is not None
+    r, ne = _evaluate(x, lay, obs, keep, True)
+    assert ne is not None
+    A, g = ne
     cost = float(r @ r)
     it = 0
-    while it < MAX_ITERATIONS:
+    while it < max_iterations:
         it += 1
-        A = J.T @ J
-        g = J.T @ r
         diag = np.maximum(np.diag(A).copy(), 1e-12)
         improved = False
         while lam < 1e12:
-            try:
-                dx = np.linalg.solve(A + lam * np.diag(diag), -g)
-            except np.linalg.LinAlgError:
+            ok, sol = cholesky_solve(A + lam * np.diag(diag), -g.reshape(-1, 1))
+            if not ok:
                 lam *= 10.0
                 continue
+            dx = sol.ravel()
             r_new, _ = _evaluate(x + dx, lay, obs, keep, False)
             c_new = float(r_new @ r_new)
             if np.isfinite(c_new) and c_new < cost:
@@ -244,12 +262,12 @@ def _levenberg_marquardt(
         rel = (cost - c_new) / max(cost, 1e-300)
         cost = c_new
         lam = max(lam / 10.0, 1e-12)
-        r, J = _evaluate(x, lay, obs, keep, True)
-        assert J is not None
-        if rel < 1e-12 or float(np.max(np.abs(dx) / (np.abs(x) + 1e-6))) < 1e-12:
+        r, ne = _evaluate(x, lay, obs, keep, True)
+        assert ne is not None
+        A, g = ne
+        if rel < rel_tol or float(np.max(np.abs(dx) / (np.abs(x) + 1e-6))) < 1e-12:
             break
-    assert J is not None
-    return x, J, it
+    return x, A, it
 
 
 def bundle_adjust(
@@ -260,6 +278,9 @@ def bundle_adjust(
     *,
     reject_outliers: bool = True,
     fixed: Collection[str] = (),
+    rel_tol: float = CONVERGED_REL,
+    max_iterations: int = MAX_ITERATIONS,
+    covariance: bool = True,
 ) -> BundleResult:
     """Refine all devices' intrinsics and poses and all board poses together.
 
@@ -279,6 +300,14 @@ def bundle_adjust(
         Drop points beyond ``OUTLIER_SIGMAS`` robust sigmas after a first solve and solve again.
     fixed : collection of str
         Devices whose intrinsics and distortion stay as given (only their poses are refined).
+    rel_tol : float
+        Stop when a step lowers the cost by less than this share (looser for quick re-solves from a
+        nearby start, e.g. leaving one view out).
+    max_iterations : int
+        Levenberg-Marquardt iterations at most (per solve).
+    covariance : bool
+        Compute standard deviations and correlations (otherwise they are NaN / empty, and a poorly
+        determined problem is not an error).
 
     Returns
     -------
@@ -314,7 +343,7 @@ def bundle_adjust(
         i = lay.view[v]
         x[i : i + 3], x[i + 3 : i + 6] = board_poses[v][0], board_poses[v][1]
     keep = [np.ones(len(o.object_points), bool) for o in obs]
-    x, J, iters = _levenberg_marquardt(x, lay, obs, keep)
+    x, JtJ, iters = _levenberg_marquardt(x, lay, obs, keep, rel_tol, max_iterations)
     dropped = 0
     if reject_outliers:
         r, _ = _evaluate(x, lay, obs, keep, False)
@@ -328,18 +357,20 @@ def bundle_adjust(
             dropped += int(bad.sum())
             at += m
         if dropped:
-            x, J, more = _levenberg_marquardt(x, lay, obs, keep)
+            x, JtJ, more = _levenberg_marquardt(x, lay, obs, keep, rel_tol, max_iterations)
             iters += more
     r, _ = _evaluate(x, lay, obs, keep, False)
     n_res = r.size
     sigma2 = float(r @ r) / max(n_res - lay.size, 1)
-    try:
-        cov = np.linalg.inv(J.T @ J) * sigma2
-    except np.linalg.LinAlgError as exc:
+    ok, inv = cholesky_solve(np.ascontiguousarray(JtJ), np.eye(lay.size)) if covariance else (True, None)
+    if inv is None:
+        inv = np.full((lay.size, lay.size), np.nan)
+    elif not ok:
         raise CalibrationError(
             "joint refinement: the problem is degenerate (singular normal equations); "
             "add board poses with more tilt"
-        ) from exc
+        )
+    cov = inv * sigma2
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     out_devices: dict[str, CameraModel] = {}
     std: dict[str, dict[str, float]] = {}

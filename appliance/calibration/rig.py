@@ -22,7 +22,13 @@ from appliance.calibration.bundle import BundleResult, Observation, bundle_adjus
 from appliance.calibration.intrinsics import CameraResult, coverage_map
 from appliance.calibration.projector import ProcamView
 from appliance.calibration.report import StereoEntry
-from appliance.calibration.selection import ModelChoice, pnp_error, select_model
+from appliance.calibration.selection import (
+    HELD_OUT_ITERATIONS,
+    HELD_OUT_REL_TOL,
+    ModelChoice,
+    pnp_error,
+    select_model,
+)
 from appliance.calibration.stereo import StereoResult, stereo_calibrate
 from appliance.errors import CalibrationError
 from appliance.geometry.calibration_file import PROJECTOR_NAME
@@ -322,7 +328,8 @@ def _joint_held_out(
         if not rest or not poses:
             continue
         try:
-            loo = bundle_adjust(bundle.devices, models, rest, poses, fixed=fixed)
+            loo = bundle_adjust(bundle.devices, models, rest, poses, fixed=fixed, rel_tol=HELD_OUT_REL_TOL,
+                                max_iterations=HELD_OUT_ITERATIONS, covariance=False)  # fmt: skip
         except CalibrationError:
             continue
         for n, dev in loo.devices.items():

@@ -5,7 +5,8 @@ model. Instead each candidate is fitted once per view with that view left out; t
 pose is then found with the candidate's intrinsics (PnP) and its reprojection error measured. A model wins
 by predicting views it has not seen. A candidate is only admitted when the views determine the parameters
 it adds over the base model (k1 k2 p1 p2): each added coefficient's standard deviation must be below its
-magnitude, otherwise the fit only follows noise (k3 on a few views of a narrow lens is the usual case).
+magnitude, otherwise the fit only follows noise (k3 on a few views of a narrow lens is the usual case); a
+refused candidate is not fitted view by view (it could not be chosen anyway).
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ CANDIDATE_MODELS: tuple[str, ...] = ("k2p", "k3p", "rational")
 """Candidates in order of complexity: k1 k2 p1 p2; + k3; rational (k1..k6 p1 p2)."""
 ADDED_PARAMETERS: dict[str, tuple[str, ...]] = {"k3p": ("k3",), "rational": ("k3", "k4", "k5", "k6")}
 """Coefficients a candidate adds over the base model; each must be determined by the views."""
+HELD_OUT_REL_TOL = 1e-7
+"""Left-out fits start at the full fit's minimum; they stop when a step gains less than this share."""
+HELD_OUT_ITERATIONS = 30
+"""At most this many Levenberg-Marquardt iterations per left-out fit."""
 PARSIMONY = 0.01
 """A more complex model must lower the held-out error by more than this share to be chosen."""
 
@@ -121,10 +126,10 @@ class ModelChoice:
                 note = "; not determined: " + ", ".join(
                     f"{k} = {v:.3g} ± {s:.3g}" for k, (v, s) in c.undetermined.items()
                 )
-            out.append(
-                f"  {c.model:8s} RMS {c.rms_px:.4f} px, held-out {c.held_out.rms_px:.4f} px"
-                f"{note}{'  <- chosen' if c.model == self.chosen else ''}"
-            )
+            held = (f"held-out {c.held_out.rms_px:.4f} px" if c.held_out.views
+                    else "held-out not computed (refused)")  # fmt: skip
+            mark = "  <- chosen" if c.model == self.chosen else ""
+            out.append(f"  {c.model:8s} RMS {c.rms_px:.4f} px, {held}{note}{mark}")
         out.append(f"  why: {self.reason}")
         return out
 
@@ -151,7 +156,7 @@ def held_out_errors(
     views: Sequence[int],
     *,
     name: str = "cam0",
-    start: CameraModel | None = None,
+    start: CameraResult | None = None,
 ) -> HeldOut:
     """Leave-one-view-out reprojection error of a distortion model.
 
@@ -167,8 +172,10 @@ def held_out_errors(
         The usable views (indices into ``detections``); each is left out in turn.
     name : str
         Device name (for messages).
-    start : CameraModel, optional
-        Starting intrinsics of each left-out fit (the fit on all views: fewer iterations, same minimum).
+    start : CameraResult, optional
+        The fit of ``model`` on all ``views``: each left-out fit then starts from it (intrinsics and board
+        poses) and is solved by :func:`~appliance.calibration.bundle.bundle_adjust` - the same least-squares
+        problem, a few iterations from its minimum. Without it every left-out fit is a fresh OpenCV one.
 
     Returns
     -------
@@ -181,8 +188,7 @@ def held_out_errors(
     for k, i in enumerate(views):
         det = detections[i]
         assert det is not None
-        rest = [d if j != i else None for j, d in enumerate(detections)]
-        cam = _fit_without(rest, image_size, model, name, start)
+        cam = _fit_without(detections, i, image_size, model, name, start)
         if cam is None:
             cams.append(CameraModel(name, np.eye(3), np.zeros(5), *image_size))
             continue
@@ -197,18 +203,35 @@ def held_out_errors(
 
 
 def _fit_without(
-    dets: Sequence[Detection | None], size: tuple[int, int], model: str, name: str, start: CameraModel | None
+    dets: Sequence[Detection | None],
+    left_out: int,
+    size: tuple[int, int],
+    model: str,
+    name: str,
+    start: CameraResult | None,
 ) -> CameraModel | None:
-    """The fit of ``dets``, warm-started from ``start`` where OpenCV accepts it (principal point inside the
-    image), else from scratch; None when it fails."""
-    w, h = size
-    if start is not None and 0 < start.K[0, 2] < w and 0 < start.K[1, 2] < h:
+    """The fit of every view but ``left_out``; None when it fails (too few views left)."""
+    from appliance.calibration.bundle import Observation, bundle_adjust
+
+    if start is not None and len(start.views) > 3:
+        obs, poses = [], {}
+        for k, i in enumerate(start.views):
+            d = dets[i]
+            if i == left_out or d is None:
+                continue
+            obs.append(Observation(name, i, d.object_points, d.image_points))
+            poses[i] = (start.rvecs[k], start.tvecs[k])
         try:
-            return calibrate_camera(dets, size, model, name=name, K_guess=start.K, dist_guess=start.dist).camera
+            res = bundle_adjust({name: start.camera}, {name: model}, obs, poses, reject_outliers=False,
+                                rel_tol=HELD_OUT_REL_TOL, max_iterations=HELD_OUT_ITERATIONS,
+                                covariance=False)  # fmt: skip
+            cam = res.devices[name]
+            return CameraModel(name, cam.K, cam.dist, cam.width, cam.height)
         except CalibrationError:
             pass
+    rest = [d if j != left_out else None for j, d in enumerate(dets)]
     try:
-        return calibrate_camera(dets, size, model, name=name).camera
+        return calibrate_camera(rest, size, model, name=name).camera
     except CalibrationError:
         return None
 
@@ -267,8 +290,12 @@ def select_model(
     scored: list[Candidate] = []
     for model in names:
         res = calibrate_camera(detections, image_size, model, name=name)
-        ho = held_out_errors(detections, image_size, model, res.views, name=name, start=res.camera)
-        scored.append(Candidate(model, res.rms, ho, _undetermined(res, model), res))
+        und = _undetermined(res, model)
+        if und and forced is None:  # refused whatever its held-out error: spare the left-out fits
+            ho = HeldOut([], np.zeros(0), float("nan"))
+        else:
+            ho = held_out_errors(detections, image_size, model, res.views, name=name, start=res)
+        scored.append(Candidate(model, res.rms, ho, und, res))
     if forced is not None:
         c = scored[0]
         return c.result, ModelChoice(name, forced, scored, f"forced by --model {forced}", forced=True)
