@@ -8,6 +8,7 @@ import asyncio
 import datetime as dt
 import json
 import os
+import re
 import signal
 import time
 from collections.abc import Callable
@@ -297,6 +298,8 @@ def test_trigger_wait_returns_the_scan(tmp_path: Path, capsys: pytest.CaptureFix
     assert run(svc, body) == 0
     screen = capsys.readouterr().out
     assert "IDLE" in screen and "hardware" in screen and "last scans" in screen and "40 pts" in screen
+    rss = re.search(r"RSS (\d+) MB", screen)  # the service's resident memory, from /proc
+    assert rss is not None and 20 < int(rss.group(1)) < 4000, screen
 
 
 def test_absent_hardware_is_retried_and_reported(tmp_path: Path) -> None:

@@ -40,10 +40,11 @@ from appliance.service.faces import ServiceFaces
 from appliance.service.handlers import ControlHandlers
 from appliance.service.health import HealthCheck
 from appliance.service.jobs import Job, ScanJobs
+from appliance.service.memory import rss_mb, tune_malloc
 from appliance.service.notify import SdNotifier
 from appliance.service.publish import Publisher
 from appliance.service.reload import ConfigWatcher
-from appliance.service.rig import RigManager, WatchedCamera, select_threading_layer
+from appliance.service.rig import RigManager, WatchedCamera, current_threading_layer, select_threading_layer
 from appliance.service.state import Phase, ScanRecord, State, StatusBoard
 from appliance.service.writing import STATE_FILE, ScanOutput
 
@@ -65,25 +66,6 @@ class Extension(Protocol):
     async def apply(self, new: AppConfig) -> None: ...
 
     async def close(self) -> None: ...
-
-
-def rss_mb() -> float:
-    """This process's resident memory (MB), from /proc (0 where there is none)."""
-    try:
-        with open("/proc/self/statm", "rb") as f:
-            pages = int(f.read().split()[1])
-    except (OSError, ValueError, IndexError):
-        return 0.0
-    return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
-
-
-def _threading_layer() -> str:
-    import numba
-
-    try:
-        return str(numba.threading_layer())
-    except ValueError:
-        return "(no parallel kernel run yet)"
 
 
 # Sections whose change needs the rig rebuilt (everything else is applied in place).
@@ -131,6 +113,7 @@ class Service:
         self.watcher: ConfigWatcher | None = None
         self.successful_scans = 0
         select_threading_layer()  # before any parallel kernel runs
+        tune_malloc()  # before the big allocations
         self.scan_lock = asyncio.Lock()  # held by a scan and by every change of the rig
         self.output = ScanOutput(self, self.cfg)
         self.jobs = ScanJobs(self)
@@ -173,7 +156,7 @@ class Service:
         snap = self.board.snapshot()
         snap["control_socket"] = str(self.socket_path)
         snap["rss_mb"] = rss_mb()
-        snap["numba_threading_layer"] = _threading_layer()
+        snap["numba_threading_layer"] = current_threading_layer() or "(no parallel kernel run yet)"
         return snap
 
     def subscribe(self, on_state: StateListener | None = None, on_scan: ScanListener | None = None) -> None:
@@ -432,6 +415,7 @@ def run_service(config: Path, *, control_socket: Path | None = None, scans: int 
     ground_truth : bool
         On a virtual rig, log each scan's error against ground truth.
     """
+    tune_malloc()
     cfg = load_config(config)
     if cfg.service.numba_cache_dir is not None:
         os.environ["NUMBA_CACHE_DIR"] = str(cfg.service.numba_cache_dir)

@@ -19,6 +19,7 @@ from appliance.hardware.base import TriggerEvent
 from appliance.output.scanfiles import make_scan_id
 from appliance.output.share import WriteOutcome, estimate_scan_bytes
 from appliance.scan import scan_metadata
+from appliance.service import memory
 from appliance.service.state import ScanRecord, State
 
 if TYPE_CHECKING:
@@ -257,6 +258,7 @@ class ScanJobs:
         out = self.svc.output
         self.svc.board.share = await out.call(out.writer.status)
         await out.save_state()
+        await out.call(memory.trim)  # the scan's temporaries back to the system
         if cloud is not None:
             accuracy = await asyncio.to_thread(importlib.import_module, "appliance.sim.accuracy")
             report = await out.call(accuracy.compare_to_ground_truth, cloud, virtual, cameras)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from appliance.errors import ApplianceError
 from appliance.hardware.base import Camera, CameraInfo, FrameCallback
+from appliance.service import memory
 from appliance.service.state import DeviceStatus, Phase, State
 
 if TYPE_CHECKING:
@@ -38,10 +39,21 @@ def select_threading_layer() -> None:
     Kernels run concurrently (one decode thread per camera, the reconstruction): numba's ``workqueue`` layer
     is not safe for that. Must run before the first parallel kernel of the process.
     """
-    from numba import config
+    from numba.core import config
 
-    if str(config.THREADING_LAYER) == "default":
-        config.THREADING_LAYER = "threadsafe"
+    if str(getattr(config, "THREADING_LAYER", "default")) == "default":
+        setattr(config, "THREADING_LAYER", "threadsafe")  # noqa: B010 (numba's config has no stubs)
+
+
+def current_threading_layer() -> str | None:
+    """The numba threading layer in use (None before the first parallel kernel has run)."""
+    from numba.np.ufunc.parallel import threading_layer
+
+    layer: Callable[[], str] = threading_layer
+    try:
+        return layer()
+    except ValueError:
+        return None
 
 
 def threading_layer_problem() -> str:
@@ -49,13 +61,8 @@ def threading_layer_problem() -> str:
 
     Only meaningful once a parallel kernel has run (after the warm-up).
     """
-    import numba
-
-    try:
-        layer = numba.threading_layer()
-    except ValueError:
-        return ""  # no parallel kernel has run: nothing is unsafe yet
-    if layer in SAFE_LAYERS:
+    layer = current_threading_layer()
+    if layer is None or layer in SAFE_LAYERS:  # None: no parallel kernel has run, nothing is unsafe yet
         return ""
     return (f"numba threading layer is {layer!r}, which is not safe with kernels running in several threads; "
             "unset NUMBA_THREADING_LAYER (or set it to omp or tbb) and install libgomp1 (apt) or tbb (pip)")
@@ -157,6 +164,7 @@ class RigManager:
         if problem:
             raise FatalError(problem)
         self.captured_count = 0
+        await asyncio.to_thread(memory.trim)  # the warm-up's temporaries
         log.info("kernels warm in %.1f s", time.perf_counter() - t)
 
     def _trigger_link(self, state: Any, reason: str) -> None:
