@@ -81,3 +81,30 @@ def test_phase_sequence_keeps_full_resolution_where_it_resolves(rig: VirtualRig)
     err = np.abs(maps.u[maps.mask] - gt.proj_uv[..., 0][maps.mask])
     assert np.median(err) < 0.5
     assert stripe_widths(maps, seq) == {"x": {0.0: 1.0}}
+
+
+def _level_rule(weak: int, tol: int, nbits: int) -> tuple[int, bool]:
+    """The rule, written plainly: <= tol weak bits keeps full resolution; otherwise drop the contiguous weak
+    bits from bit 0 and allow <= tol weak bits above them."""
+    if bin(weak).count("1") <= tol:
+        return 0, True
+    f = 0
+    while f < nbits and weak >> f & 1:
+        f += 1
+    return f, f < nbits and bin(weak >> f).count("1") <= tol
+
+
+@pytest.mark.parametrize("tol", [0, 1])
+def test_level_rule_for_every_weak_bit_pattern(tol: int) -> None:
+    from appliance.reconstruct import _decode_kernels as k
+
+    nbits = 11
+    weak = np.arange(1 << nbits, dtype=np.uint32)
+    fl = np.empty_like(weak)
+    ok = np.empty(weak.shape, np.bool_)
+    k._gray_level(weak, tol, nbits, True, fl, ok)
+    want = [_level_rule(int(w), tol, nbits) for w in weak]
+    assert [int(f) for f, good in zip(fl, ok, strict=True) if good] == [f for f, good in want if good]
+    np.testing.assert_array_equal(ok, [good for _, good in want])
+    k._gray_level(weak, tol, nbits, False, fl, ok)  # finest_bit off: full resolution or nothing
+    np.testing.assert_array_equal(ok, [bin(int(w)).count("1") <= tol for w in weak])

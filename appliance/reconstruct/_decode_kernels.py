@@ -101,11 +101,14 @@ def _add_bit(d_row, bit, code, cst):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _popcount(v):  # type: ignore[no-untyped-def]
-    """Set bits of a uint32 (SWAR; vectorisable)."""
-    v = v - ((v >> _U1) & np.uint32(0x55555555))
-    v = (v & np.uint32(0x33333333)) + ((v >> _U2) & np.uint32(0x33333333))
-    v = (v + (v >> _U4)) & np.uint32(0x0F0F0F0F)
-    return (v * np.uint32(0x01010101)) >> np.uint32(24)
+    """Set bits of a uint32 (SWAR without a multiply, so that numba's 64-bit promotion cannot spill)."""
+    v = np.uint32(v)
+    v = np.uint32(v - ((v >> _U1) & np.uint32(0x55555555)))
+    v = np.uint32((v & np.uint32(0x33333333)) + ((v >> _U2) & np.uint32(0x33333333)))
+    v = np.uint32((v + (v >> _U4)) & np.uint32(0x0F0F0F0F))
+    v = np.uint32(v + (v >> _U8))
+    v = np.uint32(v + (v >> _U16))
+    return np.uint32(v & np.uint32(0x3F))
 
 
 # The final step is split into short loops over a row, each touching few arrays, so that LLVM
@@ -221,11 +224,11 @@ def _gray_level(weak, tol, nbits, finest, fl, ok):  # type: ignore[no-untyped-de
     t = np.uint32(tol)
     nb = np.uint32(nbits)
     for x in range(weak.shape[0]):
-        w = weak[x]
+        w = np.uint32(weak[x])
         full = _popcount(w) <= t
-        low = (~w) & (w + _U1)  # lowest strong bit, as a power of two
-        f = _popcount(low - _U1)
-        rest = w & ~(low - _U1)
+        below = np.uint32(np.uint32(w ^ np.uint32(w + _U1)) >> _U1)  # the contiguous weak bits from bit 0
+        f = _popcount(below)
+        rest = np.uint32(w & np.uint32(~below))
         trunc = finest & (_popcount(rest) <= t) & (f < nb)
         fl[x] = np.uint32(0) if full else f
         ok[x] = full | trunc
