@@ -15,7 +15,7 @@ import aiohttp
 import numpy as np
 import pytest
 import yaml
-from faces_helpers import TOKEN, appliance_copy, faces_of, free_port, running_service, token_file
+from faces_helpers import TOKEN, appliance_copy, faces_of, free_port, running_service, token_file, wait_until
 from plyfile import PlyData
 
 from appliance.service.control import request
@@ -199,3 +199,33 @@ def test_systemd_unit_allows_the_faces_ports_and_stays_exposed_at_most_2(tmp_pat
     m = re.search(r"Overall exposure level for scan3d\.service: ([0-9.]+)", r.stdout)
     assert m is not None, r.stdout + r.stderr
     assert float(m.group(1)) <= 2.0
+
+
+def test_a_reload_starts_moves_and_stops_the_face(tmp_path: Path, loop_guard: None) -> None:
+    cfg = appliance_copy(tmp_path)
+    p1, p2 = free_port(), free_port()
+    tok = str(token_file(tmp_path))
+
+    async def get_status(port: int) -> int:
+        async with aiohttp.ClientSession() as http, http.get(f"http://127.0.0.1:{port}/api/status") as r:
+            return r.status
+
+    async def main() -> None:
+        async with running_service(cfg) as svc:
+            faces = faces_of(svc)
+            assert faces.face("http") is None
+            await asyncio.to_thread(appliance_copy, tmp_path, http={"listen": f"127.0.0.1:{p1}", "token_file": tok})
+            await wait_until(lambda: faces.face("http") is not None, 10, "HTTP face started by the reload")
+            assert await get_status(p1) == 200
+            await asyncio.to_thread(appliance_copy, tmp_path, http={"listen": f"127.0.0.1:{p2}", "token_file": tok})
+            await wait_until(lambda: getattr(faces.face("http"), "port", None) == p2, 10, "HTTP face moved")
+            assert await get_status(p2) == 200
+            with pytest.raises(aiohttp.ClientConnectionError):
+                await get_status(p1)
+            await asyncio.to_thread(appliance_copy, tmp_path)
+            await wait_until(lambda: faces.face("http") is None, 10, "HTTP face stopped")
+            with pytest.raises(aiohttp.ClientConnectionError):
+                await get_status(p2)
+            assert svc.board.counters["reloads"] == 3
+
+    asyncio.run(main())
