@@ -184,3 +184,39 @@ def test_joint_refinement_keeps_pairwise_intrinsics_when_it_would_do_worse() -> 
     # the pairwise intrinsics it kept are the truth to well under a pixel
     assert abs(rig.devices["cam0"].K[0, 0] - cam.K[0, 0]) < 1.0
     assert "worse: intrinsics held at the pairwise values" in rig.summary()
+
+
+def test_two_cameras_and_projector_end_in_one_guarded_refinement() -> None:
+    """Two cameras and the projector on exactly projected board corners (0.05 px noise): every device is
+    selected, refined jointly and checked on left-out views, and the rig comes back as it is."""
+    from appliance.geometry.camera import CameraModel, look_at
+
+    truth = AppConfig().virtual_rig
+    cam0 = device_model("cam0", truth.cameras["cam0"])
+    proj = device_model("projector", truth.projector)
+    R1, T1 = look_at(np.array([-120.0, 10.0, 0.0]), np.array([0.0, 0.0, 600.0]))
+    cam1 = CameraModel("cam1", cam0.K.copy(), cam0.dist.copy(), cam0.width, cam0.height, R1, T1)
+    board = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=20)
+    rng = np.random.default_rng(4)
+    ids = np.arange(board.n_points, dtype=np.int32)
+    obj = board.object_points()
+
+    def seen(dev: CameraModel, w: np.ndarray) -> Detection:
+        return Detection(ids, dev.project(w)[0] + rng.normal(0, 0.05, (len(w), 2)), obj, dev.size)
+
+    views: dict[str, list[ProcamView]] = {"cam0": [], "cam1": []}
+    for pose in preset_board_poses(board, 6, cam0, np.array([0.0, 0.0, 600.0]), [cam0, cam1, proj]):
+        w = pose.world_points(board)
+        for cam in (cam0, cam1):
+            views[cam.name].append(ProcamView(seen(cam, w), seen(proj, w), None))
+    rig = calibrate_rig(views, {"cam0": cam0.size, "cam1": cam1.size}, proj.size)
+    assert list(rig.devices) == ["cam0", "cam1", "projector"]
+    assert set(rig.choices) == {"cam0", "cam1", "projector"} and [g.device for g in rig.guard] == list(rig.devices)
+    assert rig.bundle is not None and len(rig.bundle.board_poses) == 6
+    for name, dev in (("cam0", cam0), ("cam1", cam1), ("projector", proj)):
+        got = rig.devices[name]
+        np.testing.assert_allclose(got.K[:2, :2], dev.K[:2, :2], rtol=1e-3)
+        assert np.abs(got.K[:2, 2] - dev.K[:2, 2]).max() < 1.0
+        assert np.linalg.norm(got.center - dev.center) < 0.5  # mm
+    for g in rig.guard:  # never worse than pairwise on left-out views
+        assert g.kept_pairwise or g.joint_px <= g.pairwise_px
