@@ -261,15 +261,16 @@ def _bounds(tab, y, idx, max_gap, extrapolate):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump):  # type: ignore[no-untyped-def]
-    """Sub-pixel x on fractional row ``y + w`` where the code (level units) equals ``fu``; NaN if none."""
+def _cross_at(tab, y, w, fu, code_offset, max_gap, max_row_jump, extrapolate=False):  # type: ignore[no-untyped-def]
+    """Sub-pixel x on fractional row ``y + w`` where the code (level units) equals ``fu``; NaN if none
+    (``extrapolate``: see :func:`_bounds`)."""
     k = math.floor(fu)
     t = fu - k
     idx = int(k) + code_offset
     if idx < 0 or idx + 1 >= tab.shape[1] or y < 0 or y + 1 >= tab.shape[0]:
         return np.nan
-    xa0, xb0 = _bounds(tab, y, idx, max_gap, False)
-    xa1, xb1 = _bounds(tab, y + 1, idx, max_gap, False)
+    xa0, xb0 = _bounds(tab, y, idx, max_gap, extrapolate)
+    xa1, xb1 = _bounds(tab, y + 1, idx, max_gap, extrapolate)
     if xa0 != xa0 or xa1 != xa1:
         return np.nan
     x0 = xa0 + t * (xb0 - xa0)
@@ -382,7 +383,7 @@ def cc_match(  # type: ignore[no-untyped-def]
                     continue
             else:
                 # left-right check: the code must come back to this very pixel on cam0's own row
-                xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump)
+                xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump, True)
                 if not abs(xb - xr0) <= max_own:
                     status[r, col] = ST_OWN
                     continue
