@@ -362,3 +362,36 @@ def test_run_refuses_an_empty_or_binary_config_in_one_line(tmp_path: Path, data:
     out = (r.stdout + r.stderr).strip()
     assert r.returncode != 0 and "Traceback" not in out and "not a YAML mapping" in out, out
     assert out.count("\n") == 0, out
+
+
+def test_watchdog_is_withheld_while_the_writer_thread_hangs(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    notify_socket: tuple[str, list[tuple[float, dict[str, str]]]],
+) -> None:
+    path, got = notify_socket
+    monkeypatch.setenv("WATCHDOG_USEC", "200000")
+    monkeypatch.setattr(health_mod, "WRITER_DEADLINE_S", 0.5)
+    hang = threading.Event()
+    svc = make(tmp_path, notifier=SdNotifier(path))
+
+    async def body() -> None:
+        real = S.ShareWriter.status
+
+        def hung_status(self: S.ShareWriter) -> dict[str, Any]:  # a share that stops answering a stat
+            hang.wait()
+            return real(self)
+
+        monkeypatch.setattr(S.ShareWriter, "status", hung_status)
+        svc.output.submit(lambda: svc.writer.status())  # the writer thread is stuck in it
+        await wait_until(lambda: "writer thread" in svc.health.problem, 5)
+        t1 = time.monotonic()
+        await asyncio.sleep(0.5)
+        assert not any("WATCHDOG" in m for t, m in list(got) if t >= t1)
+        hang.set()
+        await wait_until(lambda: svc.health.problem == "", 5)
+
+    try:
+        assert run(svc, body) == 0
+    finally:
+        hang.set()
