@@ -91,8 +91,11 @@ async def running_service(config: Path) -> AsyncIterator[D.Service]:
     svc = await asyncio.to_thread(D.Service, config)  # loading the configuration is file work
     task = asyncio.create_task(svc.run())
     try:
-        await wait_until(lambda: (svc.board.state == "idle" and str(svc.board.phase) == "ready") or task.done(),
-                         60, "service ready")
+        try:
+            await wait_until(lambda: (svc.board.state == "idle" and str(svc.board.phase) == "ready") or task.done(),
+                                 120, "service ready")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: {svc.board.one_line()}; last error {svc.board.last_error}") from None
         assert not task.done(), "the service stopped during start-up"
         await asyncio.wait_for(faces_of(svc).started.wait(), 60)
         yield svc

@@ -11,6 +11,7 @@ from typing import Any
 
 import aiomqtt
 import pytest
+import yaml
 from faces_helpers import Broker, appliance_copy, faces_of, running_service, wait_until
 
 from appliance.service import mqtt as M
@@ -88,16 +89,36 @@ def test_state_scans_and_trigger_command(tmp_path: Path) -> None:
                     await publish(broker.port, "cmd/trigger", "[1, 2]")
                     await wait_until(lambda: len(w.on("cmd/trigger/result")) == 2, 5, "error reply")
                     assert not w.on("cmd/trigger/result")[1]["ok"] and svc.board.counters["triggers"] == 1
-            async with Watcher(broker.port) as late:  # the service stopped: retained state says offline
-                await wait_until(lambda: bool(late.on("state")), 5, "retained state after stop")
-                assert late.on("state")[-1] == {"state": "offline"}
+                    # a new serial in the configuration: the face moves to the new prefix, the old one says offline
+                    path = svc.config_path
+                    doc = yaml.safe_load(await asyncio.to_thread(path.read_text))
+                    doc["serial"] = "SIM-0002"
+                    await asyncio.to_thread(path.write_text, yaml.safe_dump(doc))
+                    await wait_until(lambda: getattr(faces_of(svc).face("mqtt"), "prefix", "") == "scan3d/SIM-0002",
+                                     10, "MQTT face on the new prefix")
+                    await wait_until(lambda: w.on("state")[-1] == {"state": "offline"}, 5, "old prefix offline")
+                async with aiomqtt.Client("127.0.0.1", broker.port, identifier="test-renamed") as c:
+                    await c.subscribe("scan3d/SIM-0002/state", qos=1)
+                    async for m in c.messages:
+                        assert isinstance(m.payload, bytes)
+                        state = json.loads(m.payload)
+                        if state.get("serial") == "SIM-0002":
+                            break
+                    assert state["state"] == "idle" and m.retain
+            async with aiomqtt.Client("127.0.0.1", broker.port, identifier="test-late") as c:
+                await c.subscribe("scan3d/SIM-0002/state", qos=1)  # the service stopped: retained offline
+                async for m in c.messages:
+                    assert isinstance(m.payload, bytes) and json.loads(m.payload) == {"state": "offline"}
+                    break
 
         asyncio.run(main())
     finally:
         broker.kill()
 
 
-def test_broker_killed_and_restarted_mid_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_broker_killed_and_restarted_mid_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(M, "RECONNECT_FIRST_S", 0.5)
     broker = Broker(tmp_path)
     broker.start()

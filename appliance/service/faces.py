@@ -387,10 +387,12 @@ class ServiceFaces:
 
     async def apply(self, new: AppConfig) -> None:
         """Take a new configuration: restart only the faces whose section changed."""
+        renamed = new.serial != self.cfg.serial  # the MQTT topics and the OPC UA application URI name it
         old, self.cfg = self._wanted(self.cfg), new
         want = self._wanted(new)
         for name in ("http", "mqtt", "opcua"):
-            if old.get(name) == want.get(name) and (name in self._faces or name not in want):
+            same = old.get(name) == want.get(name) and not (renamed and name != "http")
+            if same and (name in self._faces or name not in want):
                 continue
             face = self._faces.pop(name, None)
             if face is not None:
