@@ -39,9 +39,11 @@ def _cmd_decode(a: argparse.Namespace) -> int:
 
 
 def _cmd_scan(a: argparse.Namespace) -> int:
+    import asyncio
+
     from appliance.commands import scan_command
 
-    return scan_command(a.config, a.out, a.count, a.compare)
+    return asyncio.run(scan_command(a.config, a.out, a.count, a.compare))
 
 
 def _cmd_validate(a: argparse.Namespace) -> int:
@@ -82,9 +84,11 @@ def _cmd_devices(a: argparse.Namespace) -> int:
 
 
 def _cmd_grab(a: argparse.Namespace) -> int:
+    import asyncio
+
     from appliance.commands import grab_command
 
-    return grab_command(a.config, a.camera, a.frames, a.out)
+    return asyncio.run(grab_command(a.config, a.camera, a.frames, a.out))
 
 
 def _cmd_calibrate(a: argparse.Namespace) -> int:
@@ -123,9 +127,9 @@ def _cmd_firmware(a: argparse.Namespace) -> int:
 
 
 def _cmd_simulate_camera(a: argparse.Namespace) -> int:
-    from appliance.hardware.fake_gige import simulate_camera_main
+    from appliance.commands import simulate_camera_command
 
-    return simulate_camera_main(a.rest)
+    return simulate_camera_command(a.address, a.serial, a.camera, a.manifest, a.config, a.packet_loss)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -244,7 +248,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("rest", nargs=argparse.REMAINDER, help="arguments for the simulator")
 
     sp = cmd("simulate-camera", _cmd_simulate_camera, "serve a fake GigE Vision camera on a loopback address")
-    sp.add_argument("rest", nargs=argparse.REMAINDER)
+    sp.add_argument("--address", default="127.0.0.1", help="loopback address to listen on (port 3956)")
+    sp.add_argument("--serial", default="SCAN3D-SIM", help="serial number the camera reports")
+    sp.add_argument("--camera", default=None, help="which camera of the manifest / virtual rig (default: first)")
+    src = sp.add_mutually_exclusive_group()
+    src.add_argument("--manifest", type=Path, default=None, help="serve the frames of this sequence manifest")
+    src.add_argument("--virtual-rig", action="store_true", help="render the virtual rig's frames (the default)")
+    sp.add_argument("--packet-loss", type=float, default=0.0, help="fraction of packets to drop (0..1)")
+    config_arg(sp)
     return p
 
 

@@ -33,7 +33,7 @@ def write_patterns(out: Path, config: Path | None, width: int | None, height: in
     import cv2
 
     from appliance.patterns import render_frame, write_manifest
-    from appliance.scan import build_sequence
+    from appliance.patterns.from_config import build_sequence
 
     cfg = _config_or_default(config)
     w = width or cfg.virtual_rig.projector.width
@@ -532,10 +532,10 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
     return 0
 
 
-def scan_command(config: Path, out: Path | None, count: int, compare: bool) -> int:
-    """Run ``count`` scans on the configured rig and write their files."""
-    cfg = load_config(config)
-    return asyncio.run(_scan_async(cfg, out or cfg.output.directory, count, compare))
+async def scan_command(config: Path, out: Path | None, count: int, compare: bool) -> int:
+    """Run ``count`` scans on the configured rig and write their files (``cli.py`` runs the coroutine)."""
+    cfg = await asyncio.to_thread(load_config, config)
+    return await _scan_async(cfg, out or cfg.output.directory, count, compare)
 
 
 def validate_config(path: Path) -> int:
@@ -598,12 +598,46 @@ def devices_command(config: Path, discover: bool = False) -> int:
     return 0
 
 
-def grab_command(config: Path, camera: str, frames: int, out: Path) -> int:
-    """Grab software-triggered frames from one camera into PNG files."""
+async def grab_command(config: Path, camera: str, frames: int, out: Path) -> int:
+    """Grab software-triggered frames from one camera into PNG files (``cli.py`` runs the coroutine)."""
     from appliance.hardware.devices_probe import grab_frames
 
-    cfg = load_config(config)
-    paths = grab_frames(cfg, camera, frames, out)
+    cfg = await asyncio.to_thread(load_config, config)
+    paths = await grab_frames(cfg, camera, frames, out)
     for p in paths:
         print(p)
     return 0
+
+
+def virtual_rig_frames(config: Path, camera: str | None) -> Any:
+    """The virtual rig's rendering of the configured sequence for one camera (the first when None).
+
+    Returns an :class:`appliance.fakes.gige.FrameSource` of shape (F, H, W).
+    """
+    from appliance.fakes.gige import StackProvider
+    from appliance.patterns.from_config import build_sequence
+    from appliance.sim.rig import VirtualRig
+
+    cfg = load_config(config)
+    rig = VirtualRig(cfg.virtual_rig, base_dir=Path(config).parent)
+    name = camera if camera is not None else next(iter(rig.cameras))
+    if name not in rig.cameras:
+        raise ConfigError(f"{config}: camera {name!r} is not in virtual_rig.cameras ({sorted(rig.cameras)})")
+    sequence = build_sequence(cfg.sequence, rig.projector.width, rig.projector.height)
+    return StackProvider(np.asarray(rig.render(sequence, name)))
+
+
+def simulate_camera_command(
+    address: str, serial: str, camera: str | None, manifest: Path | None, config: Path, packet_loss: float
+) -> int:
+    """``scan3d simulate-camera``: serve a manifest's (or else the virtual rig's) frames as a GigE Vision camera."""
+    from appliance.fakes.gige import StackProvider, serve_fake_camera
+    from appliance.patterns import read_manifest
+
+    if manifest is not None:
+        recorded = read_manifest(manifest)
+        name = camera if camera is not None else recorded.cameras[0]
+        source = StackProvider(np.asarray(recorded.load_stack(name)))
+    else:
+        source = virtual_rig_frames(config, camera)
+    return serve_fake_camera(source, address, serial, packet_loss=packet_loss)

@@ -17,12 +17,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.schema import AppConfig, SequenceConfig
+from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
 from appliance.hardware.base import FrameArray
 from appliance.hardware.registry import Rig
-from appliance.patterns.sequence import Sequence, WhiteFrame, gray_code_sequence, gray_phase_sequence
+from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
+from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
 from appliance.reconstruct.pipeline import Reconstructor
 from appliance.reconstruct.types import DecodedMaps, PointCloud
@@ -30,17 +31,6 @@ from appliance.reconstruct.types import DecodedMaps, PointCloud
 # Module-level so tests can shorten it: extra time allowed per frame on top of the projector timing.
 FRAME_TIMEOUT_S = 5.0
 FRAME_TIMEOUT_PER_FRAME_S = 0.5
-
-
-def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
-    """The configured pattern sequence for a ``width`` x ``height`` projector."""
-    if cfg.kind == "gray":
-        return gray_code_sequence(width, height, cfg.axes, stripe=cfg.stripe_px, inverses=cfg.inverses)
-    if len(cfg.periods_px) == 1:
-        return gray_phase_sequence(width, height, cfg.axes, period=cfg.periods_px[0], steps=cfg.steps,
-                                   inverses=cfg.inverses)
-    return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,
-                               inverses=cfg.inverses)
 
 
 def pixel_format_bits(pixel_format: str) -> int:

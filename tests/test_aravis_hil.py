@@ -13,17 +13,19 @@ import shutil
 import subprocess
 import sys
 from collections.abc import Callable, Coroutine, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from appliance.config.backends import AravisCameraConfig
 from appliance.errors import BackendUnavailableError, CameraError
 
 try:
+    from appliance.fakes import gige as fake_gige
     from appliance.hardware import aravis as aravis_backend
-    from appliance.hardware import fake_gige
 
     aravis_backend.load_aravis()
     _SKIP = ""
@@ -354,10 +356,144 @@ def test_capture_via_fake_gige_two_cameras() -> None:
         "left": gray_stack(n=6, height=120, width=160, seed=1),
         "right": gray_stack(n=6, height=100, width=140, seed=2),
     }
-    got = fake_gige.capture_via_fake_gige(stacks)
+    got = _capture_via_fake_gige(stacks)
     assert set(got) == {"left", "right"}
     for name, stack in stacks.items():
         np.testing.assert_array_equal(got[name], stack)
+
+
+SMALL_RIG = """
+cameras: {cam0: {type: sim}}
+virtual_rig:
+  projector: {width: 640, height: 400, focal_px: 800, principal_px: [320, 200], position_mm: [190, 0, 0],
+              look_at_mm: [0, 0, 600]}
+  cameras:
+    cam0: {width: 320, height: 256, focal_px: 520, position_mm: [0, 0, 0], look_at_mm: [0, 0, 600]}
+"""
+
+
+def test_simulate_camera_command_serves_the_virtual_rig(
+    lab: fake_gige.LoopbackLab, tmp_path: Path
+) -> None:
+    """``scan3d simulate-camera --virtual-rig``: the command hands the tool the rig's frames; Aravis gets them."""
+    from appliance.commands import virtual_rig_frames
+
+    config = tmp_path / "rig.yaml"
+    config.write_text(SMALL_RIG)
+    address = addr(lab, 2)
+    expected = virtual_rig_frames(config, "cam0")
+    proc = lab.call(
+        subprocess.Popen,
+        [sys.executable, "-m", "appliance", "simulate-camera", "--virtual-rig", "--config", str(config),
+         "--address", address, "--serial", "SIMCMD"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert line.startswith(f"serving {expected.frame_count} frames of 320x256 uint8"), proc.stderr.read()
+
+        async def scenario() -> None:
+            cam = camera("left", address)
+            try:
+                info = await cam.open()
+                assert (info.serial, info.width, info.height) == ("SIMCMD", 320, 256)
+                out, order = await capture(cam, 4, (256, 320))
+            finally:
+                await cam.close()
+            assert order == [0, 1, 2, 3]
+            for i in range(4):
+                np.testing.assert_array_equal(out[i], expected.render(i))
+
+        run(lab, scenario)
+    finally:
+        proc.kill()
+        proc.wait(5)
+
+
+def test_simulate_camera_bad_input_is_one_line(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "appliance", "simulate-camera", "--manifest", str(tmp_path / "missing.yaml")],
+        capture_output=True, text=True, timeout=60, check=False,
+    )
+    assert out.returncode != 0
+    assert out.stderr.startswith("scan3d simulate-camera: ") and out.stderr.count("\n") == 1, out.stderr
+
+
+def _capture_via_fake_gige(
+    frames_per_camera: dict[str, npt.NDArray[Any]],
+    base_address: str = "127.0.0.2",
+    *,
+    frame_timeout_ms: float = 2000.0,
+) -> dict[str, npt.NDArray[Any]]:
+    """Send each camera's frames through a fake GigE Vision camera and capture them with the aravis backend.
+
+    Starts one fake per camera (addresses from ``base_address`` upwards, in a
+    :class:`~appliance.fakes.gige.LoopbackLab` private network namespace when possible; otherwise one camera
+    after the other on 127.0.0.1), arms an :class:`~appliance.hardware.aravis.AravisCamera` in software-trigger
+    mode for all frames and returns what arrived.
+
+    Parameters
+    ----------
+    frames_per_camera : dict of str to ndarray, shape (F, H, W), uint8 or uint16
+        The frames each camera should deliver.
+    base_address : str
+        The first camera's loopback address.
+
+    Returns
+    -------
+    dict of str to ndarray, shape (F, H, W)
+        The captured stacks (same dtype as the input).
+    """
+    first = int(base_address.rsplit(".", 1)[1])
+    with fake_gige.LoopbackLab(n_addresses=first - 2 + len(frames_per_camera)) as lab:
+        if lab.isolated:
+            addresses = [f"127.0.0.{first + k}" for k in range(len(frames_per_camera))]
+        else:
+            addresses = ["127.0.0.1"] * len(frames_per_camera)
+
+        async def capture_all() -> dict[str, npt.NDArray[Any]]:
+            if lab.isolated:
+                results = await asyncio.gather(
+                    *(
+                        _capture_one(name, addr, stack, frame_timeout_ms)
+                        for (name, stack), addr in zip(frames_per_camera.items(), addresses, strict=True)
+                    )
+                )
+                return dict(zip(frames_per_camera, results, strict=True))
+            out = {}
+            for name, stack in frames_per_camera.items():
+                out[name] = await _capture_one(name, "127.0.0.1", stack, frame_timeout_ms)
+            return out
+
+        return lab.call(asyncio.run, capture_all())
+
+
+async def _capture_one(
+    name: str, address: str, stack: npt.NDArray[Any], frame_timeout_ms: float
+) -> npt.NDArray[Any]:
+    fmt = "Mono8" if stack.dtype == np.uint8 else "Mono16"
+    serial = f"FAKE-{name}"[:15]
+    fake = await asyncio.to_thread(fake_gige.start_fake_camera, address, serial, stack)
+    cam = aravis_backend.AravisCamera(
+        name,
+        AravisCameraConfig(
+            address=address,
+            pixel_format=fmt,
+            trigger="Software",
+            exposure_us=20000,
+            frame_timeout_ms=frame_timeout_ms,
+        ),
+    )
+    try:
+        await cam.open()
+        out = np.empty_like(stack)
+        await cam.arm(len(stack), out)
+        await cam.wait_frames(len(stack) * frame_timeout_ms / 1000 + 5)
+        return out
+    finally:
+        await cam.close()
+        await asyncio.to_thread(fake.stop)
 
 
 # --- no camera needed ----------------------------------------------------------------------------------

@@ -50,7 +50,7 @@ def _scan(cfg_text: str) -> ScanResult:
 
 
 def test_mono12_gige_scan_decodes_like_the_mono8_scan(tmp_path: Path) -> None:
-    from appliance.hardware import fake_gige
+    from appliance.fakes import gige as fake_gige
 
     sim = _scan(RIG)
     frames8 = sim.frames["cam0"].copy()

@@ -48,7 +48,7 @@ def _scan(cfg_text: str) -> ScanResult:
 
 
 def test_gige_scan_equals_sim_scan(tmp_path: Path) -> None:
-    from appliance.hardware import fake_gige
+    from appliance.fakes import gige as fake_gige
 
     sim = _scan(RIG)
     frames = sim.frames["cam0"].copy()

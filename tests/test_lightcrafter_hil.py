@@ -16,10 +16,10 @@ import usb.core
 from appliance.config.backends import LightCrafter4500Config, VideoOutputConfig
 from appliance.config.loader import parse_config
 from appliance.errors import BackendUnavailableError, ConfigError, PatternError, ProjectorError
+from appliance.fakes.dlpc350 import FakeDLPC350, FakeUsbBackend, FlashCommandError
 from appliance.hardware import dlpc350 as proto
 from appliance.hardware import lightcrafter4500 as lcm
 from appliance.hardware.dlpc350 import Cmd, Led, LutEntry, Trigger
-from appliance.hardware.fake_dlpc350 import FakeDLPC350, FakeUsbBackend, FlashCommandError
 from appliance.patterns import (
     BlackFrame,
     GrayFrame,

@@ -19,8 +19,6 @@ interface. :class:`LoopbackLab` gives a private network namespace (when the OS a
 
 from __future__ import annotations
 
-import argparse
-import asyncio
 import contextlib
 import ctypes
 import multiprocessing
@@ -36,8 +34,7 @@ import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -61,8 +58,31 @@ _TAG = b"scan3d-served"
 # --- the served camera (runs in the fake's own process) ------------------------------------------------
 
 
+class FrameSource(Protocol):
+    """What ``scan3d simulate-camera`` serves: ``frame_count`` frames of ``frame_size`` (width, height) px.
+
+    The command hands the tool one (a manifest's stack, or the virtual rig's rendering of the configured
+    sequence, see :func:`appliance.commands.simulate_camera_command`); the tool knows nothing about
+    configurations, rigs or scans.
+    """
+
+    @property
+    def frame_count(self) -> int:
+        """Frames per acquisition."""
+        ...
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of every frame (px)."""
+        ...
+
+    def render(self, frame_index: int) -> npt.NDArray[Any]:
+        """Frame ``frame_index`` (0 <= index < frame_count), shape (height, width), uint8 or uint16."""
+        ...
+
+
 class StackProvider:
-    """Serves the frames of a (F, H, W) stack in order, cycling after the last one."""
+    """Serves the frames of a (F, H, W) stack in order, cycling after the last one (a :class:`FrameSource`)."""
 
     def __init__(self, frames: npt.NDArray[Any]) -> None:
         if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
@@ -71,8 +91,19 @@ class StackProvider:
             )
         self.frames = np.ascontiguousarray(frames)
 
+    @property
+    def frame_count(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        return int(self.frames.shape[2]), int(self.frames.shape[1])
+
+    def render(self, frame_index: int) -> npt.NDArray[Any]:
+        return self.frames[frame_index % len(self.frames)]  # type: ignore[no-any-return]
+
     def __call__(self, index: int) -> npt.NDArray[Any]:
-        return self.frames[index % len(self.frames)]  # type: ignore[no-any-return]
+        return self.render(index)
 
 
 @dataclass
@@ -514,154 +545,42 @@ class LoopbackLab:
         self.addresses = extra
 
 
-# --- the lead's helper: a full sequence through the real stack --------------------------------------------
-
-
-def capture_via_fake_gige(
-    frames_per_camera: dict[str, npt.NDArray[Any]],
-    base_address: str = "127.0.0.2",
-    *,
-    frame_timeout_ms: float = 2000.0,
-) -> dict[str, npt.NDArray[Any]]:
-    """Send each camera's frames through a fake GigE Vision camera and capture them with the aravis backend.
-
-    Starts one fake per camera (addresses from ``base_address`` upwards, in a :class:`LoopbackLab` private
-    network namespace when possible; otherwise one camera after the other on 127.0.0.1), arms an
-    :class:`~appliance.hardware.aravis.AravisCamera` in software-trigger mode for all frames and returns
-    what arrived. The fakes are started with multiprocessing's ``spawn``: a calling script needs the
-    ``if __name__ == "__main__":`` guard (pytest needs nothing).
-
-    Parameters
-    ----------
-    frames_per_camera : dict of str to ndarray, shape (F, H, W), uint8 or uint16
-        The frames each camera should deliver.
-    base_address : str
-        The first camera's loopback address.
-
-    Returns
-    -------
-    dict of str to ndarray, shape (F, H, W)
-        The captured stacks (same dtype as the input).
-    """
-    first = int(base_address.rsplit(".", 1)[1])
-    with LoopbackLab(n_addresses=first - 2 + len(frames_per_camera)) as lab:
-        if lab.isolated:
-            addresses = [f"127.0.0.{first + k}" for k in range(len(frames_per_camera))]
-        else:
-            addresses = ["127.0.0.1"] * len(frames_per_camera)
-
-        async def capture_all() -> dict[str, npt.NDArray[Any]]:
-            if lab.isolated:
-                results = await asyncio.gather(
-                    *(
-                        _capture_one(name, addr, stack, frame_timeout_ms)
-                        for (name, stack), addr in zip(frames_per_camera.items(), addresses, strict=True)
-                    )
-                )
-                return dict(zip(frames_per_camera, results, strict=True))
-            out = {}
-            for name, stack in frames_per_camera.items():
-                out[name] = await _capture_one(name, "127.0.0.1", stack, frame_timeout_ms)
-            return out
-
-        return lab.call(asyncio.run, capture_all())
-
-
-async def _capture_one(
-    name: str, address: str, stack: npt.NDArray[Any], frame_timeout_ms: float
-) -> npt.NDArray[Any]:
-    from appliance.config.backends import AravisCameraConfig
-    from appliance.hardware.aravis import AravisCamera
-
-    fmt = "Mono8" if stack.dtype == np.uint8 else "Mono16"
-    serial = f"FAKE-{name}"[:15]
-    fake = await asyncio.to_thread(start_fake_camera, address, serial, stack)
-    cam = AravisCamera(
-        name,
-        AravisCameraConfig(
-            address=address,
-            pixel_format=fmt,
-            trigger="Software",
-            exposure_us=20000,
-            frame_timeout_ms=frame_timeout_ms,
-        ),
-    )
-    try:
-        await cam.open()
-        out = np.empty_like(stack)
-        await cam.arm(len(stack), out)
-        await cam.wait_frames(len(stack) * frame_timeout_ms / 1000 + 5)
-        return out
-    finally:
-        await cam.close()
-        await asyncio.to_thread(fake.stop)
-
-
 # --- scan3d simulate-camera ----------------------------------------------------------------------------
 
 
-def simulate_camera_main(argv: list[str] | None = None) -> int:
-    """``scan3d simulate-camera``: serve a manifest's (or the virtual rig's) frames as a GigE Vision camera.
+def serve_fake_camera(source: FrameSource, address: str, serial: str, *, packet_loss: float = 0.0) -> int:
+    """``scan3d simulate-camera``: serve ``source``'s frames as a GigE Vision camera on ``address`` port 3956.
 
-    Runs in the foreground until Ctrl-C. Returns the process exit code.
+    Runs in the foreground (this process) until Ctrl-C or SIGTERM.
+
+    Parameters
+    ----------
+    source : FrameSource
+        The frames; frame ``i`` of each acquisition is ``source.render(i % source.frame_count)``.
+    address : str
+        A loopback address that belongs to an interface.
+    serial : str
+        The serial number the camera reports (at most 15 characters).
+    packet_loss : float
+        Fraction (0..1) of GVSP packets to drop.
+
+    Returns
+    -------
+    int
+        The exit status: 0 after Ctrl-C, 1 (with one line on stderr) when the camera cannot start.
     """
-    parser = argparse.ArgumentParser(prog="scan3d simulate-camera", description=simulate_camera_main.__doc__)
-    parser.add_argument("--address", default="127.0.0.1", help="loopback address to listen on (port 3956)")
-    parser.add_argument("--serial", default="SCAN3D-SIM", help="serial number the camera reports")
-    parser.add_argument("--camera", default=None, help="which camera of the manifest / virtual rig")
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--manifest", type=Path, help="serve the frames of this sequence manifest")
-    source.add_argument("--virtual-rig", action="store_true", help="render the virtual rig's frames")
-    parser.add_argument("--config", type=Path, default=None, help="configuration (with --virtual-rig)")
-    parser.add_argument("--packet-loss", type=float, default=0.0, help="fraction of packets to drop (0..1)")
-    args = parser.parse_args(argv)
+    width, height = source.frame_size
+    count = source.frame_count
     try:
-        stack = (
-            _manifest_stack(args.manifest, args.camera)
-            if args.manifest
-            else _rig_stack(args.config, args.camera)
-        )
-        spec = _Spec(
-            args.address,
-            args.serial,
-            StackProvider(stack),
-            stack.shape[2],
-            stack.shape[1],
-            args.packet_loss,
-            frozenset(),
-            len(stack),
-        )
+        dtype = np.asarray(source.render(0)).dtype
+        spec = _Spec(address, serial, lambda i: source.render(i % count), width, height, packet_loss,
+                     frozenset(), count)
         server = _Server(spec, None)
     except Exception as exc:  # the CLI reports every failure in one line
         print(f"scan3d simulate-camera: {exc}", file=sys.stderr)
         return 1
-    print(
-        f"serving {len(stack)} frames of {stack.shape[2]}x{stack.shape[1]} {stack.dtype} as GigE "
-        "Vision camera "
-        f"{args.serial} on {args.address}; Ctrl-C stops",
-        flush=True,
-    )
+    print(f"serving {count} frames of {width}x{height} {dtype} as GigE Vision camera {serial} on {address}; "
+          "Ctrl-C stops", flush=True)
     with contextlib.suppress(KeyboardInterrupt):
         server.run()
     return 0
-
-
-def _manifest_stack(path: Path, camera: str | None) -> npt.NDArray[Any]:
-    from appliance.patterns.manifest import read_manifest
-
-    manifest = read_manifest(path)
-    name = camera if camera is not None else manifest.cameras[0]
-    return np.asarray(manifest.load_stack(name))
-
-
-def _rig_stack(config: Path | None, camera: str | None) -> npt.NDArray[Any]:
-    from appliance.config.loader import load_config
-    from appliance.scan import build_sequence
-    from appliance.sim.rig import VirtualRig
-
-    path = config if config is not None else Path("config/appliance.yaml")
-    cfg = load_config(path)
-    rig = VirtualRig(cfg.virtual_rig, base_dir=path.parent)
-    name = camera if camera is not None else next(iter(rig.cameras))
-    sequence = build_sequence(cfg.sequence, rig.projector.width, rig.projector.height)
-    return np.asarray(rig.render(sequence, name))

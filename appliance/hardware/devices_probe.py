@@ -79,7 +79,7 @@ def discover_aravis() -> list[str]:
     return out or ["no device answered"]
 
 
-def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> list[Path]:
+async def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> list[Path]:
     """Grab ``frames`` software-triggered frames from one camera into PNG files in ``out``.
 
     Parameters
@@ -104,7 +104,7 @@ def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> list[Pat
 
     from appliance.config.backends import AravisCameraConfig
 
-    out.mkdir(parents=True, exist_ok=True)
+    await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
     if camera.startswith("aravis:"):
         cam_cfg: Any = AravisCameraConfig(address=camera.split(":", 1)[1], trigger="Software")
         name = camera.replace(":", "-")
@@ -122,7 +122,7 @@ def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> list[Pat
             from appliance.sim.rig import VirtualRig
 
             rig = VirtualRig(cfg.virtual_rig)
-            return [rig.render_frame(WhiteFrame(), name) for _ in range(frames)]
+            return [await asyncio.to_thread(rig.render_frame, WhiteFrame(), name) for _ in range(frames)]
         if cam_cfg.type == "aravis":
             from appliance.hardware.aravis import AravisCamera
 
@@ -138,9 +138,9 @@ def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> list[Pat
             await cam.close()
 
     paths = []
-    for i, img in enumerate(asyncio.run(grab_all())):
+    for i, img in enumerate(await grab_all()):
         p = out / f"{name}_{i:03d}.png"
-        if not cv2.imwrite(str(p), img):
+        if not await asyncio.to_thread(cv2.imwrite, str(p), img):
             raise HardwareError(f"grab: {p} cannot be written; check the folder")
         paths.append(p)
     return paths

@@ -2,7 +2,7 @@
 
 No USB here: this module encodes request messages into 64-byte HID reports, decodes replies, holds the
 command table, builds pattern LUT words and turns status bytes into human messages. The backend
-(:mod:`appliance.hardware.lightcrafter4500`) and the fake device (:mod:`appliance.hardware.fake_dlpc350`)
+(:mod:`appliance.hardware.lightcrafter4500`) and the fake device (:mod:`appliance.fakes.dlpc350`)
 both speak through it.
 
 Wire format (host -> device), zero-padded to 64-byte reports::

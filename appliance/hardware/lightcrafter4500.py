@@ -428,7 +428,7 @@ class LightCrafter4500:
         A pyusb ``usb.core.Device`` (or an object with its ``write``/``read``/``set_configuration``/
         kernel-driver methods) to use instead of searching the bus.
     usb_backend : object, optional
-        A pyusb backend for the search (tests: :class:`~appliance.hardware.fake_dlpc350.FakeUsbBackend`).
+        A pyusb backend for the search (tests: :class:`~appliance.fakes.dlpc350.FakeUsbBackend`).
     screen_factory : callable, optional
         Video source: makes the :class:`~appliance.hardware.display.Screen` on the projector's HDMI input from
         ``config.video_output`` (default: pygame); tests pass a fake. Never called for the flash source.

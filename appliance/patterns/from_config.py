@@ -1,0 +1,17 @@
+"""The configured pattern sequence: ``sequence:`` of the configuration -> :class:`Sequence`."""
+
+from __future__ import annotations
+
+from appliance.config.schema import SequenceConfig
+from appliance.patterns.sequence import Sequence, gray_code_sequence, gray_phase_sequence
+
+
+def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
+    """The configured pattern sequence for a ``width`` x ``height`` projector (px)."""
+    if cfg.kind == "gray":
+        return gray_code_sequence(width, height, cfg.axes, stripe=cfg.stripe_px, inverses=cfg.inverses)
+    if len(cfg.periods_px) == 1:
+        return gray_phase_sequence(width, height, cfg.axes, period=cfg.periods_px[0], steps=cfg.steps,
+                                   inverses=cfg.inverses)
+    return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,
+                               inverses=cfg.inverses)
