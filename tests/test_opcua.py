@@ -168,3 +168,37 @@ def test_a_trigger_through_each_face_shows_on_every_face(tmp_path: Path) -> None
         asyncio.run(main())
     finally:
         broker.kill()
+
+
+def test_encrypted_endpoint_only(tmp_path: Path) -> None:
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    port = free_port()
+    url = f"opc.tcp://127.0.0.1:{port}/scan3d"
+    server_key, server_cert = tmp_path / "server-key.pem", tmp_path / "server-cert.der"
+    client_key, client_cert = tmp_path / "client-key.pem", tmp_path / "client-cert.der"
+    client_uri = "urn:scan3d:test:plc"
+
+    async def main() -> None:
+        await setup_self_signed_certificate(server_key, server_cert, f"{NAMESPACE}:SIM-0001", "127.0.0.1",
+                                            [ExtendedKeyUsageOID.SERVER_AUTH], {"commonName": "scan3d test"})
+        await setup_self_signed_certificate(client_key, client_cert, client_uri, "127.0.0.1",
+                                            [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test plc"})
+        section = {**opcua_section(tmp_path, port), "security_policies": ["Basic256Sha256_SignAndEncrypt"],
+                   "certificate_file": str(server_cert), "private_key_file": str(server_key)}
+        async with running_service(appliance_copy(tmp_path, opcua=section)) as svc:
+            with pytest.raises((ua.UaError, OSError, TimeoutError)):  # no unencrypted endpoint is offered
+                async with client(url) as plain:
+                    await read(plain, "State")
+            c = client(url, "line", PASSWORD)
+            c.application_uri = client_uri
+            await c.set_security(SecurityPolicyBasic256Sha256, str(client_cert), str(client_key),
+                                 mode=ua.MessageSecurityMode.SignAndEncrypt)
+            async with c:
+                idx, scanner = await scanner_nodes(c)
+                sid = await scanner.call_method(f"{idx}:Trigger")
+                assert sid == svc.board.last_scan_id() and await read(c, "LastScanId") == sid
+
+    asyncio.run(main())
