@@ -5,10 +5,11 @@ Every model rejects unknown keys; every number has bounds and its unit in its na
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from appliance.config.backends import (
     CameraConfig,
@@ -281,14 +282,22 @@ _LISTEN_RE = r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}$"
 class HttpConfig(_Strict):
     """HTTP API and status page (aiohttp); off unless ``listen`` is set."""
 
-    listen: str | None = Field(None, pattern=_LISTEN_RE, description="HOST:PORT to serve the API and status page "
-                               "on, e.g. '127.0.0.1:8080' or '0.0.0.0:8080'; null: off.")
+    listen: str | None = Field(None, description="HOST:PORT to serve the API and status page on, e.g. "
+                               "'127.0.0.1:8080' or '0.0.0.0:8080'; null: off.")
     token_file: Path | None = Field(None, description="File holding the bearer token every write (POST) needs; "
                                     "unset: writes are refused.")
     max_request_kb: int = Field(16, ge=1, le=1024, description="Largest request accepted (KiB).")
     rate_per_s: float = Field(20.0, gt=0, le=1000, description="Requests per second per client address "
                               "(bursts of twice this); beyond it: 429.")
     max_event_clients: int = Field(16, ge=1, le=256, description="Concurrent /api/events streams.")
+
+    @field_validator("listen")
+    @classmethod
+    def _host_port(cls, v: str | None) -> str | None:
+        if v is not None and (not re.match(_LISTEN_RE, v) or int(v.rpartition(":")[2]) > 65535):
+            raise ValueError("must be HOST:PORT with a port up to 65535, e.g. '127.0.0.1:8080' or '0.0.0.0:8080' "
+                             "(null: off)")
+        return v
 
 
 class MqttConfig(_Strict):
