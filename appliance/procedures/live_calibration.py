@@ -291,9 +291,12 @@ def _stdin_lines(stream: TextIO, loop: asyncio.AbstractEventLoop) -> asyncio.Que
     queue: asyncio.Queue[str | None] = asyncio.Queue()
 
     def pump() -> None:
-        for line in stream:
-            loop.call_soon_threadsafe(queue.put_nowait, line.strip())
-        loop.call_soon_threadsafe(queue.put_nowait, None)
+        try:
+            for line in stream:
+                loop.call_soon_threadsafe(queue.put_nowait, line.strip())
+            loop.call_soon_threadsafe(queue.put_nowait, None)
+        except RuntimeError:  # the session ended (event loop closed) before the input did
+            return
 
     threading.Thread(target=pump, name="calibrate-stdin", daemon=True).start()
     return queue
