@@ -531,6 +531,77 @@ def _gray_row(  # type: ignore[no-untyped-def]
         _fold_d(d, bit, relg, axis_tab[a, 6] != 0, cf, code[a], weak[a], qg[a], m1[a], m2[a])
 
 
+_N5 = np.uint16(5)
+_NBIG = np.uint16(0x7FFF)  # "no contrast seen yet" of the 16-bit lanes
+_NINF = np.int16(0x7FFF)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _relg16(relg, rg16):  # type: ignore[no-untyped-def]
+    for x in range(relg.shape[0]):
+        rg16[x] = np.int16(min(relg[x], np.float32(32767.0)))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _diff16(p, n, d):  # type: ignore[no-untyped-def]
+    for x in range(d.shape[0]):
+        d[x] = np.int16(np.int16(p[x]) - np.int16(n[x]))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _single16(one, wr, br, sign, d):  # type: ignore[no-untyped-def]
+    for x in range(d.shape[0]):
+        d[x] = np.int16(sign * (2 * np.int16(one[x]) - np.int16(wr[x]) - np.int16(br[x])))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _fold16(d, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+    """:func:`_fold_d` in 16-bit lanes (8-bit frames: |contrast| <= 510, Gray bits <= 15): the same values."""
+    on = np.uint16(1 << bit)
+    zero = np.uint16(0)
+    for x in range(d.shape[0]):
+        code[x] |= on if d[x] > 0 else zero
+    for x in range(d.shape[0]):
+        c = np.int16(abs(d[x]))
+        strong = c >= rg16[x]
+        weak[x] |= zero if strong else on
+        qa[x] = min(qa[x], c if strong else _NINF)
+    if keys:
+        b = np.uint16(bit)
+        for x in range(d.shape[0]):
+            key = np.uint16((np.uint16(abs(d[x])) << _N5) | b)
+            m2[x] = min(m2[x], max(m1[x], key))
+            m1[x] = min(m1[x], key)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _widen16(c16, w16, q16, a16, b16, code, weak, qg, m1, m2):  # type: ignore[no-untyped-def]
+    for x in range(code.shape[0]):
+        code[x] = np.uint32(c16[x])
+        weak[x] = np.uint32(w16[x])
+    for x in range(code.shape[0]):
+        qg[x] = _FINF if q16[x] == _NINF else np.float32(q16[x])
+    for x in range(code.shape[0]):
+        m1[x] = BIG if a16[x] == _NBIG else np.uint32(a16[x])
+        m2[x] = BIG if b16[x] == _NBIG else np.uint32(b16[x])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _gray_row16(frames, y, wb, gray_tab, axis_tab, rg16, d, c16, w16, q16, a16, b16):  # type: ignore[no-untyped-def]
+    """:func:`_gray_row` for 8-bit frames with white/black or inverses, in 16-bit lanes."""
+    for g in range(gray_tab.shape[0]):
+        a = gray_tab[g, 0]
+        bit = gray_tab[g, 1]
+        ip = gray_tab[g, 2]
+        ineg = gray_tab[g, 3]
+        if ip >= 0 and ineg >= 0:
+            _diff16(frames[ip, y], frames[ineg, y], d)
+        else:
+            sign = np.int16(1) if ip >= 0 else np.int16(-1)
+            _single16(frames[ip if ip >= 0 else ineg, y], frames[wb[0], y], frames[wb[1], y], sign, d)
+        _fold16(d, bit, rg16, axis_tab[a, 6] != 0, c16[a], w16[a], q16[a], a16[a], b16[a])
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: ignore[no-untyped-def]
     w = frames.shape[2]
@@ -554,11 +625,12 @@ def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def decode_stack(  # type: ignore[no-untyped-def]
     frames, wb, used, maxval, gray_tab, mean_idx, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos,
-    rel, thr, finest, nthreads, u, v, mask, quality, levels,
+    rel, thr, finest, nthreads, narrow, u, v, mask, quality, levels,
 ):  # fmt: skip
     """Decode a (F, H, W) stack into u, v, mask, quality (H, W) and levels (2, H, W) in one pass over rows.
 
-    ``v`` with no rows: the y axis is not coded and not written.
+    ``narrow``: 8-bit frames, <= 15 Gray bits per axis, no mean thresholding: Gray bits are folded in 16-bit
+    lanes (twice the SIMD width, the same values). ``v`` with no rows: the y axis is not coded and not written.
     """
     h = frames.shape[1]
     w = frames.shape[2]
@@ -583,12 +655,31 @@ def decode_stack(  # type: ignore[no-untyped-def]
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
+        d16 = np.empty(w, np.int16)
+        rg16 = np.empty(w, np.int16)
+        c16 = np.empty((2, w), np.uint16)
+        w16 = np.empty((2, w), np.uint16)
+        q16 = np.empty((2, w), np.int16)
+        a16 = np.empty((2, w), np.uint16)
+        b16 = np.empty((2, w), np.uint16)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
-            code[:] = np.uint32(0)
-            _gate_init(weak, qg, m1, m2)
-            _gray_row(frames, y, wb, gray_tab, mean_idx, axis_tab, scratch[8], d, cf, msum, code, weak, qg, m1, m2)
+            if narrow:
+                _relg16(scratch[8], rg16)
+                c16[:] = np.uint16(0)
+                w16[:] = np.uint16(0)
+                q16[:] = _NINF
+                a16[:] = _NBIG
+                b16[:] = _NBIG
+                _gray_row16(frames, y, wb, gray_tab, axis_tab, rg16, d16, c16, w16, q16, a16, b16)
+                for a in range(2):
+                    _widen16(c16[a], w16[a], q16[a], a16[a], b16[a], code[a], weak[a], qg[a], m1[a], m2[a])
+            else:
+                code[:] = np.uint32(0)
+                _gate_init(weak, qg, m1, m2)
+                _gray_row(frames, y, wb, gray_tab, mean_idx, axis_tab, scratch[8], d, cf, msum, code, weak, qg, m1,
+                          m2)  # fmt: skip
             _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
                 lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest,

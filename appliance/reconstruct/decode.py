@@ -555,6 +555,11 @@ def _nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
     return nan
 
 
+def _narrow(plan: DecodePlan, dtype: np.dtype[Any]) -> bool:
+    """8-bit frames, at most 15 Gray bits per axis, no mean thresholding: Gray bits fold in 16-bit lanes."""
+    return bool(dtype == np.uint8 and all(g.bits <= 15 for g in plan.gray) and not plan.mean_frames)
+
+
 def decode(
     frames: FrameStack,
     sequence: Sequence | DecodePlan,
@@ -613,7 +618,8 @@ def decode(
     _k.decode_stack(
         stack, t["wb"], t["used"], maxval, t["gray_tab"], t["mean_idx"], t["axis_tab"], t["ph_tab"],
         t["ph_period"], t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
-        bool(params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality, out.levels,
+        bool(params.finest_bit), numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask,
+        out.quality, out.levels,
     )  # fmt: skip
     out.ignored = list(plan.ignored)
     return out
