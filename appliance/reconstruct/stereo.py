@@ -45,6 +45,7 @@ from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 from appliance.geometry.rays import RayTable
 from appliance.reconstruct import _stereo_kernels as C
+from appliance.reconstruct.residuals import Residual, summarise
 from appliance.reconstruct.triangulate import check_maps, check_out, distortion12
 from appliance.reconstruct.types import DecodedMaps
 from appliance.reconstruct.uncertainty import CodeNoise
@@ -331,6 +332,9 @@ class StereoTriangulator:
         self._counts = np.zeros((h, _N_STATUS), np.int64)
         self._tabs: dict[str, F32] = {}
         self.last_grid: CodeGrid | None = None
+        self.residuals: list[Residual] = []
+        """Epipolar (rows coded) and three-view (projector) residuals of the last :meth:`triangulate`, before
+        any correction: what the scan says about the calibration (:mod:`appliance.reconstruct.residuals`)."""
 
     def _table(self, name: str, nk: int) -> F32:
         tab = self._tabs.get(name)
@@ -436,9 +440,16 @@ class StereoTriangulator:
         C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v, CODE_OFFSET,
                    self._geom, shift, *args)  # fmt: skip
         stated = _stated_rms(self.cam0, self.cam1)
+        self.residuals = []
+        zs = xyz[::16, ::16, 2]
+        zmed = float(np.nanmedian(zs)) if np.isfinite(zs).any() else math.nan
         if use_v:
             ok = self._status[::3, ::3] == C.ST_OK
             med, sig, n = _robust(self._epi[::3, ::3][ok])
+            res = summarise("epipolar", f"{self.cam0.name}/{self.cam1.name}", self._epi[::3, ::3][ok],
+                            zmed * float(self._geom[3]))  # fmt: skip
+            if res is not None:
+                self.residuals.append(res)
             rep.epipolar = {"median_px": med, "spread_px": sig, "samples": float(n), "offset_px": 0.0}
             if self.correct_epipolar and n >= MIN_SAMPLES and abs(med) > max(EPIPOLAR_OFFSET_MIN_PX, 0.5 * sig):
                 shift = self._fit_offset(med, sig)
@@ -470,6 +481,10 @@ class StereoTriangulator:
             else:
                 limit3 = max(2.0, 0.5 * dl + 3.0 * _stated_rms(p), med3 + 5.0 * (sig3 if math.isfinite(sig3) else 0))
             rep.three_view = {"median_px": med3, "spread_px": sig3, "samples": float(n3), "limit_px": limit3}
+            res = summarise("three_view", f"{self.cam0.name}/{self.cam1.name}/{p.name}", self._err3[::3, ::3][ok],
+                            zmed / float(p.K[0, 0]))  # fmt: skip
+            if res is not None:
+                self.residuals.append(res)
             C.reject(xyz, self._err3, limit3, C.ST_THREE_VIEW, self._status)
         self._summarise(rep)
         return xyz
