@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import getpass
 import json
 import shutil
 import signal
@@ -109,11 +110,19 @@ async def running_service(config: Path) -> AsyncIterator[D.Service]:
 class Broker:
     """``mosquitto`` on 127.0.0.1:``port`` (anonymous, no persistence); kill/start at will."""
 
-    def __init__(self, tmp: Path, port: int | None = None) -> None:
+    def __init__(self, tmp: Path, port: int | None = None, users: dict[str, str] | None = None) -> None:
         self.port = port or free_port()
         self.conf = tmp / "mosquitto.conf"
-        self.conf.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
-                             "log_dest stderr\n")
+        auth = "allow_anonymous true\n"
+        if users:  # only these users, with these passwords
+            pw = tmp / "mosquitto.passwd"
+            pw.write_text("")
+            for user, password in users.items():
+                subprocess.run(["mosquitto_passwd", "-b", str(pw), user, password], check=True, timeout=30)
+            auth = f"allow_anonymous false\npassword_file {pw}\n"
+        # run as whoever runs the test (as root, mosquitto would switch to its own user, who cannot read tmp)
+        self.conf.write_text(f"listener {self.port} 127.0.0.1\n{auth}persistence false\nlog_dest stderr\n"
+                             f"user {getpass.getuser()}\n")
         self.log = tmp / "mosquitto.log"
         self.proc: subprocess.Popen[bytes] | None = None
 

@@ -162,3 +162,29 @@ def test_broker_killed_and_restarted_mid_run(
         asyncio.run(main())
     finally:
         broker.kill()
+
+
+def test_broker_with_users_takes_the_password_file(tmp_path: Path) -> None:
+    broker = Broker(tmp_path, users={"scanner-3": "mq-pass-81f2", "line": "line-pass"})
+    broker.start()
+    pw = tmp_path / "mqtt-password"
+    pw.write_text("mq-pass-81f2\n")
+    try:
+        async def main() -> None:
+            cfg = mqtt_config(tmp_path, broker.port, username="scanner-3", password_file=str(pw))
+            async with running_service(cfg) as svc:
+                face = faces_of(svc).face("mqtt")
+                assert isinstance(face, M.MqttFace)
+                await asyncio.wait_for(face.connected.wait(), 10)
+                async with aiomqtt.Client("127.0.0.1", broker.port, username="line", password="line-pass") as c:
+                    await c.subscribe(f"{PREFIX}/state", qos=1)
+                    async for m in c.messages:
+                        assert isinstance(m.payload, bytes) and json.loads(m.payload)["state"] == "idle"
+                        break
+                with pytest.raises(aiomqtt.MqttError):  # the broker does check
+                    async with aiomqtt.Client("127.0.0.1", broker.port, username="line", password="nope"):
+                        pass
+
+        asyncio.run(main())
+    finally:
+        broker.kill()

@@ -26,6 +26,7 @@ from typing import Any
 import aiomqtt
 
 from appliance.config.schema import MqttConfig
+from appliance.errors import ConfigError
 from appliance.service.faces import Event, ServiceView
 from appliance.service.http import read_secret
 
@@ -58,6 +59,7 @@ class MqttFace:
         self.view = view
         self.prefix = cfg.topic_prefix.replace("{serial}", view.serial).rstrip("/")
         self._password: str | None = None
+        self._tls: ssl.SSLContext | None = None
         self._state: str = ""
         self._state_dirty = True
         self._outbox: deque[tuple[str, str]] = deque(maxlen=cfg.queue_max)
@@ -83,6 +85,13 @@ class MqttFace:
     async def start(self) -> None:
         """Read the password and start the client (a broker that is away is retried; this never waits)."""
         self._password = await asyncio.to_thread(read_secret, self.cfg.password_file, "service.mqtt.password_file")
+        if self.cfg.tls:  # loading the CA store is file work: once, in a thread
+            cafile = str(self.cfg.ca_file) if self.cfg.ca_file else None
+            try:
+                self._tls = await asyncio.to_thread(ssl.create_default_context, cafile=cafile)
+            except OSError as exc:
+                raise ConfigError(f"service.mqtt.ca_file = {cafile!r}: cannot load it as a CA bundle ({exc}); "
+                                  "give a PEM file or unset it for the system store") from exc
         self._state = _dumps(self.view.state_event())
         self._queue = self.view.subscribe()
         loop = asyncio.get_running_loop()
@@ -127,12 +136,9 @@ class MqttFace:
     # --- the connection ----------------------------------------------------------------------------
 
     def _client_for(self) -> aiomqtt.Client:
-        tls: ssl.SSLContext | None = None
-        if self.cfg.tls:
-            tls = ssl.create_default_context(cafile=str(self.cfg.ca_file) if self.cfg.ca_file else None)
         return aiomqtt.Client(
             self.cfg.host, self.cfg.port, username=self.cfg.username, password=self._password,
-            identifier=f"scan3d-{self.view.serial}", keepalive=self.cfg.keepalive_s, tls_context=tls,
+            identifier=f"scan3d-{self.view.serial}", keepalive=self.cfg.keepalive_s, tls_context=self._tls,
             will=aiomqtt.Will(self.topic("state"), OFFLINE, qos=1, retain=True), timeout=PUBLISH_TIMEOUT_S,
             max_queued_incoming_messages=64)
 
