@@ -107,9 +107,10 @@ class FakeScanner:
             np.full(n, 128, np.uint8),
             np.ones(n, np.float32),
         )
+        broken = getattr(self.plan, "broken_result", False)  # e.g. a backend that lost a camera's maps
         return SimpleNamespace(
             cloud=cloud,
-            maps={"cam0": SimpleNamespace(mask=np.ones((24, 32), bool))},
+            maps={} if broken else {"cam0": SimpleNamespace(mask=np.ones((24, 32), bool))},
             timings_ms={"scan_ms": 1e3 * self.plan.scan_s, "capture_ms": 1.0, "reconstruct_ms": 1.0},
             shapes={"cam0": (24, 32)},
         )

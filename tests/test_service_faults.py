@@ -101,9 +101,14 @@ def test_any_exception_in_a_scan_is_a_failed_scan_and_the_service_goes_on(tmp_pa
         reply = await asyncio.wait_for(ctl(svc, cmd="trigger", wait=True), 10)
         assert not reply["ok"] and "frame index out of range" in reply["error"]
         await wait_until(lambda: svc.board.state == State.IDLE)
-        assert svc.board.counters["scans_failed"] == 1
-        assert svc.board.last_error is not None and svc.board.last_error.where == "scan"
         svc.plan.fail = None
+        svc.plan.broken_result = True  # fails after the capture, while the sidecar is made
+        reply = await asyncio.wait_for(ctl(svc, cmd="trigger", wait=True), 10)
+        assert not reply["ok"] and "cam0" in reply["error"], reply
+        await wait_until(lambda: svc.board.state == State.IDLE)
+        assert svc.board.counters["scans_failed"] == 2
+        assert svc.board.last_error is not None and svc.board.last_error.where == "scan"
+        svc.plan.broken_result = False
         assert (await ctl(svc, cmd="trigger", wait=True))["ok"]
 
     assert run(svc, body) == 0
