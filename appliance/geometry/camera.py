@@ -140,10 +140,16 @@ class CameraModel:
             out[:, 0] -= self.K[0, 1] / self.K[0, 0] * out[:, 1]
             return out  # type: ignore[no-any-return]
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        K = self.K
+        if K[0, 1] != 0.0:  # OpenCV ignores the skew: remove it from the pixels, exactly (yd = (v - cy) / fy)
+            pts = pts.copy()
+            pts[:, 0, 0] -= K[0, 1] * (pts[:, 0, 1] - K[1, 2]) / K[1, 1]
+            K = K.copy()
+            K[0, 1] = 0.0
         if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
-            und = cv2.undistortPointsIter(pts, self.K, self.dist, None, None, crit)
+            und = cv2.undistortPointsIter(pts, K, self.dist, None, None, crit)
         else:  # OpenCV 5 folded the criteria into undistortPoints
-            und = cv2.undistortPoints(pts, self.K, self.dist, R=None, P=None, criteria=crit)
+            und = cv2.undistortPoints(pts, K, self.dist, R=None, P=None, criteria=crit)
         return und.reshape(-1, 2).astype(np.float64)  # type: ignore[no-any-return]
 
     def pixel_rays_device(self) -> F64:
