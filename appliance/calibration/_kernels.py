@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(nogil=True, cache=True)  # type: ignore[misc]
+@njit(nogil=True, cache=True)
 def cholesky_solve(A, B):  # type: ignore[no-untyped-def]
     """Solve ``A X = B`` for symmetric positive definite ``A`` (n, n) and ``B`` (n, k); False if not SPD.
 

@@ -199,13 +199,14 @@ def _evaluate(
         sl = slice(at, at + 2 * m)
         r[sl] = (px.reshape(-1, 2) - o.image_points[k]).ravel()
         if A is not None and g is not None:
-            Jr, Jt = jp[:, 0:3], jp[:, 3:6]
+            jd: F64 = np.asarray(jp, np.float64)
+            Jr, Jt = jd[:, 0:3], jd[:, 3:6]
             blocks: list[F64] = []
             cols: list[int] = []
             ii = lay.intr[o.device]
             if o.device not in lay.fixed:
                 free = list(lay.dist_free[o.device])
-                blocks += [jp[:, 6:8], jp[:, 8:10], jp[:, 10:][:, free]]
+                blocks += [jd[:, 6:8], jd[:, 8:10], jd[:, 10:][:, free]]
                 cols += list(range(ii, ii + lay.n_intr(o.device)))
             if comp is None:
                 blocks += [Jr, Jt]
