@@ -77,8 +77,9 @@ def bench_reference(repeats: int) -> dict[str, Any]:
     t = time.perf_counter()
     stacks = {name: rig.render(seq, name) for name in ("cam0", "cam1")}
     render_s = time.perf_counter() - t
+    # with the sequence: per-point sigma_mm and the neighbour filter's per-point jump limits, as a scan has
     recon = Reconstructor(virtual_calibration(rig), "x",
-                          ReconstructionConfig(min_depth_mm=300, max_depth_mm=1200))
+                          ReconstructionConfig(min_depth_mm=300, max_depth_mm=1200), sequence=seq)
     params = DecodeParams()
     white = {n: s[0] for n, s in stacks.items()}
 

@@ -182,6 +182,32 @@ def pairs_between_rows(p, q, e, np_, nq):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def pairs_in_span(p, e, n, lo, hi):  # type: ignore[no-untyped-def]
+    """:func:`pairs_in_row` where row p holds points only in padded columns lo .. hi - 1 (NaN elsewhere)."""
+    if hi <= lo:
+        return
+    m = hi - lo + 1  # pairs (k, k + 1), k = lo - 1 .. hi - 1
+    _near(p[0, lo - 1 : hi], p[1, lo - 1 : hi], p[2, lo - 1 : hi], p[4, lo - 1 : hi], p[0, lo : hi + 1],
+          p[1, lo : hi + 1], p[2, lo : hi + 1], p[4, lo : hi + 1], e[:m])  # fmt: skip
+    _add2(n[lo:hi], e[0 : m - 1], e[1:m])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def pairs_between_spans(p, q, e, np_, nq, lo_p, hi_p, lo_q, hi_q):  # type: ignore[no-untyped-def]
+    """:func:`pairs_between_rows` where p and q hold points only in padded columns [lo, hi) each."""
+    for off in range(-1, 2):
+        lo = max(lo_p, lo_q - off)
+        hi = min(hi_p, hi_q - off)
+        if hi <= lo:
+            continue
+        k = hi - lo
+        _near(p[0, lo:hi], p[1, lo:hi], p[2, lo:hi], p[4, lo:hi], q[0, lo + off : hi + off],
+              q[1, lo + off : hi + off], q[2, lo + off : hi + off], q[4, lo + off : hi + off], e[:k])  # fmt: skip
+        _add1(np_[lo:hi], e[:k])
+        _add1(nq[lo + off : hi + off], e[:k])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def keep_row(pz, ps, n, min_nb, max_sigma, out, out_s):  # type: ignore[no-untyped-def]
     """out, out_s = the depths and sigmas of row pz with >= min_nb near neighbours and sigma <= max_sigma.
 

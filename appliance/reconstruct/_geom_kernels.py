@@ -66,6 +66,15 @@ def ray_row(tx, ty, r, step, mx, my):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def ray_span(tx, ty, r, step, mx, my, c0, c1):  # type: ignore[no-untyped-def]
+    """:func:`ray_row` for the pixels ``c0 .. c1 - 1`` of row ``r`` only (into ``mx[c0:c1]``, ``my[c0:c1]``)."""
+    g = r // step + 1
+    t = np.float64(r - (g - 1) * step) / step
+    _cubic_row(tx[g - 1][c0:c1], tx[g][c0:c1], tx[g + 1][c0:c1], tx[g + 2][c0:c1], t, mx[c0:c1])
+    _cubic_row(ty[g - 1][c0:c1], ty[g][c0:c1], ty[g + 1][c0:c1], ty[g + 2][c0:c1], t, my[c0:c1])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _cubic_row(p0, p1, p2, p3, t, out):  # type: ignore[no-untyped-def]
     """Catmull-Rom weights (as in ``rays.catmull_rom``), applied per column."""
     w0 = 0.5 * t * (-1.0 + t * (2.0 - t))

@@ -11,9 +11,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from appliance.reconstruct._filter_kernels import keep_row, pairs_between_rows, pairs_in_row
+from appliance.reconstruct._filter_kernels import keep_row, pairs_between_spans, pairs_in_span
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
-from appliance.reconstruct._geom_kernels import distort_jac, ray_row, store_point
+from appliance.reconstruct._geom_kernels import distort_jac, ray_row, ray_span, store_point
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -278,114 +278,131 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _sigma_row(pz, gz, mx, my, qr, wr, has_w, noise, zmin, zmax, ps):  # type: ignore[no-untyped-def]
-    """1-sigma error along the ray (mm) of every point of a row into ``ps``; depths out of range become NaN.
+def _finish_row(pz, gz, mx, my, qr, wr, has_w, noise, zmin, zmax, jump, inv_f, px, py, ps, pj):  # type: ignore[no-untyped-def]
+    """Depth range, 1-sigma error along the ray (mm), jump limit and x, y of every point of a row (one pass).
 
-    ``noise`` = (phase_px, stripe var, read + rounding var, 1 / e- per DN), see ``uncertainty.CodeNoise``.
-    Returns how many points were triangulated and how many are in range.
+    ``noise`` = (phase_px, stripe var, read + rounding var, 1 / e- per DN), see ``uncertainty.CodeNoise``:
+    ``sigma = |dz/du| sqrt((phase_px^2 (read var + A / e-) / q^2 + stripe var) (1 + x^2 + y^2))`` with the mean
+    level ``A = white - q / 2`` (``q / 2`` without white). The jump limit is ``jump[0] + jump[1] z inv_f +
+    jump[2] sigma`` (the sigma term left out when ``jump[2]`` is 0: sigma may be unknown). Depths out of
+    range become NaN. Returns how many points were triangulated and how many are in range.
     """
-    gain, svar, rvar, inv_e = noise[0], noise[1], noise[2], noise[3]
-    n_t = 0
-    n_r = 0
+    g2 = noise[0] * noise[0]
+    svar, rvar, inv_e = noise[1], noise[2], noise[3]
+    j0, jf, js = jump[0], jump[1] * inv_f, jump[2]
+    use_s = js != 0.0
+    n_t = np.int64(0)
+    n_r = np.int64(0)
     for c in range(pz.shape[0]):
-        z = pz[c]
+        z = np.float64(pz[c])
         q = np.float64(qr[c])
         a = np.float64(wr[c]) - 0.5 * q if has_w else 0.5 * q
-        su = gain * math.sqrt(rvar + max(a, 0.0) * inv_e) / q
-        s = gz[c] * math.sqrt((su * su + svar) * (1.0 + mx[c] * mx[c] + my[c] * my[c]))
+        x = mx[c]
+        y = my[c]
+        su2 = g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
+        sg = gz[c] * math.sqrt(su2 * (1.0 + x * x + y * y))
         fin = z == z
         inr = fin & (z >= zmin) & (z <= zmax)
         n_t += np.int64(fin)
         n_r += np.int64(inr)
-        pz[c] = z if inr else np.nan
-        ps[c] = s
+        z = z if inr else np.float64(np.nan)
+        pz[c] = z
+        ps[c] = sg
+        pj[c] = j0 + jf * z + (js * sg if use_s else 0.0)
+        px[c] = z * x
+        py[c] = z * y
     return n_t, n_r
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _jump_row(pz, ps, jump, inv_f, pj):  # type: ignore[no-untyped-def]
-    """Per point, the distance (mm) within which a neighbour counts: const + k_fp footprint + k_sigma sigma."""
-    js = jump[2]
-    if js == 0.0:  # sigma may be unknown (NaN): leave it out
-        for c in range(pz.shape[0]):
-            pj[c] = jump[0] + jump[1] * pz[c] * inv_f
-    else:
-        for c in range(pz.shape[0]):
-            pj[c] = jump[0] + jump[1] * pz[c] * inv_f + js * ps[c]
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
 def _count_true(m):  # type: ignore[no-untyped-def]
-    n = 0
+    n = np.int64(0)
     for c in range(m.shape[0]):
         n += np.int64(m[c])
     return n
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _depth_row(  # type: ignore[no-untyped-def]
-    r, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin,
-    kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, mx, my, fc, ba, bz, scratch,
-    scratch_i, p, st,
-):
-    """Camera-frame points of row ``r`` into the padded rows ``p`` (5, W + 2): x, y, z, sigma, jump limit.
+def _mask_span(m):  # type: ignore[no-untyped-def]
+    """(first, last + 1) of the True entries of a row; (0, 0) when none."""
+    w = m.shape[0]
+    c0 = 0
+    while c0 < w and not m[c0]:
+        c0 += 1
+    if c0 == w:
+        return 0, 0
+    c1 = w
+    while not m[c1 - 1]:
+        c1 -= 1
+    return c0, c1
 
-    ``st`` (3,) receives the row's decoded, triangulated and in-range counts.
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _clear(p, lo, hi):  # type: ignore[no-untyped-def]
+    """NaN padded columns lo .. hi - 1 of every channel of ring row p."""
+    for k in range(p.shape[0]):
+        for c in range(lo, hi):
+            p[k, c] = np.float32(np.nan)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _depth_row(  # type: ignore[no-untyped-def]
+    r, c0, c1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
+    origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, jump, inv_f, mx, my, fc, ba, bz, scratch, scratch_i, p,
+    st,
+):
+    """Camera-frame points of pixels c0 .. c1 - 1 of row ``r`` into padded columns 1 + c0 .. of ``p`` (5, W + 2).
+
+    Channels: x, y, z, sigma, jump limit (NaN: no point). ``st`` (3,) receives the row's decoded,
+    triangulated and in-range counts. Every stage runs over the decoded span of the row only.
     """
-    w = mx.shape[0]
-    ray_row(tx, ty, r, step, mx, my)
-    px = p[0, 1 : w + 1]
-    py = p[1, 1 : w + 1]
-    pz = p[2, 1 : w + 1]
-    ps = p[3, 1 : w + 1]
-    pj = p[4, 1 : w + 1]
-    gz = scratch[3]
-    mr = mask[r]
+    ray_span(tx, ty, r, step, mx, my, c0, c1)
+    mxs, mys = mx[c0:c1], my[c0:c1]
+    px = p[0, 1 + c0 : 1 + c1]
+    py = p[1, 1 + c0 : 1 + c1]
+    pz = p[2, 1 + c0 : 1 + c1]
+    ps = p[3, 1 + c0 : 1 + c1]
+    pj = p[4, 1 + c0 : 1 + c1]
+    gz = scratch[3, c0:c1]
+    mr = mask[r, c0:c1]
     if ray:
-        ur = u[r]
-        vr = v[r]
-        for c in range(w):
+        ur = u[r, c0:c1]
+        vr = v[r, c0:c1]
+        for c in range(c1 - c0):
             z = np.nan
             g = np.nan
             if mr[c]:
-                z, g = _z_ray(ur[c], vr[c], mx[c], my[c], und, origin, kmat, d, rcp, tcp)
+                z, g = _z_ray(ur[c], vr[c], mxs[c], mys[c], und, origin, kmat, d, rcp, tcp)
             pz[c] = z
             gz[c] = g
     else:
         nc, nu = table.shape[0], table.shape[1]
-        cell, tu, tv, q = scratch_i[0], scratch[0], scratch[1], scratch[2]
-        _plane_row_geometry(mx, my, c_lo, inv_dc, min_sin, rcp, tcp, axis, fc, ba, bz)
-        _plane_cells(u[r] if axis == 0 else v[r], mr, fc, nc, nu, code0, cell, tu, tv)
+        cell, tu, tv, q = scratch_i[0, c0:c1], scratch[0, c0:c1], scratch[1, c0:c1], scratch[2, c0:c1]
+        fcs, bas, bzs = fc[c0:c1], ba[c0:c1], bz[c0:c1]
+        _plane_row_geometry(mxs, mys, c_lo, inv_dc, min_sin, rcp, tcp, axis, fcs, bas, bzs)
+        _plane_cells(u[r, c0:c1] if axis == 0 else v[r, c0:c1], mr, fcs, nc, nu, code0, cell, tu, tv)
         _plane_gather(table.reshape(nc * nu), nu, cell, tu, tv, q, tu)  # the slope overwrites tu
-        _plane_depth(q, tu, ba, bz, tcp[2], tcp[0] if axis == 0 else tcp[1], pz, gz)
+        _plane_depth(q, tu, bas, bzs, tcp[2], tcp[0] if axis == 0 else tcp[1], pz, gz)
     st[0] = _count_true(mr)
-    st[1], st[2] = _sigma_row(pz, gz, mx, my, quality[r], white[r] if has_w else white[0], has_w, noise, zmin,
-                              zmax, ps)  # fmt: skip
-    _jump_row(pz, ps, jump, inv_f, pj)
-    _scale_rays(pz, mx, my, px, py)
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _scale_rays(pz, mx, my, px, py):  # type: ignore[no-untyped-def]
-    for c in range(pz.shape[0]):
-        z = np.float64(pz[c])
-        px[c] = z * mx[c]
-        py[c] = z * my[c]
+    wr = white[r, c0:c1] if has_w else white[0]
+    st[1], st[2] = _finish_row(pz, gz, mxs, mys, quality[r, c0:c1], wr, has_w, noise, zmin, zmax, jump, inv_f,
+                               px, py, ps, pj)  # fmt: skip
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def depth_filtered(  # type: ignore[no-untyped-def]
     u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin,
     kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, min_nb, nchunks, nthreads, depth,
-    sigma, counts, stats,
+    sigma, counts, stats, spans,
 ):
     """Triangulate to camera-frame depth and sigma (H, W), dropping points with < ``min_nb`` near neighbours.
 
     A neighbour is near when closer than the mean of the two points' limits ``jump[0] + jump[1] z inv_f +
     jump[2] sigma`` (mm); after that filter, points with sigma over ``max_sigma`` are dropped.
     ``counts[r + 1]`` receives the kept points of row r, ``stats[r]`` (5,) its decoded, triangulated,
-    in-range, with-neighbours and kept counts. Each chunk of rows keeps the points of two rows
-    (padded with a NaN column each side) in a small ring, so no organised cloud is written.
+    in-range, with-neighbours and kept counts, ``spans[r]`` the columns (first, last + 1) that may hold
+    points. Each chunk of rows keeps the points of two rows (padded with a NaN column each side) in a small
+    ring, so no organised cloud is written; every row is processed over its decoded span only.
     """
     h, w = depth.shape[0], depth.shape[1]
     counts[0] = 0
@@ -399,6 +416,7 @@ def depth_filtered(  # type: ignore[no-untyped-def]
         scratch = np.empty((4, w), np.float64)
         scratch_i = np.empty((1, w), np.int32)
         ring = np.full((2, 5, w + 2), np.nan, np.float32)  # (slot, x/y/z/sigma/jump, padded column)
+        held = np.zeros((2, 2), np.int64)  # padded columns [lo, hi) of each slot that may hold points
         nb = np.zeros((2, w + 2), np.int32)
         e = np.empty(w + 1, np.int32)
         st = np.zeros(3, np.int64)
@@ -407,8 +425,8 @@ def depth_filtered(  # type: ignore[no-untyped-def]
             r1 = (ch + 1) * h // nchunks
             _depth_chunk(r0, r1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo,
                          inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma,
-                         jump, inv_f, min_nb, mx, my, fc, ba, bz, scratch, scratch_i, ring, nb, e, st, depth,
-                         sigma, counts, stats)  # fmt: skip
+                         jump, inv_f, min_nb, mx, my, fc, ba, bz, scratch, scratch_i, ring, held, nb, e, st, depth,
+                         sigma, counts, stats, spans)  # fmt: skip
     return counts
 
 
@@ -416,30 +434,44 @@ def depth_filtered(  # type: ignore[no-untyped-def]
 def _depth_chunk(  # type: ignore[no-untyped-def]
     r0, r1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
     origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, min_nb, mx, my, fc, ba, bz,
-    scratch, scratch_i, ring, nb, e, st, depth, sigma, counts, stats,
+    scratch, scratch_i, ring, held, nb, e, st, depth, sigma, counts, stats, spans,
 ):
     """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter).
 
-    ``ring`` (2, 5, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts;
-    row r - 1 is complete once the pairs it shares with row r are counted.
+    ``ring`` (2, 5, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts,
+    ``held`` the padded column span of each slot; row r - 1 is complete once the pairs it shares with row r
+    are counted. Outside a slot's span the ring is NaN and its counts are never read.
     """
     h, w = depth.shape[0], depth.shape[1]
     for r in range(r0 - 1, r1 + 1):
         s = (r - r0 + 1) % 2
         p = ring[s]
-        if r < 0 or r >= h:
-            p.fill(np.nan)
+        c0, c1 = (0, 0) if (r < 0 or r >= h) else _mask_span(mask[r])
+        lo, hi = c0 + 1, c1 + 1
+        # clear what the slot held two rows ago outside the new span (the span itself is overwritten)
+        o0, o1 = held[s, 0], held[s, 1]
+        if hi <= lo:
+            _clear(p, o0, o1)
+            lo, hi = 0, 0
         else:
-            _depth_row(r, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc,
-                       min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f,
-                       mx, my, fc, ba, bz, scratch, scratch_i, p, st)  # fmt: skip
-            if r0 <= r < r1:
-                stats[r, 0:3] = st
+            _clear(p, o0, min(o1, lo))
+            _clear(p, max(o0, hi), o1)
+            _depth_row(r, c0, c1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo,
+                       inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, jump, inv_f, mx,
+                       my, fc, ba, bz, scratch, scratch_i, p, st)  # fmt: skip
+        held[s, 0], held[s, 1] = lo, hi
+        if 0 <= r < h and r0 <= r < r1:
+            if hi > lo:
+                stats[r, 0], stats[r, 1], stats[r, 2] = st[0], st[1], st[2]
+            else:
+                stats[r, 0], stats[r, 1], stats[r, 2] = 0, 0, 0
+            spans[r, 0], spans[r, 1] = c0, c1
         if min_nb > 0:
-            nb[s].fill(0)
-            pairs_in_row(p, e, nb[s])
+            for c in range(lo, hi):
+                nb[s, c] = 0
+            pairs_in_span(p, e, nb[s], lo, hi)
             if r > r0 - 1:
-                pairs_between_rows(ring[1 - s], p, e, nb[1 - s], nb[s])
+                pairs_between_spans(ring[1 - s], p, e, nb[1 - s], nb[s], held[1 - s, 0], held[1 - s, 1], lo, hi)
         if r - 1 >= r0:
             q = ring[1 - s]
             k_nb, k = keep_row(q[2, 1 : w + 1], q[3, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, max_sigma,
@@ -452,13 +484,17 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def emit_points(  # type: ignore[no-untyped-def]
-    depth, sigma, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads,
+    depth, sigma, spans, tx, ty, step, quality, intensity, rwc, cwc, to_world, starts, nchunks, nthreads,
     o_xyz, o_row, o_col, o_q, o_i, o_s,
 ):  # fmt: skip
-    """Write the points of a depth map (world frame) and their pixel data at ``starts[r]`` per row."""
+    """Write the points of a depth map (world frame) and their pixel data at ``starts[r]`` per row.
+
+    Row r's points lie in columns ``spans[r, 0] .. spans[r, 1] - 1`` (``spans`` of shape (1, 2): anywhere).
+    """
     h, w = depth.shape[0], depth.shape[1]
     has_i = intensity.shape[0] == h
     has_s = sigma.shape[0] == h
+    has_sp = spans.shape[0] == h
     nthreads = min(nthreads, nchunks)
     for t in prange(nthreads):  # round-robin chunks: points cluster in rows
         mx = np.empty(w, np.float64)
@@ -467,15 +503,18 @@ def emit_points(  # type: ignore[no-untyped-def]
             for r in range(ch * h // nchunks, (ch + 1) * h // nchunks):
                 if starts[r + 1] == starts[r]:
                     continue
-                ray_row(tx, ty, r, step, mx, my)
-                _emit_row(r, depth[r], sigma[r] if has_s else sigma[0], mx, my, quality[r],
+                c0, c1 = (spans[r, 0], spans[r, 1]) if has_sp else (0, w)
+                ray_span(tx, ty, r, step, mx, my, c0, c1)
+                _emit_row(r, c0, c1, depth[r], sigma[r] if has_s else sigma[0], has_s, mx, my, quality[r],
                           intensity[r] if has_i else intensity[0], has_i, rwc, cwc, to_world, starts[r], o_xyz,
                           o_row, o_col, o_q, o_i, o_s)  # fmt: skip
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _emit_row(r, dr, sr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i, o_s):  # type: ignore[no-untyped-def]
-    for c in range(dr.shape[0]):
+def _emit_row(  # type: ignore[no-untyped-def]
+    r, c0, c1, dr, sr, has_s, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i, o_s
+):
+    for c in range(c0, c1):
         z = np.float64(dr[c])
         if z != z:
             continue
@@ -493,7 +532,7 @@ def _emit_row(r, dr, sr, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_
         o_col[k] = c
         o_q[k] = qr[c]
         o_i[k] = ir[c] if has_i else 0
-        o_s[k] = sr[c] if sr.shape[0] == dr.shape[0] else np.float32(np.nan)
+        o_s[k] = sr[c] if has_s else np.float32(np.nan)
         k += 1
 
 

@@ -136,5 +136,5 @@ def fuse_depths(
     depth = np.empty(shape, np.float32)
     sigma = np.empty(shape, np.float32)
     source = np.empty(shape, np.uint8)
-    _fuse(*arrs, float(max_sigmas), bool(keep_disagreeing), depth, sigma, source)
+    _fuse(arrs[0], arrs[1], arrs[2], arrs[3], float(max_sigmas), bool(keep_disagreeing), depth, sigma, source)
     return FusedDepth(depth, sigma, source == 4, source)

@@ -24,6 +24,7 @@ from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.fuse import fuse_depths
+from appliance.reconstruct.residuals import Residual, ray_ray_residual
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
@@ -181,6 +182,7 @@ class Reconstructor:
         self._sigma: dict[str, F32] = {}
         self._counts: dict[str, npt.NDArray[np.int64]] = {}
         self._stats: dict[str, npt.NDArray[np.int64]] = {}
+        self._spans: dict[str, npt.NDArray[np.int64]] = {}
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
         self._normals: dict[str, F32] = {}
         self._jump: dict[str, tuple[float, float, float]] = {}
@@ -205,11 +207,15 @@ class Reconstructor:
                 self._sigma[n] = np.full((cam.height, cam.width), np.nan, np.float32)
                 self._counts[n] = np.zeros(cam.height + 1, np.int64)
                 self._stats[n] = np.zeros((cam.height, 5), np.int64)
+                self._spans[n] = np.zeros((cam.height, 2), np.int64)
             else:
                 self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
                 self._normals[n] = np.empty((cam.height, cam.width, 3), np.float32)
+        self.residuals: list[Residual] = []
+        """Residuals of the last :meth:`run` wherever the scan was overdetermined (both projector axes,
+        two cameras with rows coded, two cameras and a projector): the calibration's health in this scan."""
         self.fusion: dict[str, int] = {}
         """Mode ``'both'``: reference-camera pixels by source of the last :meth:`run` (see ``fuse_depths``)."""
         if cfg.mode == "both":  # the reference camera's camera-camera estimate, fused into its depth map
@@ -332,6 +338,7 @@ class Reconstructor:
         # geometry: matched (the matcher's own stages are in stereo_report); depth range is inside the matcher
         self.stages = [StageCounts(n0, h * w, rep.candidates, matched, matched, with_nb, kept)]
         self.warnings = list(rep.warnings) + stage_warnings(self.stages, cfg)
+        self.residuals = list(self._stereo.residuals)
         timings = {
             "triangulate_ms": 1e3 * (t1 - t0),
             "filter_ms": 1e3 * (t2 - t1),
@@ -353,7 +360,7 @@ class Reconstructor:
                 maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours, const,
                 self._counts[n], noise=self.noise, white=None if white is None else white.get(n),
                 sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
-                stats=self._stats[n],
+                stats=self._stats[n], spans=self._spans[n],
             )  # fmt: skip
         if self._stereo is not None:
             self._fuse_stereo(maps)
@@ -365,6 +372,13 @@ class Reconstructor:
             stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[2]), int(s[3]), int(s[4])))
         self.stages = stages
         self.warnings = stage_warnings(stages, cfg)
+        self.residuals = list(self._stereo.residuals) if self._stereo is not None else []
+        if self.axes == "xy" and self.calibration.projector is not None:
+            for n, tri in self._proj_tri.items():
+                res = ray_ray_residual(self._depth[n], maps[n].u, maps[n].v, tri.rays.normalized,
+                                       self.calibration.devices[n], self.calibration.projector)  # fmt: skip
+                if res is not None:
+                    self.residuals.append(res)
         if self._stereo is not None:
             self.warnings = list(self._stereo.report.warnings) + self.warnings
             disagree = self.fusion.get("disagree", 0)
@@ -379,14 +393,14 @@ class Reconstructor:
         if cfg.normals:
             clouds = []
             for n in self.outputs:
-                xyz = self.organised(n)
+                org = self.organised(n)
                 r = cfg.normal_radius_px
                 eye = self.calibration.devices[n].center
                 jump = self._jump[n][0] if self._jump[n][0] > 0 else FIXED_JUMP_MM
-                estimate_normals(xyz, eye, self._normals[n], r, r * jump)
-                shape = xyz.shape[:2]
+                estimate_normals(org, eye, self._normals[n], r, r * jump)
+                shape = org.shape[:2]
                 inten = None if white is None or n not in white else _as_uint8(white[n], (shape[0], shape[1]), n)
-                clouds.append(to_point_cloud(xyz, maps[n].quality, inten, names.index(n), self._normals[n],
+                clouds.append(to_point_cloud(org, maps[n].quality, inten, names.index(n), self._normals[n],
                                              self._sigma[n]))  # fmt: skip
             t2 = time.perf_counter()
             cloud = clouds[0] if len(clouds) == 1 else PointCloud.concatenate(clouds)
@@ -406,7 +420,7 @@ class Reconstructor:
             inten = None if white is None or n not in white else _as_uint8(white[n], (shape[0], shape[1]), n)
             cloud.camera[start : start + size] = names.index(n)
             self._proj_tri[n].write_points(
-                self._depth[n], self._counts[n], maps[n].quality, inten, cloud, start, self._sigma[n]
+                self._depth[n], self._counts[n], maps[n].quality, inten, cloud, start, self._sigma[n], self._spans[n]
             )
             start += size
         t2 = time.perf_counter()

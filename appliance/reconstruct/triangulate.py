@@ -281,6 +281,7 @@ class ProjectorTriangulator:
         jump_sigmas: float = 0.0,
         max_sigma_mm: float = math.inf,
         stats: npt.NDArray[np.int64] | None = None,
+        spans: npt.NDArray[np.int64] | None = None,
     ) -> tuple[F32, npt.NDArray[np.int64]]:
         """Triangulate every decoded pixel to its depth and 1-sigma error, dropping isolated points, in one pass.
 
@@ -323,6 +324,8 @@ class ProjectorTriangulator:
             support their neighbours).
         stats : ndarray, shape (H, 5), int64, optional
             Receives per row the decoded, triangulated, in-range, with-neighbours and kept counts.
+        spans : ndarray, shape (H, 2), int64, optional
+            Receives per row the columns (first, last + 1) that may hold points (for :meth:`write_points`).
 
         Returns
         -------
@@ -347,6 +350,10 @@ class ProjectorTriangulator:
             stats = np.empty((shape[0], 5), np.int64)
         elif stats.shape != (shape[0], 5) or stats.dtype != np.int64 or not stats.flags.c_contiguous:
             raise ValueError(f"stats: {stats.shape} {stats.dtype}: must be C-contiguous int64 {(shape[0], 5)}")
+        if spans is None:
+            spans = np.empty((shape[0], 2), np.int64)
+        elif spans.shape != (shape[0], 2) or spans.dtype != np.int64 or not spans.flags.c_contiguous:
+            raise ValueError(f"spans: {spans.shape} {spans.dtype}: must be C-contiguous int64 {(shape[0], 2)}")
         quality = np.ascontiguousarray(maps.quality, np.float32)
         if quality.shape != shape:
             raise ValueError(f"{self.camera.name}: quality is {quality.shape}, camera is {shape} (H, W): must match")
@@ -372,7 +379,7 @@ class ProjectorTriangulator:
             u, v, mask, quality, wimg, white is not None, tx, ty, ROW_TABLE_STEP, ray, table, code0, c_lo, inv_dc,
             MIN_LINE_SIN, und, origin, self._kp, self._dp, self._rcp, self._tcp, axis, zmin, zmax, params,
             float(max_sigma_mm), jump, 1.0 / float(self.camera.K[0, 0]), int(min_neighbours), _chunks(shape[0]),
-            numba.get_num_threads(), depth, sigma, counts, stats,
+            numba.get_num_threads(), depth, sigma, counts, stats, spans,
         )  # fmt: skip
         return depth, counts
 
@@ -385,6 +392,7 @@ class ProjectorTriangulator:
         cloud: PointCloud,
         start: int = 0,
         sigma: F32 | None = None,
+        spans: npt.NDArray[np.int64] | None = None,
     ) -> int:
         """Write the points of a :meth:`triangulate_depth` result into ``cloud`` from index ``start``.
 
@@ -405,6 +413,9 @@ class ProjectorTriangulator:
         sigma : ndarray, shape (H, W), float32, optional
             Per-pixel 1-sigma error (mm) from :meth:`triangulate_depth`, written to ``cloud.sigma_mm``
             (which must then exist); NaN when None.
+        spans : ndarray, shape (H, 2), int64, optional
+            Per row, the columns (first, last + 1) that may hold points, from :meth:`triangulate_depth`
+            (skips the rest of each row); None: whole rows.
 
         Returns
         -------
@@ -428,10 +439,16 @@ class ProjectorTriangulator:
         if start < 0 or start + n > len(cloud):
             raise ValueError(f"cloud holds {len(cloud)} points: cannot write {n} from index {start}")
         sig = np.full((1, 1), np.nan, np.float32) if sigma is None else check_depth(sigma, shape)
+        if spans is None:
+            sp = np.zeros((1, 2), np.int64)
+        elif spans.shape != (shape[0], 2) or spans.dtype != np.int64:
+            raise ValueError(f"spans: {spans.shape} {spans.dtype}: must be int64 {(shape[0], 2)}")
+        else:
+            sp = np.ascontiguousarray(spans)
         o_s = cloud.sigma_mm if cloud.sigma_mm is not None else np.empty(len(cloud), np.float32)
         tx, ty, _ = self.rays.row_table()
         K.emit_points(
-            depth, sig, tx, ty, ROW_TABLE_STEP, q, inten, self._rwc, self._cwc, self._to_world, starts,
+            depth, sig, sp, tx, ty, ROW_TABLE_STEP, q, inten, self._rwc, self._cwc, self._to_world, starts,
             _chunks(shape[0]), numba.get_num_threads(), cloud.xyz, cloud.row, cloud.col, cloud.quality, cloud.intensity,
             o_s,
         )  # fmt: skip

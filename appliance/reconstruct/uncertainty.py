@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from appliance.patterns.sequence import GrayFrame, PhaseFrame, Sequence
 
@@ -66,7 +67,7 @@ class CodeNoise:
                 f"{self.electrons_per_dn} > 0"
             )
 
-    def params(self) -> np.ndarray:  # type: ignore[type-arg]
+    def params(self) -> npt.NDArray[np.float64]:
         """(phase_px, stripe var px^2, read var + rounding DN^2, 1 / e- per DN) for the kernels."""
         inv_e = 0.0 if math.isinf(self.electrons_per_dn) else 1.0 / self.electrons_per_dn
         return np.array(
@@ -74,7 +75,9 @@ class CodeNoise:
             np.float64,
         )
 
-    def sigma_px(self, quality: np.ndarray, mean_dn: np.ndarray | None = None) -> np.ndarray:  # type: ignore[type-arg]
+    def sigma_px(
+        self, quality: npt.ArrayLike, mean_dn: npt.ArrayLike | None = None
+    ) -> npt.NDArray[np.float64]:
         """1-sigma code error (projector px) of pixels of modulation ``quality`` (DN, peak to peak).
 
         ``mean_dn`` is the pixel's mean level (DN) under the phase frames; ``quality / 2`` when None.
@@ -86,7 +89,8 @@ class CodeNoise:
         var_i = p[2] + np.maximum(a, 0.0) * p[3]
         with np.errstate(divide="ignore", invalid="ignore"):
             s = p[0] * np.sqrt(var_i) / q
-        return np.sqrt(s * s + p[1])
+        out: npt.NDArray[np.float64] = np.sqrt(s * s + p[1])
+        return out
 
 
 def code_noise_for_sequence(
