@@ -56,19 +56,29 @@ class GuardEntry:
         error of the refinement that was refused.
     kept_pairwise : bool
         True when the joint refinement was worse, so the device's intrinsics were held at the pairwise values.
+    transfer_pairwise_px, transfer_joint_px : float
+        Non-reference devices: RMS over left-out views of the device's board points predicted from the
+        reference camera's PnP pose of the board and the extrinsics (px), for the pairwise calibration and
+        the joint refinement (of its last check) - what intrinsics and extrinsics together get right.
     """
 
     device: str
     pairwise_px: float
     joint_px: float
     kept_pairwise: bool
+    transfer_pairwise_px: float = float("nan")
+    transfer_joint_px: float = float("nan")
 
     def line(self) -> str:
         """One human line."""
         verdict = ("worse: intrinsics held at the pairwise values" if self.kept_pairwise
                    else "not worse: refined intrinsics kept")  # fmt: skip
-        return (f"{self.device}: held-out error pairwise {self.pairwise_px:.4f} px, joint "
-                f"{self.joint_px:.4f} px ({verdict})")  # fmt: skip
+        out = (f"{self.device}: held-out error pairwise {self.pairwise_px:.4f} px, joint "
+               f"{self.joint_px:.4f} px ({verdict})")  # fmt: skip
+        if np.isfinite(self.transfer_pairwise_px) or np.isfinite(self.transfer_joint_px):
+            out += (f"; predicted from the reference camera's pose of a left-out board: pairwise "
+                    f"{self.transfer_pairwise_px:.4f} px, joint {self.transfer_joint_px:.4f} px")  # fmt: skip
+        return out
 
 
 @dataclass
@@ -261,7 +271,8 @@ def calibrate_rig(
                         Observation(PROJECTOR_NAME, i, v.projector.object_points, v.projector.image_points, c)
                     )
     models = {n: choices[n].chosen for n in initial}
-    bundle, guard = _guarded_bundle(initial, models, observations, poses, choices, all_results)
+    bundle, guard, loo_devices = _guarded_bundle(initial, models, observations, poses, choices, all_results)
+    guard = _with_transfer(guard, views, ref, choices, loo_devices)
     results = [_refined_result(all_results[n], bundle, observations, n) for n in initial]
     entries = [StereoEntry(ref, n, _refined_stereo(bundle, observations, ref, n)) for n in others]
     out = RigCalibration(dict(bundle.devices), results, entries, initial, bundle, choices, guard)
@@ -277,7 +288,7 @@ def _guarded_bundle(
     poses: dict[int, tuple[F64, F64]],
     choices: Mapping[str, ModelChoice],
     pairwise: Mapping[str, CameraResult],
-) -> tuple[BundleResult, list[GuardEntry]]:
+) -> tuple[BundleResult, list[GuardEntry], dict[int, dict[str, CameraModel]]]:
     """Joint refinement whose intrinsics are never worse than the pairwise ones on left-out views.
 
     Each view is left out in turn: the refinement is solved without it (starting from the solution on all
@@ -288,8 +299,10 @@ def _guarded_bundle(
     fixed: set[str] = set()
     bundle = bundle_adjust(initial, models, observations, poses)
     joint_px: dict[str, float] = {}
+    loo_devices: dict[int, dict[str, CameraModel]] = {}
     for _ in range(len(initial)):
-        joint_px.update(_joint_held_out(bundle, models, observations, choices, fixed))
+        errors, loo_devices = _joint_held_out(bundle, models, observations, choices, fixed)
+        joint_px.update(errors)
         worse = {
             n for n, e in joint_px.items()
             if n not in fixed and e > choices[n].best.held_out.rms_px * (1 + GUARD_TOLERANCE)
@@ -304,7 +317,7 @@ def _guarded_bundle(
         GuardEntry(n, choices[n].best.held_out.rms_px, joint_px.get(n, float("nan")), n in fixed)
         for n in initial
     ]  # fmt: skip
-    return bundle, guard
+    return bundle, guard, loo_devices
 
 
 def _joint_held_out(
@@ -313,8 +326,10 @@ def _joint_held_out(
     observations: list[Observation],
     choices: Mapping[str, ModelChoice],
     fixed: set[str],
-) -> dict[str, float]:
-    """Per device not in ``fixed``: RMS over left-out views of the refinement solved without each view."""
+) -> tuple[dict[str, float], dict[int, dict[str, CameraModel]]]:
+    """Per device not in ``fixed``: RMS over left-out views of the refinement solved without each view;
+    and the devices of each of those refinements."""
+    solved: dict[int, dict[str, CameraModel]] = {}
     sq = dict.fromkeys(bundle.devices, 0.0)
     cnt = dict.fromkeys(bundle.devices, 0)
     ref_obs: dict[tuple[str, int], Observation] = {}
@@ -332,6 +347,7 @@ def _joint_held_out(
                                 max_iterations=HELD_OUT_ITERATIONS, covariance=False)  # fmt: skip
         except CalibrationError:
             continue
+        solved[v] = loo.devices
         for n, dev in loo.devices.items():
             if n in fixed or v not in choices[n].best.held_out.views:
                 continue
@@ -344,7 +360,74 @@ def _joint_held_out(
             if np.isfinite(s):
                 sq[n] += s
                 cnt[n] += m
-    return {n: float(np.sqrt(sq[n] / cnt[n])) if cnt[n] else float("nan") for n in bundle.devices if n not in fixed}
+    errors = {n: float(np.sqrt(sq[n] / cnt[n])) if cnt[n] else float("nan") for n in bundle.devices if n not in fixed}
+    return errors, solved
+
+
+def _transfer_error(
+    ref_cam: CameraModel, dev: CameraModel, seen_ref: Detection, seen_dev: Detection
+) -> tuple[float, int]:
+    """Squared error sum (px^2) and count of ``seen_dev`` predicted through the board pose ``ref_cam`` finds."""
+    import cv2
+
+    obj = np.ascontiguousarray(seen_ref.object_points, np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(seen_ref.image_points, np.float64).reshape(-1, 1, 2)
+    ok, rv, tv = cv2.solvePnP(obj, img, ref_cam.K, ref_cam.dist)
+    if not ok:
+        return float("nan"), 0
+    rv, tv = cv2.solvePnPRefineLM(obj, img, ref_cam.K, ref_cam.dist, rv, tv)
+    R, _ = cv2.Rodrigues(rv)
+    world = np.asarray(seen_dev.object_points, np.float64) @ R.T + np.asarray(tv, np.float64).ravel()
+    e = dev.project(world)[0] - seen_dev.image_points
+    return float(np.sum(e * e)), len(e)
+
+
+def _with_transfer(
+    guard: list[GuardEntry],
+    views: Mapping[str, Sequence[ProcamView]],
+    ref: str,
+    choices: Mapping[str, ModelChoice],
+    loo_devices: dict[int, dict[str, CameraModel]],
+) -> list[GuardEntry]:
+    """The guard entries with each non-reference device's left-out transfer error (pairwise and joint)."""
+    out = []
+    ref_ho = choices[ref].best.held_out
+    for g in guard:
+        if g.device == ref:
+            out.append(g)
+            continue
+        ho = choices[g.device].best.held_out
+
+        def seen(i: int, device: str = g.device) -> Detection | None:
+            v = views[ref][i] if device == PROJECTOR_NAME else views[device][i]
+            return v.projector if device == PROJECTOR_NAME else v.camera
+
+        sums = {"pairwise": [0.0, 0], "joint": [0.0, 0]}
+        for v in sorted(set(ho.views) & set(ref_ho.views)):
+            a, b = views[ref][v].camera, seen(v)
+            if a is None or b is None:
+                continue
+            ref_cam = ref_ho.cameras[ref_ho.views.index(v)]
+            dev_cam = ho.cameras[ho.views.index(v)]
+            pairs = [(views[ref][i].camera, seen(i)) if i != v and i in ho.views and i in ref_ho.views
+                     else (None, None) for i in range(len(views[ref]))]  # fmt: skip
+            try:
+                st = stereo_calibrate(ref_cam, dev_cam, pairs)
+                s, m = _transfer_error(ref_cam, dev_cam.with_pose(st.R, st.T), a, b)
+            except CalibrationError:
+                s, m = float("nan"), 0
+            if np.isfinite(s) and m:
+                sums["pairwise"][0] += s
+                sums["pairwise"][1] += m
+            if v in loo_devices:
+                devs = loo_devices[v]
+                s, m = _transfer_error(devs[ref], devs[g.device], a, b)
+                if np.isfinite(s) and m:
+                    sums["joint"][0] += s
+                    sums["joint"][1] += m
+        rms = {k: float(np.sqrt(sq / n)) if n else float("nan") for k, (sq, n) in sums.items()}
+        out.append(dataclasses.replace(g, transfer_pairwise_px=rms["pairwise"], transfer_joint_px=rms["joint"]))
+    return out
 
 
 def _refined_result(
