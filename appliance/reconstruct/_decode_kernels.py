@@ -489,8 +489,12 @@ def range_hist_stack(frames, wb, used, maxval, shift, nbins):  # type: ignore[no
 @njit(nogil=True, cache=True, error_model="numpy")
 def _mean_diff(one, msum, n, sign, d):  # type: ignore[no-untyped-def]
     """Signed contrast of a frame against the mean of ``n`` phase frames (sum ``msum``), in pair units."""
+    # floor(num / n) by a float64 division (vectorises; an integer division does not): num is an exact integer
+    # in float64, so the quotient is exact where it is an integer and at least 1/n away from one elsewhere
+    nf = np.float64(n)
     for x in range(d.shape[0]):
-        d[x] = sign * ((2 * (n * np.int32(one[x]) - msum[x])) // n)
+        num = np.float64(2 * (n * np.int32(one[x]) - msum[x]))
+        d[x] = sign * np.int32(np.floor(num / nf))
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
