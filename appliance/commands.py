@@ -402,8 +402,15 @@ def _write_report(
     counts: dict[str, Any] = {"points": len(cloud) if cloud is not None else 0, "cameras": per_cam}
     extra: dict[str, Any] = {"manifest": str(man.path), "ignored_frames": list(plan.ignored)}
     calib_hash = ""
+    stages: list[dict[str, Any]] = []
+    warnings: list[str] = []
+    health: dict[str, Any] = {}
     if recon is not None:
+        from appliance.calibration.scan_health import assess_scan
+
         calib_hash = recon.calibration.hash()
+        stages, warnings = [st.as_dict() for st in recon.stages], list(recon.warnings)
+        health = assess_scan(recon.residuals, recon.calibration)  # offline: no trend, the tolerance only
         extra.update({
             "mode": mode,
             "calibration_file": str(batch.calibration_path),
@@ -421,6 +428,9 @@ def _write_report(
         cameras=list(man.cameras),
         files=written,
         extra=extra,
+        stages=stages,
+        warnings=warnings,
+        calibration_health=health,
     )
     try:
         report.parent.mkdir(parents=True, exist_ok=True)
@@ -428,6 +438,8 @@ def _write_report(
         raise OutputError(f"{report.parent}: cannot be created ({exc.strerror}); check --report") from exc
     write_sidecar(report, meta)
     print(f"report: {report}")
+    if health:
+        print(f"calibration health: {health['status']}: {health['reason']}")
 
 
 def decode_manifests(

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from appliance.calibration.health import TrendStore
+from appliance.calibration.scan_health import assess_scan, trend_for
 from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
@@ -64,6 +66,14 @@ class ScanResult:
     timings_ms: dict[str, float]
     shapes: dict[str, tuple[int, int]]
     frames: dict[str, FrameArray] = field(default_factory=dict)
+    stages: list[dict[str, Any]] = field(default_factory=list)
+    """Per camera, what each reconstruction stage rejected (:class:`~appliance.reconstruct.types.StageCounts`)."""
+    warnings: list[str] = field(default_factory=list)
+    """Plain-words warnings of the reconstruction."""
+    calibration_health: dict[str, Any] = field(default_factory=dict)
+    """This scan's calibration health (:func:`appliance.calibration.scan_health.assess_scan`)."""
+    stereo: dict[str, Any] | None = None
+    """What the camera-camera matcher did (modes ``stereo`` and ``both``)."""
 
 
 class Scanner:
@@ -95,7 +105,8 @@ class Scanner:
         self.sequence = build_sequence(cfg.sequence, proj.width, proj.height)
         rc = cfg.reconstruction
         self.params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast)
-        self.reconstructor = Reconstructor(calibration, cfg.sequence.axes, rc)
+        self.reconstructor = Reconstructor(calibration, cfg.sequence.axes, rc, self.sequence)
+        self._trend: TrendStore | None = None
         self._white_index = next(
             (i for i, f in enumerate(self.sequence.frames) if isinstance(f, WhiteFrame)), None
         )
@@ -242,13 +253,29 @@ class Scanner:
         white = {name: self._white_u8(buf, name) for name, buf in self._buffers.items()}
         t2 = time.perf_counter()
         white_any: dict[str, npt.NDArray[np.generic]] = dict(white)
-        cloud, rtimes = await loop.run_in_executor(None, self.reconstructor.run, maps, white_any)
+        cloud, rtimes, health = await loop.run_in_executor(None, self._reconstruct, maps, white_any)
         timings.update(rtimes)
         timings["reconstruct_ms"] = (time.perf_counter() - t2) * 1e3
         timings["scan_ms"] = (time.perf_counter() - t0) * 1e3
         self.scans_done += 1
         shapes = {name: (int(b.shape[1]), int(b.shape[2])) for name, b in self._buffers.items()}
-        return ScanResult(cloud, maps, white, timings, shapes, dict(self._buffers))
+        rec = self.reconstructor
+        return ScanResult(cloud, maps, white, timings, shapes, dict(self._buffers),
+                          [st.as_dict() for st in rec.stages], list(rec.warnings), health,
+                          rec.stereo_report)  # fmt: skip
+
+    def _reconstruct(
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]]
+    ) -> tuple[PointCloud, dict[str, float], dict[str, Any]]:
+        """Reconstruct (in a worker thread), then judge the scan's residuals and record their trend."""
+        cloud, rtimes = self.reconstructor.run(maps, white)
+        t = time.perf_counter()
+        if self._trend is None:
+            self._trend = trend_for(self.cfg.service.state_directory)
+        health = assess_scan(self.reconstructor.residuals, self.calibration, self._trend,
+                             self.cfg.calibration.health_tolerance_px)  # fmt: skip
+        rtimes["health_ms"] = (time.perf_counter() - t) * 1e3
+        return cloud, rtimes, health
 
     def _white_u8(self, buf: FrameArray, name: str) -> npt.NDArray[np.uint8]:
         if self._white_index is None:
@@ -322,4 +349,8 @@ def scan_metadata(
         timings_ms=dict(result.timings_ms),
         appliance_serial=cfg.serial,
         cameras=names,
+        stages=list(result.stages),
+        warnings=list(result.warnings),
+        calibration_health=dict(result.calibration_health),
+        extra={"stereo": result.stereo} if result.stereo else {},
     )

@@ -517,6 +517,10 @@ class CalibrationConfig(_Strict):
         "rational), kN radial k1..kN, p tangential, rational k1..k6 p1 p2.",
     )
     projector_model: DistortionName = Field("auto", description="Projector distortion (as camera_model).")
+    health_tolerance_px: float | None = Field(
+        None, gt=0, description="Calibration health: a scan's redundant residual (robust RMS, px) beyond this "
+        "is 'bad'; unset: 3 x what the calibration promised (its stated RMS, at least 0.2 px).",
+    )
     artefact: ArtefactConfig = Field(default_factory=ArtefactConfig)
     tolerances: VerifyTolerances = Field(default_factory=VerifyTolerances)
 

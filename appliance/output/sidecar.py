@@ -34,6 +34,10 @@ class ScanMetadata:
         (:meth:`appliance.reconstruct.types.StageCounts.as_dict`).
     warnings : list of str
         Plain-words warnings of the reconstruction (a stage that rejected most of its candidates).
+    calibration_health : dict
+        Whether this scan's redundant measurements still fit the calibration: ``status`` (ok | drifting |
+        bad | not measured), per residual kind the robust RMS (px, mm), the reference the calibration
+        promised, the limit and the number of samples (:func:`appliance.calibration.scan_health.assess_scan`).
     """
 
     scan_id: str
@@ -49,6 +53,7 @@ class ScanMetadata:
     extra: dict[str, Any] = field(default_factory=dict)
     stages: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    calibration_health: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> str:
         """Pretty JSON text."""

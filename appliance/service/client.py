@@ -76,6 +76,10 @@ def format_status(st: dict[str, Any]) -> str:
                  f"({c.get('triggers_refused', 0)} refused, {c.get('triggers_queued', 0)} queued, "
                  f"{st.get('queue_length', 0)} waiting); reloads {c.get('reloads', 0)} "
                  f"({c.get('reloads_rejected', 0)} rejected)")
+    health = st.get("calibration_health") or {}
+    if health:
+        lines.append(f"calibration {health.get('status', '?')} (scan {health.get('scan_id', '?')}): "
+                     f"{health.get('reason', '')}"[:200])
     scans = st.get("last_scans", [])
     lines.append("last scans" if scans else "last scans: none yet")
     for r in list(reversed(scans))[:5]:

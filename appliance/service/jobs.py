@@ -232,7 +232,8 @@ class ScanJobs:
         timings["trigger_to_file_ms"] = (time.monotonic_ns() - event.t_monotonic_ns) / 1e6
         rec = ScanRecord(scan_id, started.isoformat(), event.source, True, len(result.cloud),
                          outcome.location, [str(p) for p in outcome.files],
-                         {k: round(v, 1) for k, v in timings.items()})
+                         {k: round(v, 1) for k, v in timings.items()},
+                         calibration_health=_health_summary(result.calibration_health))
         if outcome.location == "spool":
             b.count("spooled")
             b.error("share", f"scan {scan_id} spooled: {outcome.reason}")
@@ -263,3 +264,10 @@ class ScanJobs:
             accuracy = await asyncio.to_thread(importlib.import_module, "appliance.sim.accuracy")
             report = await out.call(accuracy.compare_to_ground_truth, cloud, virtual, cameras)
             log.info("scan %s: error against ground truth: %s", scan_id, report.line())
+
+
+def _health_summary(health: dict[str, Any]) -> dict[str, Any]:
+    """A scan's calibration health without the per-check detail beyond its figures (kept in the status)."""
+    keep = ("status", "kind", "devices", "residual_px", "residual_mm", "reference_px", "limit_px", "n_samples")
+    return {"status": health.get("status", ""), "reason": health.get("reason", ""),
+            "checks": [{k: c.get(k) for k in keep} for c in health.get("checks", [])]} if health else {}

@@ -39,11 +39,15 @@ class Publisher:
         self._lamp_writes: set[asyncio.Task[Any]] = set()
 
     def txt_record(self) -> dict[str, str]:
-        """The mDNS TXT record: state, scans done, last scan id, share location, version, serial."""
+        """The mDNS TXT record: state, scans done, last scan id, share location, version, serial, and the last
+        scan's calibration health (``calibration``: ok | drifting | bad | not measured)."""
         b, cfg = self.svc.board, self.svc.cfg
         txt = {"txtvers": "1", "state": str(b.state), "scans": str(b.counters["scans_done"]),
                "last": b.last_scan_id(), "share": str(cfg.output.directory), "version": __version__,
                "serial": cfg.serial}
+        health = b.calibration_health()
+        if health:
+            txt["calibration"] = str(health.get("status", ""))
         if b.state == State.FAULT and b.last_error is not None:
             txt["fault"] = b.last_error.message[:120]
         return txt

@@ -74,6 +74,7 @@ class ScanRecord:
     files: list[str] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
     error: str = ""
+    calibration_health: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -245,6 +246,13 @@ class StatusBoard:
             text += f", last {self.last_scan_id()}"
         return text
 
+    def calibration_health(self) -> dict[str, Any]:
+        """The calibration health of the last scan that measured it (``{}`` before any)."""
+        for r in reversed(self.last_scans):
+            if r.ok and r.calibration_health:
+                return {"scan_id": r.scan_id, **r.calibration_health}
+        return {}
+
     def snapshot(self) -> dict[str, Any]:
         """Everything, as JSON-ready data (what ``scan3d status --json`` prints)."""
         return {
@@ -263,5 +271,6 @@ class StatusBoard:
             "queue_length": self.queue_length,
             "share": dict(self.share),
             "last_scans": [asdict(r) for r in self.last_scans],
+            "calibration_health": self.calibration_health(),
             "last_error": asdict(self.last_error) if self.last_error is not None else None,
         }
