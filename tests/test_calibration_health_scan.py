@@ -19,19 +19,19 @@ from typing import Any
 
 import numpy as np
 import pytest
+import test_service_e2e as e2e
 import yaml
 
-import test_service_e2e as e2e
 from appliance import cli
 from appliance.config import parse_config
 from appliance.geometry.calibration_file import Calibration, write_calibration
 from appliance.geometry.camera import CameraModel
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.manifest import write_manifest
+from appliance.scan import virtual_calibration
 from appliance.service import daemon as D
 from appliance.service.client import request
 from appliance.sim.rig import VirtualRig
-from appliance.scan import virtual_calibration
 
 RIG: dict[str, Any] = {
     "projector": {"width": 640, "height": 400, "focal_px": 900, "principal_px": [320, 380],
