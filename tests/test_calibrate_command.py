@@ -107,6 +107,8 @@ def test_projector_command_on_procam(projector_run: tuple[Path, str], clean_pair
     assert "k3p refused: the views do not determine it (k3 std" in text
     html = report_paths(out)[0].read_text()
     assert "Distortion models (leave-one-view-out)" in html and "held-out" in html
+    assert "strongest correlation" in html and "with fy</td>" in html  # fx and fy move together
+    assert re.search(r"strongly correlated: .*fx-fy \+0\.9", text)
     # the joint refinement never predicts left-out views worse than the pairwise fit
     for m in re.finditer(r"(\w+): held-out error pairwise ([\d.]+) px, joint ([\d.]+) px \((\w+)", text):
         pairwise, joint, verdict = float(m[2]), float(m[3]), m[4]

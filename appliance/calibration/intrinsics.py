@@ -97,6 +97,9 @@ class CameraResult:
         Per used view: (N, 3) mm, (N, 2) px observed, (N, 2) px observed minus reprojected.
     ids : list of ndarray
         Per used view: board point ids (N,).
+    correlations : dict of str to (str, float)
+        Per estimated intrinsic: the other intrinsic it correlates with most strongly and the coefficient
+        (from the joint refinement; empty before it).
     """
 
     camera: CameraModel
@@ -114,6 +117,7 @@ class CameraResult:
     image_points: list[F64] = field(default_factory=list)
     residuals: list[F64] = field(default_factory=list)
     ids: list[npt.NDArray[np.int32]] = field(default_factory=list)
+    correlations: dict[str, tuple[str, float]] = field(default_factory=dict)
 
     def summary(self) -> str:
         """Human summary: RMS, intrinsics with uncertainties, per-view errors, warnings."""
@@ -127,6 +131,9 @@ class CameraResult:
             "  per-view RMS (px): "
             + ", ".join(f"#{i}: {e:.3f}" for i, e in zip(self.views, self.per_view_errors, strict=True)),
         ]
+        strong = sorted({tuple(sorted((a, b))): r for a, (b, r) in self.correlations.items() if abs(r) >= 0.9}.items())
+        if strong:
+            lines.append("  strongly correlated: " + ", ".join(f"{a}-{b} {r:+.2f}" for (a, b), r in strong))
         lines += [f"  rejected view #{i}: {why}" for i, why in sorted(self.rejected.items())]
         lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines)

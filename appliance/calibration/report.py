@@ -140,13 +140,20 @@ def _param_table(result: CameraResult) -> str:
     values = {"fx": cam.K[0, 0], "fy": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2]}
     for name, val in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), cam.dist, strict=False):
         values[name] = val
+    def corr(name: str) -> str:
+        if name not in result.correlations:
+            return ""
+        other, rho = result.correlations[name]
+        return f"{rho:+.2f} with {other}"
+
     rows = "".join(
-        f"<tr><td>{n}</td><td>{v:.6g}</td><td>{result.std_devs[n]:.3g}</td></tr>"
+        f"<tr><td>{n}</td><td>{v:.6g}</td><td>{result.std_devs[n]:.3g}</td><td>{corr(n)}</td></tr>"
         if n in result.std_devs
-        else f"<tr><td>{n}</td><td>{v:.6g}</td><td>fixed</td></tr>"
+        else f"<tr><td>{n}</td><td>{v:.6g}</td><td>fixed</td><td></td></tr>"
         for n, v in values.items()
     )
-    return f"<table><tr><th>parameter</th><th>value</th><th>std dev</th></tr>{rows}</table>"
+    head = "<tr><th>parameter</th><th>value</th><th>std dev</th><th>strongest correlation</th></tr>"
+    return f"<table>{head}{rows}</table>"
 
 
 def write_report(

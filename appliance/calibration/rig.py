@@ -449,10 +449,12 @@ def _refined_result(
     cam_at_origin = CameraModel(cam.name, cam.K, cam.dist, cam.width, cam.height, rms=cam.rms)
     intrinsic = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
     sd = {k: v for k, v in bundle.std_devs[name].items() if k in intrinsic}
+    corr = {k: v for k, v in bundle.correlations.get(name, {}).items() if k in intrinsic}
     coverage = coverage_map(pts, (cam.width, cam.height))
     return dataclasses.replace(
         base, camera=cam_at_origin, rms=cam.rms, per_view_errors=per_view, std_devs=sd, views=views,
         image_points=pts, residuals=res, coverage=coverage, coverage_fraction=float(np.mean(coverage > 0)),
+        correlations=corr or base.correlations,
     )  # fmt: skip
 
 
