@@ -113,6 +113,10 @@ class FakeScanner:
             maps={} if broken else {"cam0": SimpleNamespace(mask=np.ones((24, 32), bool))},
             timings_ms={"scan_ms": 1e3 * self.plan.scan_s, "capture_ms": 1.0, "reconstruct_ms": 1.0},
             shapes={"cam0": (24, 32)},
+            stages=[],
+            warnings=[],
+            calibration_health={},
+            stereo=None,
         )
 
     async def close(self) -> None:

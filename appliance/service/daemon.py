@@ -53,6 +53,8 @@ __all__ = ["STATE_FILE", "Service", "TriggerEvent", "run_service"]
 log = logging.getLogger(__name__)
 
 AFTER_SCAN_GRACE_S = 10.0  # at stop, the last scan's bookkeeping gets this long
+ABORT_WAIT_S = 5.0  # at stop, an aborted scan gets this long to unwind
+WRITER_CLOSE_WAIT_S = 30.0  # at stop, the writer thread gets this long to finish its work
 
 StateListener = Callable[[StatusBoard], None]
 ScanListener = Callable[[ScanRecord], None]
@@ -308,8 +310,7 @@ class Service:
                 self.jobs.abort_reason = (f"aborted: the service is stopping and the scan did not finish within "
                                           f"service.stop_grace_s = {grace:g} s; no file was written")
                 current.cancel()
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await current
+                await asyncio.wait({current}, timeout=ABORT_WAIT_S)  # a wedged driver call may never return
         self.jobs.abort_active(self.jobs.abort_reason)  # the waiting client gets its reply
         if self.jobs.after_scan:  # the last scan's state file (and ground-truth line) are still being written
             await asyncio.wait(set(self.jobs.after_scan), timeout=AFTER_SCAN_GRACE_S)
@@ -325,7 +326,11 @@ class Service:
                 log.exception("closing %r failed", ext)
         if self.control is not None:
             await self.control.close()
-        await asyncio.to_thread(self.output.close)
+        closing = asyncio.ensure_future(asyncio.to_thread(self.output.close))  # a started write completes
+        done, _ = await asyncio.wait({closing}, timeout=WRITER_CLOSE_WAIT_S)
+        if not done:
+            log.error("stopping: the writer thread has not finished within %.0f s (a hung share?)",
+                      WRITER_CLOSE_WAIT_S)
         self.notifier.close()
         self.board.unsubscribe(self.publisher.publish)
         log.info("stopped after %d scans", self.board.counters["scans_done"])
