@@ -23,7 +23,7 @@ from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
 from appliance.hardware.base import FrameArray
-from appliance.hardware.registry import Rig
+from appliance.hardware.registry import Rig, build_rig
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
@@ -309,6 +309,20 @@ class Scanner:
         if executors:  # waits for the decode threads: not on the event loop
             await asyncio.get_running_loop().run_in_executor(None, lambda: [ex.shutdown(wait=True) for ex in executors])
         self._opened = False
+
+
+async def scan_once(cfg: AppConfig, rig: Rig | None = None) -> tuple[ScanResult, Scanner]:
+    """One scan on the configured rig (or ``rig``) with its calibration, then close (tests, the bench).
+
+    Returns the result and the (closed) scanner, for its sequence and parameters; ``scanner.rig.virtual`` is
+    the virtual rig's ground truth when the rig is simulated.
+    """
+    rig = rig if rig is not None else build_rig(cfg)
+    scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
+    try:
+        return await scanner.scan(), scanner
+    finally:
+        await scanner.close()
 
 
 def load_calibration_for(cfg: AppConfig, rig: Rig) -> Calibration:

@@ -19,7 +19,6 @@ import pytest
 
 from appliance.config import parse_config
 from appliance.errors import HardwareError, ManifestError, PatternError
-from appliance.hardware.registry import build_rig
 from appliance.patterns.manifest import read_manifest, write_manifest
 from appliance.patterns.render import render_frame
 from appliance.patterns.sequence import (
@@ -33,7 +32,7 @@ from appliance.patterns.sequence import (
     phase_shift_frames,
 )
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, plan_decode
-from appliance.scan import Scanner, load_calibration_for, pixel_format_bits
+from appliance.scan import pixel_format_bits, scan_once
 
 REPO = Path(__file__).resolve().parents[1]
 PROCAM = REPO.parent / "shared" / "data" / "procam_graycode_calib" / "capture_0"
@@ -191,17 +190,9 @@ virtual_rig:
 def _scan(bits: int) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.float32], npt.NDArray[np.uint8], int]:
     cfg = parse_config(RIG.replace("BITS", str(bits)), "rig.yaml")
 
-    async def run() -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.float32], npt.NDArray[np.uint8], int]:
-        rig = build_rig(cfg)
-        scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
-        try:
-            result = await scanner.scan()
-        finally:
-            await scanner.close()
-        m = result.maps["cam0"]
-        return m.mask.copy(), m.u.copy(), result.cloud.intensity.copy(), len(result.cloud)
-
-    return asyncio.run(run())
+    result, _ = asyncio.run(scan_once(cfg))
+    m = result.maps["cam0"]
+    return m.mask.copy(), m.u.copy(), result.cloud.intensity.copy(), len(result.cloud)
 
 
 def test_a_12_bit_camera_scans_like_an_8_bit_one() -> None:

@@ -19,7 +19,7 @@ pytest.importorskip("gi", reason="PyGObject is not installed (scripts/test insta
 from appliance.config import parse_config
 from appliance.geometry.calibration_file import write_calibration
 from appliance.hardware.registry import build_rig
-from appliance.scan import Scanner, ScanResult, load_calibration_for, virtual_calibration
+from appliance.scan import ScanResult, scan_once, virtual_calibration
 
 pytestmark = pytest.mark.hil
 
@@ -36,15 +36,7 @@ reconstruction: {min_depth_mm: 300, max_depth_mm: 900}
 def _scan(cfg_text: str) -> ScanResult:
     cfg = parse_config(cfg_text, "test.yaml")
 
-    async def run() -> ScanResult:
-        rig = build_rig(cfg)
-        scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
-        try:
-            return await scanner.scan()
-        finally:
-            await scanner.close()
-
-    return asyncio.run(run())
+    return asyncio.run(scan_once(cfg))[0]
 
 
 def test_gige_scan_equals_sim_scan(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from appliance.config.backends import SimCameraConfig
 from appliance.errors import ScanError
 from appliance.hardware.registry import build_rig
 from appliance.reconstruct.decode import decode
-from appliance.scan import Scanner, load_calibration_for
+from appliance.scan import Scanner, load_calibration_for, scan_once
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -40,21 +40,13 @@ def small_config() -> AppConfig:
 def test_streaming_scan_equals_batch_decode() -> None:
     cfg = small_config()
 
-    async def run() -> None:
-        rig = build_rig(cfg)
-        scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
-        try:
-            result = await scanner.scan()
-        finally:
-            await scanner.close()
-        batch = decode(result.frames["cam0"], scanner.sequence, scanner.params)
-        stream = result.maps["cam0"]
-        np.testing.assert_array_equal(batch.mask, stream.mask)
-        assert np.array_equal(batch.u, stream.u, equal_nan=True)
-        assert np.array_equal(batch.quality, stream.quality, equal_nan=True)
-        assert len(result.cloud) > 0.5 * result.maps["cam0"].mask.sum()
-
-    asyncio.run(run())
+    result, scanner = asyncio.run(scan_once(cfg))
+    batch = decode(result.frames["cam0"], scanner.sequence, scanner.params)
+    stream = result.maps["cam0"]
+    np.testing.assert_array_equal(batch.mask, stream.mask)
+    assert np.array_equal(batch.u, stream.u, equal_nan=True)
+    assert np.array_equal(batch.quality, stream.quality, equal_nan=True)
+    assert len(result.cloud) > 0.5 * result.maps["cam0"].mask.sum()
 
 
 def test_dead_camera_fails_one_scan_and_the_next_succeeds(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -108,7 +100,7 @@ def test_decode_command_on_a_recorded_capture(tmp_path: Path) -> None:
 
     cfg = small_config()
     rig = build_rig(cfg)
-    from appliance.scan import build_sequence
+    from appliance.patterns.from_config import build_sequence
 
     seq = build_sequence(cfg.sequence, rig.virtual.projector.width, rig.virtual.projector.height)
     np.save(tmp_path / "cam0.npy", rig.virtual.render(seq, "cam0"))

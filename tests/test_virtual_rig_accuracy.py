@@ -14,24 +14,16 @@ import numpy as np
 import pytest
 
 from appliance.config import AppConfig, load_config
-from appliance.hardware.registry import build_rig
-from appliance.scan import Scanner, ScanResult, load_calibration_for
+from appliance.scan import ScanResult, scan_once
 from appliance.sim.accuracy import AccuracyReport, compare_to_ground_truth, normal_errors_deg
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _scan(cfg: AppConfig) -> tuple[ScanResult, AccuracyReport, Any]:
-    async def run() -> tuple[ScanResult, AccuracyReport, Any]:
-        rig = build_rig(cfg)
-        scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
-        try:
-            result = await scanner.scan()
-        finally:
-            await scanner.close()
-        return result, compare_to_ground_truth(result.cloud, rig.virtual, list(cfg.cameras)), rig
-
-    return asyncio.run(run())
+    result, scanner = asyncio.run(scan_once(cfg))
+    rig = scanner.rig
+    return result, compare_to_ground_truth(result.cloud, rig.virtual, list(cfg.cameras)), rig
 
 
 def _with_sequence(**update: Any) -> AppConfig:
