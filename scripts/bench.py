@@ -187,8 +187,7 @@ def bench_opencv(repeats: int) -> dict[str, Any]:
 
 def bench_accuracy() -> list[dict[str, Any]]:
     from appliance.config import load_config
-    from appliance.hardware.registry import build_rig
-    from appliance.scan import Scanner, load_calibration_for
+    from appliance.scan import scan_once
     from appliance.sim.accuracy import compare_to_ground_truth
 
     base = load_config(REPO / "config" / "appliance.yaml")
@@ -199,17 +198,10 @@ def bench_accuracy() -> list[dict[str, Any]]:
                                                                     "periods_px": (64, 16)})):
         cfg = base.model_copy(update={"sequence": base.sequence.model_copy(update=seq_update)})
 
-        async def run(cfg: Any = cfg) -> Any:
-            rig = build_rig(cfg)
-            scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
-            try:
-                result = await scanner.scan()
-            finally:
-                await scanner.close()
-            return compare_to_ground_truth(result.cloud, rig.virtual, list(cfg.cameras)), len(scanner.sequence)
-
         try:
-            rep, n = asyncio.run(run())
+            result, scanner = asyncio.run(scan_once(cfg))
+            rep = compare_to_ground_truth(result.cloud, scanner.rig.virtual, list(cfg.cameras))
+            n = len(scanner.sequence)
         except Exception as exc:  # a mode the build cannot run yet is reported, not hidden
             rows.append({"mode": label, "error": str(exc)})
             continue
