@@ -44,10 +44,15 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def appliance_copy(tmp: Path, **service: Any) -> Path:
-    """``config/appliance.yaml`` copied into ``tmp`` with its paths under ``tmp``, mDNS off, the small rig and
-    ``service`` merged into its service section; returns the copy's path."""
+def appliance_copy(tmp: Path, top: dict[str, Any] | None = None, **service: Any) -> Path:
+    """``config/appliance.yaml`` copied into ``tmp`` with its paths under ``tmp``, mDNS off, the small rig,
+    ``top`` merged into its top-level sections and ``service`` into its service section; returns the copy."""
     doc = yaml.safe_load((REPO / "config" / "appliance.yaml").read_text())
+    for key, value in (top or {}).items():
+        if isinstance(value, dict) and isinstance(doc.get(key), dict):
+            doc[key].update(value)
+        else:
+            doc[key] = value
     doc["output"].update(directory=str(tmp / "share"), spool_directory=str(tmp / "spool"), min_free_mb=0)
     (tmp / "share").mkdir(exist_ok=True)
     doc["virtual_rig"].update(SMALL_RIG)

@@ -131,7 +131,8 @@ def test_events_stream_state_and_finished_scan(tmp_path: Path, loop_guard: None)
                     else:
                         scan = ev
                 assert "scanning" in states and scan["ok"] and scan["trigger"] == "http"
-                assert scan["calibration_health"] is None  # this rig's sidecars carry none
+                # one camera, one coded axis: nothing redundant to judge the calibration by
+                assert scan["calibration_health"]["status"] == "not measured"
             async with http.get(f"{base}/api/scans?limit=1") as r:
                 assert (await r.json())["scans"][0]["scan_id"] == scan["scan_id"]
 

@@ -283,7 +283,10 @@ class ServiceFaces:
 
     async def _scan_dict(self, rec: ScanRecord) -> dict[str, Any]:
         d = scan_record_dict(rec)
-        d["calibration_health"] = await self._calibration_health(rec) if rec.ok else None
+        health = getattr(rec, "calibration_health", None)  # the record carries it; older ones: the sidecar
+        if not health and rec.ok:
+            health = await self._calibration_health(rec)
+        d["calibration_health"] = health or None
         return d
 
     async def scans(self, limit: int) -> list[dict[str, Any]]:

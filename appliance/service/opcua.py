@@ -87,8 +87,11 @@ class _Users:
 
 
 def _health_text(health: Any) -> str:
-    if health is None:
+    """``ok`` / ``drifting`` / ``bad`` / ``not measured`` (the sidecar's ``calibration_health.status``)."""
+    if not health:
         return "not measured"
+    if isinstance(health, dict) and isinstance(health.get("status"), str):
+        return str(health["status"])
     return health if isinstance(health, str) else json.dumps(health, separators=(",", ":"))
 
 

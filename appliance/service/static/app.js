@@ -79,16 +79,29 @@ function scheduleStatus() {  // at most one status request per second, however m
 
 // --- scans -------------------------------------------------------------------------------------------
 
+// calibration_health from the sidecar: {status: ok|drifting|bad|not measured, reason, checks: [{kind,
+// residual_px, reference_px, limit_px, ...}]}; plotted as the largest residual (px) of the scan's checks.
 function healthNumber(h) {
   if (typeof h === "number") return h;
-  if (h && typeof h === "object") {
-    for (const key of ["score", "value", "rms_px", "reprojection_rms_px", "rms_mm"]) {
-      if (typeof h[key] === "number") return h[key];
-    }
-    for (const v of Object.values(h)) if (typeof v === "number") return v;
-  }
-  return null;
+  if (!h || typeof h !== "object" || h.status === "not measured") return null;
+  const px = (h.checks || []).map((c) => c.residual_px).filter((v) => typeof v === "number");
+  return px.length ? Math.max(...px) : null;
 }
+
+function healthLimit(h) {
+  const lim = ((h && h.checks) || []).map((c) => c.limit_px).filter((v) => typeof v === "number");
+  return lim.length ? Math.min(...lim) : null;
+}
+
+function healthLine(h) {
+  if (!h) return "not measured";
+  if (h.status === "not measured") return `not measured${h.reason ? ": " + h.reason : ""}`;
+  const v = healthNumber(h), lim = healthLimit(h);
+  return `${h.status}` + (v !== null ? `: largest residual ${v.toPrecision(3)} px` : "") +
+    (lim !== null ? ` (limit ${lim.toPrecision(3)} px)` : "") + (h.reason ? ` — ${h.reason}` : "");
+}
+
+const HEALTH_COLOUR = { ok: "#3fb950", drifting: "#d29922", bad: "#f85149" };
 
 function showScans(scans) {
   const body = $("scans");
@@ -137,30 +150,38 @@ function drawHealth(scans) {
   const cv = $("health");
   const g = cv.getContext("2d");
   g.clearRect(0, 0, cv.width, cv.height);
-  const pts = scans.map((s) => [Date.parse(s.started_utc), healthNumber(s.calibration_health)])
+  const pts = scans.map((s) => [Date.parse(s.started_utc), healthNumber(s.calibration_health), s.calibration_health])
     .filter((p) => p[1] !== null && !Number.isNaN(p[0]));
+  const newest = scans.length ? scans[scans.length - 1].calibration_health : null;
+  text("health-text", healthLine(newest));
   if (!pts.length) {
-    text("health-text", "not measured");
     g.fillStyle = "#8b98a5"; g.font = "14px sans-serif"; g.fillText("not measured", 12, cv.height / 2);
     return;
   }
-  const last = scans.filter((s) => s.calibration_health != null).pop();
-  text("health-text", `last: ${JSON.stringify(last.calibration_health)}`);
   const xs = pts.map((p) => p[0]), ys = pts.map((p) => p[1]);
-  const x0 = Math.min(...xs), x1 = Math.max(...xs) || x0 + 1;
-  let y0 = Math.min(...ys), y1 = Math.max(...ys);
-  if (y1 - y0 < 1e-9) { y0 -= 1; y1 += 1; }
-  const pad = 28, w = cv.width - 2 * pad, h = cv.height - 2 * pad;
+  const lim = healthLimit(pts[pts.length - 1][2]);
+  const x0 = Math.min(...xs), x1 = Math.max(...xs);
+  let y0 = 0, y1 = Math.max(...ys, lim !== null ? lim : 0);
+  if (y1 - y0 < 1e-9) y1 = 1;
+  y1 *= 1.1;
+  const pad = 34, w = cv.width - 2 * pad, h = cv.height - 2 * pad;
   const X = (x) => pad + (x1 > x0 ? (x - x0) / (x1 - x0) : 0.5) * w;
   const Y = (y) => pad + h - ((y - y0) / (y1 - y0)) * h;
   g.strokeStyle = "#2b3642"; g.strokeRect(pad, pad, w, h);
   g.fillStyle = "#8b98a5"; g.font = "11px sans-serif";
-  g.fillText(y1.toPrecision(3), 2, pad + 4); g.fillText(y0.toPrecision(3), 2, pad + h);
+  g.fillText(`${y1.toPrecision(2)} px`, 2, pad - 4); g.fillText("0", 2, pad + h);
+  if (lim !== null) {  // the limit the calibration promised
+    g.strokeStyle = "#f85149"; g.setLineDash([4, 4]); g.beginPath();
+    g.moveTo(pad, Y(lim)); g.lineTo(pad + w, Y(lim)); g.stroke(); g.setLineDash([]);
+    g.fillStyle = "#f85149"; g.fillText("limit", pad + w - 28, Y(lim) - 3);
+  }
   g.strokeStyle = "#58a6ff"; g.lineWidth = 2; g.beginPath();
   pts.forEach((p, i) => (i ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1]))));
   g.stroke();
-  g.fillStyle = "#58a6ff";
-  for (const p of pts) { g.beginPath(); g.arc(X(p[0]), Y(p[1]), 3, 0, 2 * Math.PI); g.fill(); }
+  for (const p of pts) {
+    g.fillStyle = HEALTH_COLOUR[p[2].status] || "#58a6ff";
+    g.beginPath(); g.arc(X(p[0]), Y(p[1]), 4, 0, 2 * Math.PI); g.fill();
+  }
 }
 
 // --- point-cloud view (software rendering with a depth buffer) ------------------------------------------
