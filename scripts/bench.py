@@ -264,13 +264,17 @@ def report(ref: dict[str, Any], ocv: dict[str, Any], acc: list[dict[str, Any]], 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=9)
-    ap.add_argument("--skip", nargs="*", default=[], choices=["reference", "opencv", "accuracy", "service"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["reference", "opencv", "stereo", "accuracy", "service"])
     ap.add_argument("--readme", action="store_true", help="write the report into README.md")
     ap.add_argument("--json", type=Path, default=None, help="also write raw numbers as JSON")
     a = ap.parse_args()
     ref = bench_reference(a.repeats) if "reference" not in a.skip else {}
     ocv = bench_opencv(max(3, a.repeats // 3)) if "opencv" not in a.skip else {}
     acc = bench_accuracy() if "accuracy" not in a.skip else []
+    sys.path.insert(0, str(REPO / "scripts"))
+    from bench_stereo import bench_stereo, report_lines
+
+    stereo = bench_stereo(a.repeats) if "stereo" not in a.skip else {}
     extra: dict[str, Any] = {}
     if "service" not in a.skip:
         try:
@@ -289,9 +293,14 @@ def main() -> int:
         except Exception as exc:
             extra["Service benchmark"] = f"not run: {exc}"
     text = report(ref, ocv, acc, extra)
+    if stereo:  # after the camera-projector figures, before accuracy
+        marker = "**Accuracy on the virtual rig**"
+        at = text.find(marker)
+        block = "\n".join(report_lines(stereo)) + "\n"
+        text = text[:at] + block + text[at:] if at >= 0 else text + "\n" + block
     print(text)
     if a.json:
-        raw = {"reference": ref, "opencv": ocv, "accuracy": acc, "extra": extra}
+        raw = {"reference": ref, "opencv": ocv, "stereo": stereo, "accuracy": acc, "extra": extra}
         a.json.write_text(json.dumps(raw, indent=2, default=str))
     if a.readme:
         readme = REPO / "README.md"

@@ -167,8 +167,22 @@ def _fit_line(tab, y, k, sy, sk, half, max_res):  # type: ignore[no-untyped-def]
             return x0
         a = (sx * sdd - sd * sdx) / det
         b = (s1 * sdx - sd * sx) / det
-        if it == 0 and abs(x0 - a) > max_res:
+        if it == 1:
+            break
+        if abs(x0 - a) > max_res:
             return x0
+        # a second fit only when the first has an outlier
+        clean = True
+        for d in range(-half, half + 1):
+            yy = y + d * sy
+            kk = k + d * sk
+            if 0 <= yy < hr and 0 <= kk < nk:
+                x = np.float64(tab[yy, kk])
+                if math.isfinite(x) and abs(x - (a + b * d)) > max_res:
+                    clean = False
+                    break
+        if clean:
+            break
     return a
 
 
