@@ -19,9 +19,7 @@ from appliance.geometry.camera import CameraModel, look_at
 from appliance.geometry.rays import RayTable
 from appliance.reconstruct.filters import (
     estimate_normals,
-    filter_depth,
     filter_isolated,
-    filter_quality,
     to_point_cloud,
 )
 from appliance.reconstruct.pipeline import Reconstructor
@@ -221,27 +219,11 @@ def test_filter_isolated_removes_specks_and_spikes() -> None:
     assert filter_isolated(xyz, 0, 2.0) == 0
 
 
-def test_filter_depth_uses_the_cameras_own_frame() -> None:
-    cam, _, _ = _rig("posed")
-    xyz = np.full((4, 5, 3), np.nan, np.float32)
-    depths = np.array([100.0, 400.0, 500.0, 700.0, 900.0])
-    pts = cam.center + depths[:, None] * cam.R[2]  # along the optical axis: depth = distance
-    xyz[1, :] = pts
-    removed = filter_depth(xyz, 450.0, 800.0, cam)
-    assert removed == 3
-    np.testing.assert_array_equal(np.isfinite(xyz[1, :, 2]), [False, False, True, True, False])
-    plain = np.zeros((1, 2, 3), np.float32)
-    plain[0, :, 2] = [50.0, 150.0]
-    assert filter_depth(plain, 100.0, 200.0) == 1 and np.isnan(plain[0, 0, 2])
-
-
-def test_filter_quality_and_point_cloud() -> None:
+def test_point_cloud_from_an_organised_cloud() -> None:
     xyz, truth = _plane_cloud()
     q = np.random.default_rng(1).uniform(0, 100, xyz.shape[:2]).astype(np.float32)
-    valid_before = np.isfinite(xyz[..., 2])
     normals = estimate_normals(xyz)
-    removed = filter_quality(xyz, q, 20.0)
-    assert removed == (valid_before & (q < 20)).sum()
+    xyz[q < 20] = np.nan  # holes: only the finite points become points
     inten = (np.arange(xyz.shape[0] * xyz.shape[1]) % 251).astype(np.uint8).reshape(xyz.shape[:2])
     cloud = to_point_cloud(xyz, q, inten, 2, normals)
     assert len(cloud) == np.isfinite(xyz[..., 2]).sum()

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import numpy.typing as npt
 
-from appliance.output.atomic import write_bytes_atomic
 from appliance.reconstruct.types import PointCloud
 
 PERCENTILE_SAMPLES = 100_000
@@ -82,16 +79,3 @@ def render_preview(
         cv2.rectangle(canvas, (4, 20 - th - 4), (12 + tw, 20 + base + 2), (0, 0, 0), -1)  # legible on any colour
         cv2.putText(canvas, title, (8, 20), font, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
     return canvas
-
-
-def write_preview(
-    path: str | Path, cloud: PointCloud, shapes: list[tuple[int, int]], title: str = ""
-) -> Path:
-    """Write the preview PNG of ``cloud`` (one tile per camera of shape ``shapes[i]`` (H, W)) atomically."""
-    import cv2
-
-    depths = [depth_image(cloud, i, s) for i, s in enumerate(shapes)]
-    ok, buf = cv2.imencode(".png", render_preview(depths, title))
-    if not ok:  # pragma: no cover - cv2 encodes any uint8 BGR image
-        raise RuntimeError("PNG encoding failed")
-    return write_bytes_atomic(Path(path), buf.tobytes())

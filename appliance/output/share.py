@@ -180,11 +180,6 @@ class ShareGate:
         with self._cond:
             return self._running is not None
 
-    def hung_reason(self) -> str:
-        """Why the share is away because an operation has been running past its deadline ('' when none)."""
-        with self._cond:
-            return self._hung_locked(time.monotonic())
-
     def call(self, what: str, fn: Callable[[], T], *, wait_slot: bool = True, wait_s: float | None = None) -> T:
         """Run ``fn()`` in a worker thread and wait for it at most ``timeout_s``.
 

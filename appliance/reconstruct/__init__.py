@@ -10,9 +10,7 @@ __all__ += ["DecodeParams", "DecodePlan", "StreamingDecoder", "decode", "plan_de
 
 from appliance.reconstruct.filters import (  # noqa: E402
     estimate_normals,
-    filter_depth,
     filter_isolated,
-    filter_quality,
     to_point_cloud,
 )
 from appliance.reconstruct.pipeline import Reconstructor  # noqa: E402
@@ -24,9 +22,7 @@ __all__ += [
     "Reconstructor",
     "StereoTriangulator",
     "estimate_normals",
-    "filter_depth",
     "filter_isolated",
-    "filter_quality",
     "to_point_cloud",
     "triangulate_stereo",
 ]

@@ -11,7 +11,6 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from appliance.geometry.camera import CameraModel
 from appliance.reconstruct import _filter_kernels as K
 from appliance.reconstruct import _normal_kernels as NK
 from appliance.reconstruct.types import PointCloud
@@ -31,55 +30,6 @@ def _image(
     if a.shape != shape:
         raise ValueError(f"{name}: shape {a.shape}: must be {shape} (H, W) like the cloud")
     return np.ascontiguousarray(a, dtype=dtype)
-
-
-def filter_depth(
-    xyz: F32, min_depth_mm: float, max_depth_mm: float, camera: CameraModel | None = None
-) -> int:
-    """Remove points outside a depth range, in place.
-
-    Parameters
-    ----------
-    xyz : ndarray, shape (H, W, 3), float32
-        Organised cloud, world frame (mm); modified in place.
-    min_depth_mm, max_depth_mm : float
-        Kept range of the depth (z in the camera's own frame, mm), inclusive.
-    camera : CameraModel, optional
-        The camera whose depth counts; None means the world frame is the camera frame.
-
-    Returns
-    -------
-    int
-        Number of points removed.
-    """
-    _organised(xyz)
-    rz = np.zeros(3) if camera is None else np.ascontiguousarray(camera.R[2])
-    tz = 0.0 if camera is None else float(camera.T[2])
-    if camera is None:
-        rz[2] = 1.0
-    return int(K.filter_depth(xyz, rz, tz, float(min_depth_mm), float(max_depth_mm)))
-
-
-def filter_quality(xyz: F32, quality: npt.NDArray[np.float32], min_quality: float) -> int:
-    """Remove points whose decoding quality is below ``min_quality``, in place.
-
-    Parameters
-    ----------
-    xyz : ndarray, shape (H, W, 3), float32
-        Organised cloud (mm); modified in place.
-    quality : ndarray, shape (H, W)
-        Per-pixel quality (see :class:`~appliance.reconstruct.types.DecodedMaps`, DN).
-    min_quality : float
-        Smallest kept quality (DN).
-
-    Returns
-    -------
-    int
-        Number of points removed.
-    """
-    _organised(xyz)
-    q = _image(quality, xyz.shape[:2], "quality", np.float32)
-    return int(K.filter_quality(xyz, q, np.float32(min_quality)))
 
 
 def filter_isolated(
