@@ -412,7 +412,7 @@ class Soak:
             problems.append(f"unresponsive for {self.worst_gap_s:.1f} s outside a restart")
         if bad_exit:
             problems.append(f"the last service exited with {bad_exit[0]} on SIGTERM")
-        reasons = collections.Counter(str(r.get("result", r.get("error", "")))[:40] for r in self.failed)
+        reasons = collections.Counter(" ".join(str(r.get("error", "")).split()[:6]) for r in self.failed)
         return {
             "scans_attempted": self.attempts, "scans_ok": len(self.ok), "scans_failed_with_reason": len(self.failed),
             "unanswered_by_sigkill": self.unanswered, "unreported_on_share": len(set(sidecars) - set(self.ok)),
