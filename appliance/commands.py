@@ -186,7 +186,7 @@ class _DecodeBatch:
                     f"{dev.width}x{dev.height}; use the calibration of these images"
                 )
         mode = choose_decode_mode(calib, man.cameras, self.mode_requested)
-        key = (id(calib), tuple(man.cameras), axes, mode)
+        key = (id(calib), tuple(man.cameras), axes, mode, man.sequence.describe())
         if key in self._recons:
             return self._recons[key]  # type: ignore[no-any-return]
         sub = type(calib)({n: calib.devices[n] for n in [*man.cameras, PROJECTOR_NAME] if n in calib.devices})
@@ -197,7 +197,7 @@ class _DecodeBatch:
                 f"mode {mode}: this reconstruction has no fused mode; triangulating camera-projector only "
                 "(give --mode stereo for camera-camera)"
             )
-        recon = Reconstructor(sub, axes, rc)
+        recon = Reconstructor(sub, axes, rc, man.sequence)  # the sequence gives every point its sigma_mm
         self._recons[key] = (recon, used_mode, rc)
         return self._recons[key]  # type: ignore[no-any-return]
 
