@@ -67,3 +67,15 @@ def test_readme_first_commands_are_runnable_scripts() -> None:
     ci = subprocess.run(["bash", "-x", "-n", str(REPO / ".ci" / "run")], capture_output=True, text=True,
                         timeout=30, check=False)
     assert ci.returncode == 0 and "exec scripts/test" in (REPO / ".ci" / "run").read_text()
+
+
+def test_relative_links_in_the_docs_lead_somewhere() -> None:
+    """Every relative link of README.md and docs/*.md names a file or folder of the repository."""
+    broken = []
+    for doc in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+        for target in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue
+            if not (doc.parent / target.split("#", 1)[0]).exists():
+                broken.append(f"{doc.relative_to(REPO)}: {target}")
+    assert not broken, "broken links:\n" + "\n".join(broken)
