@@ -251,8 +251,9 @@ class StereoTriangulator:
     max_code_err_px : float, optional
         Three-view check: fixed limit of |projected code - decoded code| (projector px). Default: from the
         code step and this scan's residual spread.
-    correct_epipolar : bool
-        Fit and correct a systematic epipolar offset measured from (u, v) matches.
+    correct_epipolar : bool, optional
+        Fit and correct a systematic epipolar offset measured from (u, v) matches. Default: with the automatic
+        limit only (a fixed ``max_epipolar_px`` trusts the calibration as it is).
     """
 
     def __init__(
@@ -263,12 +264,12 @@ class StereoTriangulator:
         max_epipolar_px: float | None = None,
         projector: CameraModel | None = None,
         max_code_err_px: float | None = None,
-        correct_epipolar: bool = True,
+        correct_epipolar: bool | None = None,
     ) -> None:
         self.cam0, self.cam1, self.projector = cam0, cam1, projector
         self.rays0 = rays0 if rays0 is not None else RayTable(cam0)
         self.max_epipolar_px, self.max_code_err_px = max_epipolar_px, max_code_err_px
-        self.correct_epipolar = correct_epipolar
+        self.correct_epipolar = max_epipolar_px is None if correct_epipolar is None else correct_epipolar
         self.report = StereoReport()
         c0, c1 = cam0.center, cam1.center
         base = float(np.linalg.norm(c1 - c0))
