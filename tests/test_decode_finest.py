@@ -83,6 +83,24 @@ def test_phase_sequence_keeps_full_resolution_where_it_resolves(rig: VirtualRig)
     assert stripe_widths(maps, seq) == {"x": {0.0: 1.0}}
 
 
+def test_a_finer_period_without_modulation_falls_back_to_the_coarser_one(rig: VirtualRig) -> None:
+    """Periods 96 and 8 projector px: the blur (~6 projector px) wipes out the 8-px fringes; pixels keep the
+    96-px period's sub-pixel coordinate instead of being rejected."""
+    seq = gray_phase_sequence(3840, 400, "x", periods=(96, 8))
+    frames = rig.render(seq, "cam0")
+    gt = rig.ground_truth("cam0")
+    lit = gt.lit & np.isfinite(gt.proj_uv[..., 0])
+    strict = decode(frames, seq, DecodeParams(finest_bit=False))
+    maps = decode(frames, seq)
+    print(f"lit {lit.mean():.1%}: decoded with both periods {strict.mask.mean():.1%}, "
+          f"with the finest that has modulation {maps.mask.mean():.1%}")
+    assert strict.mask.sum() < 0.05 * lit.sum()
+    assert maps.mask.sum() >= 0.9 * lit.sum()
+    good = maps.mask & lit
+    err = np.abs(maps.u[good] - gt.proj_uv[..., 0][good])
+    assert np.median(err) < 1.0 and np.percentile(err, 99) < 5.0
+
+
 def _level_rule(weak: int, tol: int, nbits: int) -> tuple[int, bool]:
     """The rule, written plainly: <= tol weak bits keeps full resolution; otherwise drop the contiguous weak
     bits from bit 0 and allow <= tol weak bits above them."""

@@ -29,6 +29,12 @@ from numba import njit, prange
 BIG = np.uint32(0x7FFFFFFF)  # "no contrast seen yet"
 #: A Gray bit whose contrast is below this fraction of the next weakest bit marks a stripe edge.
 EDGE_RATIO = 0.75
+#: A finer phase period whose modulation is below this fraction of the coarser period's is blurred away by
+#: the optics (attenuation grows with 1/period**2), not merely noisy: the pixel keeps the coarser result.
+BLUR_RATIO = 0.5
+#: ... and only when the coarser period is at least this many times longer: close periods (66.7 / 100 px)
+#: are attenuated almost alike by blur, so a weak finer one means a bad pixel, not blur.
+FALLBACK_PERIOD_RATIO = 4.0
 _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
@@ -301,6 +307,21 @@ def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _phase_fallback(mod, mprev, relv, prev, cc, ok, qa):  # type: ignore[no-untyped-def]
+    """A finer phase set counts where it has modulation. Where it has none because the optics blur it away
+    (its modulation under :data:`BLUR_RATIO` of the coarser set's ``mprev``), the coarser result ``prev``
+    stays; a finer set that is merely weak (noise, shadow edge) still rejects the pixel."""
+    ratio = np.float32(BLUR_RATIO)
+    for x in range(mod.shape[0]):
+        good = mod[x] >= relv[x]
+        blurred = mod[x] < ratio * mprev[x]
+        cc[x] = cc[x] if good else prev[x]
+        ok[x] = ok[x] & (good | blurred)
+        qa[x] = min(qa[x], mod[x] if good else _FINF)
+        mprev[x] = mod[x] if good else mprev[x]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _unwrap_gate(fl, stripe, period, ok):  # type: ignore[no-untyped-def]
     """A Gray code unwraps a phase set only while its effective stripe is at most half the period."""
     half = np.float32(0.5 * period)
@@ -367,7 +388,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
     ``lit`` bool (W,) and ``scratch[0]`` (phase floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`;
     ``code``, ``weak``, ``m1``, ``m2`` uint32 (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits;
     ``ssum``/``csum`` float64 (S, W); ``levels`` uint8 (2, W) out: Gray bits dropped per axis;
-    ``scratch`` float32 (9, W), ``fl`` uint32 (W,), ``ok`` bool (W,) are scratch.
+    ``scratch`` float32 (10, W), ``fl`` uint32 (W,), ``ok`` bool (W,) are scratch.
     """
     relv = scratch[0]
     cg = scratch[1]
@@ -377,6 +398,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
     mod = scratch[5]
     cph = scratch[6]
     cb = scratch[7]
+    mprev = scratch[9]
     qmin[:] = _FINF
     for a in range(2):
         out = u if a == 0 else v
@@ -396,6 +418,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
             fl[:] = np.uint32(0)
             cg[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
         cc[:] = cg
+        pprev = np.inf
         for s in range(ph_tab.shape[0]):
             if ph_tab[s, 0] != a:
                 continue
@@ -412,10 +435,17 @@ def _finish_row(  # type: ignore[no-untyped-def]
             elif src > 0:
                 cb[:] = cc
                 _unwrap(cph, cb, period, cc)
+                if finest and pprev >= FALLBACK_PERIOD_RATIO * period:
+                    # a finer period the optics blur away leaves the pixel on the coarser one
+                    _phase_fallback(mod, mprev, relv, cb, cc, ok, qa)
+                    pprev = period
+                    continue
             else:
                 _unwrap(cph, cg, period, cc)
                 _unwrap_gate(fl, stripe, period, ok)
             _phase_gate(mod, relv, ok, qa)
+            mprev[:] = mod
+            pprev = period
         _emit_axis(cc, ok, lit, out)
         _emit_level(fl, lit, levels[a])
         _min_into(qmin, qa)
@@ -654,7 +684,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
         qg = np.empty((2, w), np.float32)
         ssum = np.empty((nset, w), np.float64)
         csum = np.empty((nset, w), np.float64)
-        scratch = np.empty((9, w), np.float32)
+        scratch = np.empty((10, w), np.float32)
         fl = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
@@ -786,7 +816,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
         m1 = np.empty((2, w), np.uint32)
         m2 = np.empty((2, w), np.uint32)
         qg = np.empty((2, w), np.float32)
-        scratch = np.empty((9, w), np.float32)
+        scratch = np.empty((10, w), np.float32)
         fl = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)

@@ -87,7 +87,8 @@ class DecodeParams:
         Decode each pixel to the finest Gray bit that has contrast: where the finest stripes are below what
         the optics resolve (several weak bits from bit 0 up), those bits are dropped and the pixel gets the
         centre of the coarser stripe (``DecodedMaps.levels`` says how many bits). False: such pixels are
-        rejected.
+        rejected. Likewise a finer phase period without modulation leaves the pixel on the coarser period's
+        (unwrapped, sub-pixel) coordinate.
     """
 
     min_contrast_dn: float = 6.0
