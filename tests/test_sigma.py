@@ -119,6 +119,18 @@ def test_sigma_mm_read_back_with_plyfile(tmp_path: Path) -> None:
     assert np.isnan(np.asarray(v["sigma_mm"])).all() and len(v["sigma_mm"]) == 5
 
 
+def test_sigma_mm_read_back_with_open3d(tmp_path: Path) -> None:
+    import open3d as o3d  # a second reader, independent of plyfile
+
+    cloud, _, _ = _reconstruct(2.0)
+    assert cloud.sigma_mm is not None
+    pcd = o3d.t.io.read_point_cloud(str(write_ply(tmp_path / "o.ply", cloud)))
+    np.testing.assert_array_equal(pcd.point["positions"].numpy(), cloud.xyz)
+    sigma = pcd.point["sigma_mm"].numpy().ravel()
+    assert sigma.dtype == np.float32
+    np.testing.assert_array_equal(sigma, cloud.sigma_mm)
+
+
 def test_code_noise_model() -> None:
     seq = gray_phase_sequence(1280, 800, "x", period=16, steps=4)
     noise = code_noise_for_sequence(seq, "x", read_noise_dn=2.0, electrons_per_dn=25.0)
