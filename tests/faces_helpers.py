@@ -9,6 +9,7 @@ import base64
 import contextlib
 import getpass
 import json
+import os
 import shutil
 import signal
 import socket
@@ -108,6 +109,24 @@ async def running_service(config: Path) -> AsyncIterator[D.Service]:
     finally:
         svc.request_stop()
         assert await asyncio.wait_for(task, 30) == 0
+
+
+def warm_kernels() -> None:
+    """Start and stop the service once on the small rig, outside any measured loop: numba loads its kernels
+    (holding the interpreter) on the first start in a process; tests under ``loop_guard`` start after this."""
+
+    async def once(cfg: Path) -> None:
+        async with running_service(cfg):
+            pass
+
+    with tempfile.TemporaryDirectory(prefix="scan3d-warm-") as tmp:
+        asyncio.run(once(appliance_copy(Path(tmp), top={"sequence": {"axes": "xy"}})))
+
+
+@pytest.fixture(scope="module")
+def warm() -> None:
+    """:func:`warm_kernels` once per test module."""
+    warm_kernels()
 
 
 # --- a real Mosquitto broker ----------------------------------------------------------------------------
@@ -226,16 +245,18 @@ class Chromium:
         res = await self.call("Page.captureScreenshot", format="png")
         await asyncio.to_thread(path.write_bytes, base64.b64decode(res["data"]))
 
-    async def close(self) -> None:
+    async def disconnect(self) -> None:
+        """Close the DevTools connection (the browser keeps running until :meth:`kill`)."""
         with contextlib.suppress(Exception):
             if self._ws is not None:
                 await self._ws.close()
         if self._session is not None:
             await self._session.close()
+
+    def kill(self) -> None:
+        """Kill the browser (its whole process group) and remove its profile."""
         if self.proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
-                import os
-
                 os.killpg(self.proc.pid, signal.SIGKILL)
             self.proc.wait(10)
         shutil.rmtree(self.profile, ignore_errors=True)

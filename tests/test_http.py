@@ -15,10 +15,21 @@ import aiohttp
 import numpy as np
 import pytest
 import yaml
-from faces_helpers import TOKEN, appliance_copy, faces_of, free_port, running_service, token_file, wait_until
+from faces_helpers import (  # noqa: F401 (warm: a fixture)
+    TOKEN,
+    appliance_copy,
+    faces_of,
+    free_port,
+    running_service,
+    token_file,
+    wait_until,
+    warm,
+)
 from plyfile import PlyData
 
 from appliance.service.control import request
+
+pytestmark = pytest.mark.usefixtures("warm")  # numba's kernels loaded before any loop is measured
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 

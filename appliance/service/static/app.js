@@ -137,10 +137,13 @@ function showLast(scan) {
   loadCloud(`${base}/cloud.bin`, scan);
 }
 
+let scansAsked = 0;
+
 async function refreshScans() {
+  const me = ++scansAsked;
   try {
     const data = await getJSON("/api/scans?limit=20");
-    showScans(data.scans || []);
+    if (me === scansAsked) showScans(data.scans || []);  // an older answer arriving late is dropped
   } catch (e) { /* shown by the link state */ }
 }
 
@@ -328,7 +331,11 @@ function connectEvents() {
     showRejected(s.config_error);
     scheduleStatus();
   });
-  es.addEventListener("scan", () => { refreshScans(); scheduleStatus(); refreshConfig(); });
+  es.addEventListener("scan", (e) => {
+    const scan = JSON.parse(e.data);
+    if (scan.ok) showLast(scan);  // at once, from the event; the table follows from /api/scans
+    refreshScans(); scheduleStatus(); refreshConfig();
+  });
 }
 
 document.addEventListener("DOMContentLoaded", () => {
