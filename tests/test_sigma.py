@@ -119,6 +119,8 @@ def test_sigma_mm_read_back_with_plyfile(tmp_path: Path) -> None:
     assert np.isnan(np.asarray(v["sigma_mm"])).all() and len(v["sigma_mm"]) == 5
 
 
+# open3d loads its own (older) TBB; numba then says it keeps its other threading layer
+@pytest.mark.filterwarnings("ignore:The TBB threading layer requires TBB")
 def test_sigma_mm_read_back_with_open3d(tmp_path: Path) -> None:
     import open3d as o3d  # a second reader, independent of plyfile
 
