@@ -222,7 +222,7 @@ class Scanner:
             # cameras without a hardware trigger line (software-timed) are fired frame by frame
             software = [c for c in self.rig.cameras.values() if getattr(c, "needs_software_trigger", False)]
             for i in range(n if software else 0):
-                await asyncio.gather(*(c.trigger(i) for c in software))  # type: ignore[attr-defined]
+                await asyncio.gather(*(c.trigger(i) for c in software))
             timeout = FRAME_TIMEOUT_S + n * FRAME_TIMEOUT_PER_FRAME_S
             results = await asyncio.gather(
                 *(cam.wait_frames(timeout) for cam in self.rig.cameras.values()), return_exceptions=True

@@ -50,9 +50,18 @@ FrameCallback = Callable[[int, FrameArray], None]
 
 @runtime_checkable
 class Camera(Protocol):
-    """A camera that captures one frame per trigger into preallocated buffers."""
+    """A camera that captures one frame per trigger into preallocated buffers.
+
+    Whether the scan fires each frame itself is part of the protocol (:attr:`needs_software_trigger`), not
+    something callers probe for; :meth:`trigger` has one (async) signature in every backend.
+    """
 
     name: str
+
+    @property
+    def needs_software_trigger(self) -> bool:
+        """True when the scan must call :meth:`trigger` once per frame (no trigger line, no free run)."""
+        ...
 
     async def open(self) -> CameraInfo:
         """Connect and configure; idempotent."""
@@ -60,6 +69,10 @@ class Camera(Protocol):
 
     async def arm(self, n_frames: int, out: FrameArray, on_frame: FrameCallback | None = None) -> None:
         """Prepare to capture ``n_frames`` frames into ``out`` (shape (n_frames, H, W)) on triggers."""
+        ...
+
+    async def trigger(self, index: int) -> None:
+        """Expose frame ``index`` of the armed sequence now (by software)."""
         ...
 
     async def wait_frames(self, timeout_s: float) -> None:
@@ -100,9 +113,24 @@ class Projector(Protocol):
 
 @runtime_checkable
 class TriggerSource(Protocol):
-    """Where scan requests come from (and, for a controller, who fires the camera/projector pulses)."""
+    """Where scan requests come from (and, for a controller, who fires the camera/projector pulses).
+
+    The optional capabilities are part of the protocol: :attr:`emits_sequence_pulses` says whether the source
+    is a :class:`PulseSource` (see :func:`pulse_source`), :attr:`has_lamps` whether :meth:`set_leds` shows
+    anything. :class:`ButtonOnly` gives a backend without either the defaults.
+    """
 
     name: str
+
+    @property
+    def emits_sequence_pulses(self) -> bool:
+        """True when the source is a :class:`PulseSource`: it fires the camera (and projector) pulses itself."""
+        ...
+
+    @property
+    def has_lamps(self) -> bool:
+        """True when :meth:`set_leds` shows ready/busy/fault on the device."""
+        ...
 
     async def open(self) -> None:
         """Connect; idempotent."""
@@ -112,6 +140,46 @@ class TriggerSource(Protocol):
         """Wait for the next button press (or equivalent)."""
         ...
 
+    async def set_leds(self, ready: bool, busy: bool, fault: bool) -> None:
+        """Show the appliance's state on the device's lamps."""
+        ...
+
+    def status(self) -> str:
+        """One line about the device (shown by ``scan3d status``)."""
+        ...
+
     async def close(self) -> None:
         """Release the device; idempotent."""
         ...
+
+
+@runtime_checkable
+class PulseSource(TriggerSource, Protocol):
+    """A trigger source that also fires the camera (and projector) pulses of a sequence (the controller)."""
+
+    async def run_sequence(self, n: int) -> list[int]:
+        """Fire ``n`` pulses and wait until done; the pulses' timestamps (µs, the source's own clock)."""
+        ...
+
+
+def pulse_source(trigger: TriggerSource) -> PulseSource | None:
+    """``trigger`` as a :class:`PulseSource` when it emits the pulses of a sequence, else None."""
+    if trigger.emits_sequence_pulses and isinstance(trigger, PulseSource):
+        return trigger
+    return None
+
+
+class ButtonOnly:
+    """Defaults for a :class:`TriggerSource` that only reports presses: no pulse outputs, no lamps."""
+
+    name: str
+    emits_sequence_pulses = False
+    has_lamps = False
+
+    async def set_leds(self, ready: bool, busy: bool, fault: bool) -> None:
+        """No lamps: nothing to show."""
+        return None
+
+    def status(self) -> str:
+        """``open``: a button has nothing more to say."""
+        return "open"

@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 from appliance.config.backends import GpioTriggerConfig
 from appliance.errors import BackendUnavailableError, TriggerError
-from appliance.hardware.base import TriggerEvent
+from appliance.hardware.base import ButtonOnly, TriggerEvent
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ def request_line_gpiod(cfg: GpioTriggerConfig) -> LineRequest:
         ) from exc
 
 
-class GpioTrigger:
+class GpioTrigger(ButtonOnly):
     """A button on a GPIO line.
 
     Parameters

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from appliance.config.schema import AppConfig
 from appliance.errors import BackendUnavailableError
 from appliance.hardware.base import Camera, Projector, TriggerSource
+
+if TYPE_CHECKING:
+    from appliance.sim.rig import VirtualRig
 
 _INSTALL_HINTS = {
     "aravis": "apt-get install gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev && pip install 'pygobject<3.51'",
@@ -40,7 +43,7 @@ class Rig:
     cameras: dict[str, Camera]
     projector: Projector
     trigger: TriggerSource
-    virtual: Any | None = None  # the VirtualRig when any device is simulated
+    virtual: VirtualRig | None = None  # when any device is simulated: its scene, models and ground truth
     extra: dict[str, Any] = field(default_factory=dict)
 
 

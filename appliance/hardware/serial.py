@@ -137,6 +137,9 @@ class SerialTrigger:
         Called with ``(state, reason)`` on every change of :attr:`state` (for the service's health).
     """
 
+    emits_sequence_pulses = True  # run_sequence: the camera/projector pulses of a whole sequence
+    has_lamps = True  # set_leds: the ready / busy / fault lamps
+
     def __init__(
         self,
         cfg: SerialTriggerConfig,

@@ -18,8 +18,9 @@ import numpy.typing as npt
 
 from appliance.config.backends import SimCameraConfig, SimTriggerConfig
 from appliance.errors import CameraError, ProjectorError
-from appliance.hardware.base import CameraInfo, FrameCallback, TriggerEvent
+from appliance.hardware.base import ButtonOnly, CameraInfo, FrameCallback, TriggerEvent
 from appliance.patterns.sequence import Sequence
+from appliance.sim.rig import VirtualRig
 
 # Module-level so tests can shorten them.
 FRAME_POLL_S = 0.05
@@ -28,7 +29,7 @@ FRAME_POLL_S = 0.05
 class SimWorld:
     """What the simulated devices share: the rig, the sequence on the projector, the armed cameras."""
 
-    def __init__(self, rig: Any) -> None:
+    def __init__(self, rig: VirtualRig) -> None:
         self.rig = rig
         self.sequence: Sequence | None = None
         self._cameras: list[SimCamera] = []
@@ -49,11 +50,17 @@ class SimWorld:
         with self._lock:
             cams = list(self._cameras)
         for cam in cams:
-            cam.trigger(index)
+            cam.expose(index)
 
 
 class SimCamera:
-    """A virtual-rig camera: renders each triggered frame in its own acquisition thread."""
+    """A virtual-rig camera: renders each triggered frame in its own acquisition thread.
+
+    The simulated projector exposes it frame by frame (:meth:`SimWorld.show`), like a hardware trigger line;
+    :meth:`trigger` exposes a frame by software.
+    """
+
+    needs_software_trigger = False
 
     def __init__(self, name: str, cfg: SimCameraConfig, world: SimWorld) -> None:
         self.name = name
@@ -94,8 +101,12 @@ class SimCamera:
         self._done.clear()
         self.world.attach(self)
 
-    def trigger(self, index: int) -> None:
+    def expose(self, index: int) -> None:
+        """Expose frame ``index`` (any thread): queued for the acquisition thread."""
         self._queue.put(index)
+
+    async def trigger(self, index: int) -> None:
+        self.expose(index)
 
     def _run(self) -> None:
         while True:
@@ -180,7 +191,7 @@ class SimProjector:
         return None
 
 
-class SimTrigger:
+class SimTrigger(ButtonOnly):
     """A simulated button, pressed with :meth:`press` (control socket, tests) or Enter on stdin."""
 
     def __init__(self, cfg: SimTriggerConfig) -> None:

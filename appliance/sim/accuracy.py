@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from appliance.reconstruct.types import PointCloud
+
+if TYPE_CHECKING:
+    from appliance.sim.rig import VirtualRig
 
 
 @dataclass(frozen=True)
@@ -44,7 +47,7 @@ class AccuracyReport:
         )
 
 
-def compare_to_ground_truth(cloud: PointCloud, rig: Any, cameras: list[str]) -> AccuracyReport:
+def compare_to_ground_truth(cloud: PointCloud, rig: VirtualRig, cameras: list[str]) -> AccuracyReport:
     """Compare ``cloud`` with the ground truth of ``rig`` (a VirtualRig).
 
     Parameters
@@ -85,7 +88,7 @@ def compare_to_ground_truth(cloud: PointCloud, rig: Any, cameras: list[str]) -> 
     )
 
 
-def normal_errors_deg(cloud: PointCloud, rig: Any, cameras: list[str]) -> npt.NDArray[np.float64]:
+def normal_errors_deg(cloud: PointCloud, rig: VirtualRig, cameras: list[str]) -> npt.NDArray[np.float64]:
     """Angle between each point's estimated normal and the true surface normal of its pixel.
 
     Parameters
