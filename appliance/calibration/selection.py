@@ -6,7 +6,8 @@ pose is then found with the candidate's intrinsics (PnP) and its reprojection er
 by predicting views it has not seen. A candidate is only admitted when the views determine the parameters
 it adds over the base model (k1 k2 p1 p2): each added coefficient's standard deviation must be below its
 magnitude, otherwise the fit only follows noise (k3 on a few views of a narrow lens is the usual case); a
-refused candidate is not fitted view by view (it could not be chosen anyway).
+refused candidate is not fitted view by view (it could not be chosen anyway), and a coefficient one
+candidate cannot determine is not freed by a richer one either (no rational model when k3 alone is noise).
 """
 
 from __future__ import annotations
@@ -288,9 +289,13 @@ def select_model(
     else:
         names = [MODEL_ALIASES.get(c, c) for c in candidates]
     scored: list[Candidate] = []
+    undetermined: dict[str, tuple[float, float]] = {}
     for model in names:
         res = calibrate_camera(detections, image_size, model, name=name)
         und = _undetermined(res, model)
+        # a coefficient a simpler model could not determine is not determined by a richer one either
+        und.update({p: undetermined[p] for p in ADDED_PARAMETERS.get(model, ()) if p in undetermined and p not in und})
+        undetermined.update(und)
         if und and forced is None:  # refused whatever its held-out error: spare the left-out fits
             ho = HeldOut([], np.zeros(0), float("nan"))
         else:
