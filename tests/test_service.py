@@ -35,7 +35,6 @@ from appliance.service.control import request
 from appliance.service.notify import SdNotifier
 from appliance.service.state import Phase, State
 
-
 pytestmark = pytest.mark.usefixtures("loop_guard")
 
 # --- fakes -----------------------------------------------------------------------------------------------
