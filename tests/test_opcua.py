@@ -83,6 +83,14 @@ def test_scanner_object_read_only_for_anonymous_trigger_for_the_user(tmp_path: P
                 assert await read(line, "LastPointCount") == svc.board.last_scans[-1].points > 1000
                 result_file = await read(line, "LastResultFile")
                 assert result_file.endswith(f"{sid}.ply") and await asyncio.to_thread(Path(result_file).is_file)
+                # the busy policy (refuse): of two Triggers at once from two sessions, one scans
+                async with client(url, "line", PASSWORD) as other:
+                    idx2, scanner2 = await scanner_nodes(other)
+                    both = await asyncio.gather(scanner.call_method(f"{idx}:Trigger"),
+                                                scanner2.call_method(f"{idx2}:Trigger"), return_exceptions=True)
+                refused = [r for r in both if isinstance(r, ua.UaStatusCodeError)]
+                assert len(refused) == 1 and refused[0].code == ua.StatusCodes.BadInvalidState, both
+                assert svc.board.counters["triggers_refused"] == 1 and svc.board.counters["scans_done"] == 2
 
     asyncio.run(main())
 
