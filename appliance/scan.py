@@ -22,7 +22,7 @@ from appliance.calibration.scan_health import assess_scan, trend_for
 from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
-from appliance.hardware.base import FrameArray
+from appliance.hardware.base import FrameArray, pulse_source
 from appliance.hardware.registry import Rig, build_rig
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
@@ -211,16 +211,16 @@ class Scanner:
                 await cam.arm(n, self._buffers[name], on_frame_factory(name))
             await self.rig.projector.start()
             # a trigger controller emits the camera (and projector) pulses of the whole sequence
-            run_sequence = getattr(self.rig.trigger, "run_sequence", None)
-            if run_sequence is not None:
-                pulses = await run_sequence(n)
+            pulser = pulse_source(self.rig.trigger)
+            if pulser is not None:
+                pulses = await pulser.run_sequence(n)
                 if len(pulses) != n:
                     raise HardwareError(
                         f"trigger {self.rig.trigger.name!r}: emitted {len(pulses)} of {n} pulses; check the "
                         "controller's log (scan3d status) and its cable"
                     )
             # cameras without a hardware trigger line (software-timed) are fired frame by frame
-            software = [c for c in self.rig.cameras.values() if getattr(c, "needs_software_trigger", False)]
+            software = [c for c in self.rig.cameras.values() if c.needs_software_trigger]
             for i in range(n if software else 0):
                 await asyncio.gather(*(c.trigger(i) for c in software))
             timeout = FRAME_TIMEOUT_S + n * FRAME_TIMEOUT_PER_FRAME_S

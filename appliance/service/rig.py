@@ -77,6 +77,14 @@ class WatchedCamera:
         self.info: CameraInfo | None = None
         self._on_captured = on_captured
 
+    @property
+    def needs_software_trigger(self) -> bool:
+        """Whether the scan fires each frame of this camera itself (as the wrapped camera says)."""
+        return self.cam.needs_software_trigger
+
+    async def trigger(self, index: int) -> None:
+        await self.cam.trigger(index)
+
     async def open(self) -> CameraInfo:
         self.info = await self.cam.open()
         return self.info
