@@ -10,15 +10,12 @@ import time
 from pathlib import Path
 
 import aiohttp
-import pytest
-from faces_helpers import TOKEN, Chromium, appliance_copy, free_port, running_service, token_file, warm  # noqa: F401
-
-pytestmark = pytest.mark.usefixtures("warm")  # numba's kernels loaded before any loop is measured
+from faces_helpers import TOKEN, Chromium, appliance_copy, free_port, running_service, token_file
 
 SHOT = os.environ.get("SCAN3D_STATUS_PAGE_SCREENSHOT")  # set to write the README's screenshot
 
 
-def test_page_follows_the_service_live(tmp_path: Path, loop_guard: None) -> None:
+def test_page_follows_the_service_live(tmp_path: Path) -> None:
     port = free_port()
     cfg = appliance_copy(tmp_path, top={"sequence": {"axes": "xy"}},
                          http={"listen": f"127.0.0.1:{port}", "token_file": str(token_file(tmp_path))})
@@ -85,6 +82,25 @@ def test_page_follows_the_service_live(tmp_path: Path, loop_guard: None) -> None
                     " c.height).data; let n = 0; for (let i = 0; i < d.length; i += 4) if (d[i + 2] > 200 &&"
                     " d[i] < 120 && d[i + 1] > 130) n++; return n; })()")
                 assert blue > 100
+
+                # a broken edit of the configuration: refused, shown with its message, the error with its advice
+                good = await asyncio.to_thread(cfg.read_text)
+
+                def save(text: str) -> None:  # as an editor saves: a new file renamed over the old
+                    tmp = cfg.with_name(".appliance.yaml.new")
+                    tmp.write_text(text)
+                    os.replace(tmp, cfg)
+
+                await asyncio.to_thread(save, good.replace("busy_policy: refuse", "busy_policy: maybe"))
+                await until(f"!{el}('rejected').hidden && {el}('rejected').textContent.includes('busy_policy')", 5)
+                assert "REJECTED" in await browser.evaluate(f"{el}('rejected').textContent")
+                assert "validate-config" in await browser.evaluate(f"{el}('advice').textContent")
+                assert "config" in await browser.evaluate(f"{el}('error').textContent")
+                await asyncio.to_thread(save, good)  # put right: the rejection goes away
+                try:
+                    await until(f"{el}('rejected').hidden", 5)
+                except AssertionError as exc:
+                    raise AssertionError(f"{exc}; board: {svc.board.config_error!r} {svc.board.counters}") from None
 
                 if SHOT:
                     await browser.call("Emulation.setDeviceMetricsOverride", width=1100, height=1180,
