@@ -227,15 +227,16 @@ def _gray_level(weak, tol, nbits, finest, fl, ok):  # type: ignore[no-untyped-de
     the contiguous weak bits from bit 0 (stripes finer than the optics resolve) are dropped and at most
     ``tol`` weak bits may remain above them.
     """
-    t = np.uint32(tol)
+    one = tol != 0
     nb = np.uint32(nbits)
+    zero = np.uint32(0)
     for x in range(weak.shape[0]):
         w = np.uint32(weak[x])
-        full = _popcount(w) <= t
+        full = (w == zero) | (one & (np.uint32(w & np.uint32(w - _U1)) == zero))  # at most tol (0 or 1) bits
         below = np.uint32(np.uint32(w ^ np.uint32(w + _U1)) >> _U1)  # the contiguous weak bits from bit 0
         f = _popcount(below)
         rest = np.uint32(w & np.uint32(~below))
-        trunc = finest & (_popcount(rest) <= t) & (f < nb)
+        trunc = finest & ((rest == zero) | (one & (np.uint32(rest & np.uint32(rest - _U1)) == zero))) & (f < nb)
         fl[x] = np.uint32(0) if full else f
         ok[x] = full | trunc
 
@@ -380,14 +381,14 @@ def _gate_init(weak, qg, m1, m2):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _finish_row(  # type: ignore[no-untyped-def]
-    lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest, u, v, mask, quality, levels,
+    lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest, u, v, mask, quality, lev0, lev1,
     scratch, fl, ok,
 ):  # fmt: skip
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
     ``lit`` bool (W,) and ``scratch[0]`` (phase floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`;
     ``code``, ``weak``, ``m1``, ``m2`` uint32 (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits;
-    ``ssum``/``csum`` float64 (S, W); ``levels`` uint8 (2, W) out: Gray bits dropped per axis;
+    ``ssum``/``csum`` float64 (S, W); ``lev0``/``lev1`` uint8 (W,) out: Gray bits dropped on x / y;
     ``scratch`` float32 (10, W), ``fl`` uint32 (W,), ``ok`` bool (W,) are scratch.
     """
     relv = scratch[0]
@@ -404,7 +405,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
         out = u if a == 0 else v
         if axis_tab[a, 0] == 0:
             out[:] = _FNAN
-            levels[a, :] = np.uint8(0)
+            (lev0 if a == 0 else lev1)[:] = np.uint8(0)
             continue
         stripe = np.float64(axis_tab[a, 2])
         if axis_tab[a, 1] != 0:
@@ -447,7 +448,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
             mprev[:] = mod
             pprev = period
         _emit_axis(cc, ok, lit, out)
-        _emit_level(fl, lit, levels[a])
+        _emit_level(fl, lit, lev0 if a == 0 else lev1)
         _min_into(qmin, qa)
     _mask_quality(lit, qmin, mask, quality)
 
@@ -609,15 +610,16 @@ def _fold16(d, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-unty
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _widen16(c16, w16, q16, a16, b16, code, weak, qg, m1, m2):  # type: ignore[no-untyped-def]
+def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2):  # type: ignore[no-untyped-def]
     for x in range(code.shape[0]):
         code[x] = np.uint32(c16[x])
         weak[x] = np.uint32(w16[x])
     for x in range(code.shape[0]):
         qg[x] = _FINF if q16[x] == _NINF else np.float32(q16[x])
-    for x in range(code.shape[0]):
-        m1[x] = BIG if a16[x] == _NBIG else np.uint32(a16[x])
-        m2[x] = BIG if b16[x] == _NBIG else np.uint32(b16[x])
+    if keys:
+        for x in range(code.shape[0]):
+            m1[x] = BIG if a16[x] == _NBIG else np.uint32(a16[x])
+            m2[x] = BIG if b16[x] == _NBIG else np.uint32(b16[x])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -708,7 +710,9 @@ def decode_stack(  # type: ignore[no-untyped-def]
                 b16[:] = _NBIG
                 _gray_row16(frames, y, wb, gray_tab, axis_tab, rg16, d16, c16, w16, q16, a16, b16)
                 for a in range(2):
-                    _widen16(c16[a], w16[a], q16[a], a16[a], b16[a], code[a], weak[a], qg[a], m1[a], m2[a])
+                    if axis_tab[a, 1] != 0:
+                        _widen16(c16[a], w16[a], q16[a], a16[a], b16[a], axis_tab[a, 6] != 0, code[a], weak[a],
+                                 qg[a], m1[a], m2[a])  # fmt: skip
             else:
                 code[:] = np.uint32(0)
                 _gate_init(weak, qg, m1, m2)
@@ -717,7 +721,8 @@ def decode_stack(  # type: ignore[no-untyped-def]
             _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
                 lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest,
-                u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[:, y, :], scratch, fl, ok,
+                u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[0, y], levels[1, y], scratch,
+                fl, ok,
             )  # fmt: skip
 
 
@@ -834,6 +839,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
                           m2[a])  # fmt: skip
             _finish_row(
                 lit, code[:, y, :], weak, qg, m1, m2, ssum[:, y, :], csum[:, y, :], axis_tab, ph_tab, ph_period,
-                finest, u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[:, y, :], scratch,
+                finest, u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[0, y], levels[1, y],
+                scratch,
                 fl, ok,
             )  # fmt: skip
