@@ -738,8 +738,7 @@ class StreamingDecoder:
 
     def reset(self) -> None:
         """Forget the frames pushed so far; buffers are kept for the next scan."""
-        self._code.fill(0)
-        self._cst.fill(0)
+        self._code.fill(0)  # the per-bit contrasts need no reset: every Gray row's push overwrites all of its row
         self._ssum.fill(0.0)
         self._csum.fill(0.0)
         self._msum.fill(0)
