@@ -307,7 +307,12 @@ class Scanner:
         executors = list(self._executors.values())
         self._executors.clear()
         if executors:  # waits for the decode threads: not on the event loop
-            await asyncio.get_running_loop().run_in_executor(None, lambda: [ex.shutdown(wait=True) for ex in executors])
+
+            def shutdown() -> None:
+                for ex in executors:
+                    ex.shutdown(wait=True)
+
+            await asyncio.get_running_loop().run_in_executor(None, shutdown)
         self._opened = False
 
 

@@ -327,8 +327,8 @@ class Service:
         if self.control is not None:
             await self.control.close()
         closing = asyncio.ensure_future(asyncio.to_thread(self.output.close))  # a started write completes
-        done, _ = await asyncio.wait({closing}, timeout=WRITER_CLOSE_WAIT_S)
-        if not done:
+        closed, _ = await asyncio.wait({closing}, timeout=WRITER_CLOSE_WAIT_S)
+        if not closed:
             log.error("stopping: the writer thread has not finished within %.0f s (a hung share?)",
                       WRITER_CLOSE_WAIT_S)
         self.notifier.close()
