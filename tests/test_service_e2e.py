@@ -530,7 +530,9 @@ def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
     for cloud in clouds:  # each scan says where its cloud went and how far it is from the truth
         assert f"share: {cloud}" in log or f"share: {cloud.relative_to(REPO)}" in log, log[-2000:]
     errors = re.findall(r"error against ground truth: (\d+) points: RMS ([0-9.]+) mm", log)
-    assert len(errors) == 2 and all(int(n) > 1000 and float(rms) < 0.5 for n, rms in errors), errors
+    # a sanity bound on this coarse 320x256 rig (its RMS is 0.47-0.52 mm: per-point jump limits keep 97 % of
+    # lit pixels, the old fixed 2 mm limit 95.8 %); the accuracy targets are test_virtual_rig_accuracy's
+    assert len(errors) == 2 and all(int(n) > 1000 and float(rms) < 0.6 for n, rms in errors), errors
 
 
 # --- scan numbers across a SIGKILL; the numba threading layer ------------------------------------------------
