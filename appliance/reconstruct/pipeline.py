@@ -16,7 +16,6 @@ import time
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.schema import ReconstructionConfig
 from appliance.errors import CalibrationError, ScanError
 from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
@@ -25,6 +24,7 @@ from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.fuse import fuse_depths
 from appliance.reconstruct.residuals import Residual, ray_ray_residual
+from appliance.reconstruct.settings import ReconstructionSettings
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
@@ -51,14 +51,14 @@ def _as_uint8(img: npt.NDArray[np.generic], shape: tuple[int, int], name: str) -
     return np.clip(np.asarray(img, np.float32), 0, 255).astype(np.uint8)
 
 
-def stage_warnings(stages: list[StageCounts], cfg: ReconstructionConfig) -> list[str]:
+def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> list[str]:
     """Plain-words warnings for every stage that rejected most (> :data:`MOST_REJECTED`) of its candidates.
 
     Parameters
     ----------
     stages : list of StageCounts
         Per camera counts of one reconstruction.
-    cfg : ReconstructionConfig
+    cfg : ReconstructionSettings
         The settings the limits came from (named in the messages).
 
     Returns
@@ -112,7 +112,7 @@ class Reconstructor:
         The rig (cameras in order; the projector for mode ``'projector'``).
     axes : {'x', 'y', 'xy'}
         Coded projector axes (``'x'``/``'y'``: ray / light-surface, ``'xy'``: ray-ray).
-    cfg : ReconstructionConfig
+    cfg : ReconstructionSettings
         ``mode`` ``'projector'`` (every camera with the projector, clouds concatenated, camera index per
         point) or ``'stereo'`` (the first two cameras, cloud organised on the first), depth range, filters,
         camera noise.
@@ -133,7 +133,7 @@ class Reconstructor:
         self,
         calibration: Calibration,
         axes: str,
-        cfg: ReconstructionConfig,
+        cfg: ReconstructionSettings,
         sequence: Sequence | None = None,
         noise: CodeNoise | None = None,
     ) -> None:
