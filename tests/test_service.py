@@ -41,7 +41,11 @@ pytestmark = pytest.mark.usefixtures("loop_guard")
 
 
 class FakeTrigger:
+    """A :class:`~appliance.hardware.base.TriggerSource` with lamps, driven by the test."""
+
     name = "fake-button"
+    emits_sequence_pulses = False
+    has_lamps = True
 
     def __init__(self) -> None:
         self.events: asyncio.Queue[TriggerEvent] = asyncio.Queue()
@@ -58,6 +62,9 @@ class FakeTrigger:
 
     async def set_leds(self, ready: bool, busy: bool, fault: bool) -> None:
         self.leds.append((ready, busy, fault))
+
+    def status(self) -> str:
+        return "open"
 
     async def close(self) -> None:
         return None

@@ -244,7 +244,7 @@ class ScanJobs:
                  timings["trigger_to_file_ms"], outcome.location, outcome.files[0] if outcome.files else "-")
         b.set_state(svc.hardware.idle_state(), "ready")
         # the bookkeeping goes on beside the next scan (the writer thread keeps the order of the files)
-        virtual = getattr(svc.rig, "virtual", None)
+        virtual = svc.rig.virtual if svc.rig is not None else None
         cloud = result.cloud if svc.ground_truth and virtual is not None else None
         self._after(self._bookkeeping(scan_id, cloud, virtual, list(cfg.cameras)))
         return rec

@@ -70,8 +70,7 @@ class Publisher:
         """Show ready/busy/fault on the trigger device's lamps (when it has any)."""
         rig = self.svc.rig
         trig = rig.trigger if rig is not None else None
-        fn = getattr(trig, "set_leds", None) or getattr(trig, "set_lamps", None)
-        if fn is None:
+        if trig is None or not trig.has_lamps:
             return
         b = self.svc.board
         blink = time.monotonic() < self._blink_until
@@ -79,15 +78,9 @@ class Publisher:
         if lamps == self._lamps:
             return
         self._lamps = lamps
-        try:
-            res = fn(*lamps)
-        except ApplianceError as exc:
-            log.debug("lamps: %s", exc)
-            return
-        if asyncio.iscoroutine(res):
-            task = asyncio.get_running_loop().create_task(res)
-            self._lamp_writes.add(task)
-            task.add_done_callback(self._lamp_written)
+        task = asyncio.get_running_loop().create_task(trig.set_leds(*lamps))
+        self._lamp_writes.add(task)
+        task.add_done_callback(self._lamp_written)
 
     def _lamp_written(self, task: asyncio.Task[Any]) -> None:
         self._lamp_writes.discard(task)

@@ -202,8 +202,7 @@ class RigManager:
             svc.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, False, str(exc))
             svc.board.error("hardware", f"trigger {kind}: {exc}")
         else:
-            status = getattr(trig, "status", None)
-            detail = status() if callable(status) else "open"
+            detail = trig.status() or "open"
             svc.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, True, detail)
         self._trigger_task = svc.spawn(self._trigger_loop(trig), "trigger")
 
