@@ -30,7 +30,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from appliance.config import AppConfig, load_config
 from appliance.hardware.base import TriggerEvent
@@ -49,6 +49,11 @@ from appliance.service.state import Phase, ScanRecord, State, StatusBoard
 from appliance.service.writing import STATE_FILE, ScanOutput
 
 __all__ = ["STATE_FILE", "Service", "TriggerEvent", "run_service"]
+
+
+if TYPE_CHECKING:  # the scan machinery is imported when the rig is built, not at start-up
+    from appliance.hardware.registry import Rig
+    from appliance.scan import Scanner
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +114,8 @@ class Service:
         self.notifier = notifier if notifier is not None else SdNotifier.from_env()
         self.board = StatusBoard(self.cfg.serial, str(self.config_path))
         self.board.config_loaded_utc = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
-        self.scanner: Any = None
-        self.rig: Any = None
+        self.scanner: Scanner | None = None
+        self.rig: Rig | None = None
         self.control: ControlServer | None = None
         self.watcher: ConfigWatcher | None = None
         self.successful_scans = 0
@@ -337,7 +342,7 @@ class Service:
 
     # --- hardware --------------------------------------------------------------------------------
 
-    def _make_scanner(self, cfg: AppConfig) -> tuple[Any, Any, dict[str, WatchedCamera]]:
+    def _make_scanner(self, cfg: AppConfig) -> tuple[Rig, Scanner, dict[str, WatchedCamera]]:
         """Build (not open) the rig and its scanner; runs in a thread. Tests replace it with fakes."""
         from appliance.hardware.registry import build_rig
         from appliance.scan import Scanner, load_calibration_for

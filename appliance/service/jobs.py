@@ -14,7 +14,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from appliance.errors import ApplianceError, OutputError
+from appliance.errors import ApplianceError, OutputError, ScanError
 from appliance.hardware.base import TriggerEvent
 from appliance.output.scanfiles import make_scan_id
 from appliance.output.share import WriteOutcome, estimate_scan_bytes
@@ -180,6 +180,8 @@ class ScanJobs:
         svc = self.svc
         out = svc.output
         scanner, cfg, b = svc.scanner, svc.cfg, svc.board
+        if scanner is None:  # checked under the scan lock before; a rig that went since fails this scan
+            raise ScanError("the rig is not connected (reconnecting); the next trigger tries again")
         shapes = [(m.height, m.width) for n, m in scanner.calibration.devices.items() if n in cfg.cameras]
         need = estimate_scan_bytes(shapes, normals=cfg.output.normals, preview=cfg.output.preview)
         problem = await out.call(out.writer.storage_problem, need)

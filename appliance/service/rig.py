@@ -191,6 +191,8 @@ class RigManager:
 
     async def _open_trigger(self) -> None:
         svc = self.svc
+        if svc.rig is None:
+            return
         trig = svc.rig.trigger
         kind = svc.cfg.trigger.type
         if hasattr(trig, "on_state"):
