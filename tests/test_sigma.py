@@ -158,6 +158,11 @@ def test_stage_warnings_in_plain_words() -> None:
     assert msg.startswith("89 % of camera cam0's points lie outside reconstruction.min_depth_mm .. max_depth_mm")
     assert "300 .. 900 mm" in msg
     assert bad.rejected() == {"decode": 100, "geometry": 10, "depth_range": 790, "neighbours": 5, "sigma": 0}
+    # an object on a dark background: 70 % of the image decodes nothing, which is no fault; 95 % is
+    dark = StageCounts("cam0", 1000, 300, 295, 290, 285, 285)
+    assert stage_warnings([dark], cfg) == []
+    (msg,) = stage_warnings([StageCounts("cam0", 1000, 50, 49, 48, 47, 47)], cfg)
+    assert msg.startswith("95 % of camera cam0's pixels decoded no code") and "exposure" in msg
 
 
 def test_fusion_weights_by_sigma_and_flags_disagreement() -> None:

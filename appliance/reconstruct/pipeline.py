@@ -33,6 +33,8 @@ from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
 F32 = npt.NDArray[np.float32]
 
 MOST_REJECTED = 0.5
+MOST_UNDECODED = 0.9
+"""The decode stage is said only beyond this share: an object on a dark background leaves most pixels unlit."""
 """A stage that rejects more than this share of its candidates is reported in words."""
 FIXED_JUMP_MM = 2.0
 """Jump limit (plus two footprints) where no per-point error is known (stereo, or no sequence given)."""
@@ -70,7 +72,8 @@ def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> li
     for st in stages:
         n = st.remaining()
         for i, (stage, lost) in enumerate(st.rejected().items()):
-            if n[i] == 0 or lost <= MOST_REJECTED * n[i]:
+            limit = MOST_UNDECODED if stage == "decode" else MOST_REJECTED
+            if n[i] == 0 or lost <= limit * n[i]:
                 continue
             pct = f"{100.0 * lost / n[i]:.0f} %"
             cam = st.camera
