@@ -50,30 +50,6 @@ _A7 = -0.014401356954857433
 _A8 = 0.0024567240725950623
 
 
-@njit(nogil=True, cache=True, error_model="numpy")
-def _atan2(y: float, x: float) -> float:
-    """Branch-free atan2 (vectorisable); atan2(0, 0) = 0."""
-    ax = abs(x)
-    ay = abs(y)
-    hi = max(ax, ay)
-    lo = min(ax, ay)
-    t = lo / hi if hi > 0.0 else 0.0
-    t2 = t * t
-    p = _A8
-    p = p * t2 + _A7
-    p = p * t2 + _A6
-    p = p * t2 + _A5
-    p = p * t2 + _A4
-    p = p * t2 + _A3
-    p = p * t2 + _A2
-    p = p * t2 + _A1
-    p = p * t2 + _A0
-    a = t * p
-    a = _HALF_PI - a if ay > ax else a
-    a = math.pi - a if x < 0.0 else a
-    return -a if y < 0.0 else a
-
-
 _U1 = np.uint32(1)
 _U2 = np.uint32(2)
 _U4 = np.uint32(4)
@@ -147,7 +123,7 @@ _FTINY = np.float32(1e-30)
 
 @njit(nogil=True, cache=True, error_model="numpy", inline="always")
 def _atan2_f32(y, x):  # type: ignore[no-untyped-def]
-    """:func:`_atan2` in float32 (error ~1e-7 rad); selects only, so a loop of it vectorises 8 wide."""
+    """Branch-free atan2 in float32 (error ~1e-7 rad; atan2(0, 0) = 0): selects only, so a loop vectorises 8 wide."""
     ax = abs(x)
     ay = abs(y)
     swap = ay > ax

@@ -9,41 +9,6 @@ from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def filter_depth(xyz, rz, tz, zmin, zmax):  # type: ignore[no-untyped-def]
-    """NaN every point whose depth ``rz . p + tz`` is outside [zmin, zmax]; returns how many."""
-    h, w = xyz.shape[0], xyz.shape[1]
-    removed = np.zeros(h, np.int64)
-    for r in prange(h):
-        n = 0
-        for c in range(w):
-            z = rz[0] * xyz[r, c, 0] + rz[1] * xyz[r, c, 1] + rz[2] * xyz[r, c, 2] + tz
-            if z == z and not (z >= zmin and z <= zmax):
-                xyz[r, c, 0] = _NAN
-                xyz[r, c, 1] = _NAN
-                xyz[r, c, 2] = _NAN
-                n += 1
-        removed[r] = n
-    return removed.sum()
-
-
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def filter_quality(xyz, quality, min_quality):  # type: ignore[no-untyped-def]
-    """NaN every valid point whose quality is below ``min_quality`` (or NaN); returns how many."""
-    h, w = xyz.shape[0], xyz.shape[1]
-    removed = np.zeros(h, np.int64)
-    for r in prange(h):
-        n = 0
-        for c in range(w):
-            if xyz[r, c, 2] == xyz[r, c, 2] and not quality[r, c] >= min_quality:
-                xyz[r, c, 0] = _NAN
-                xyz[r, c, 1] = _NAN
-                xyz[r, c, 2] = _NAN
-                n += 1
-        removed[r] = n
-    return removed.sum()
-
-
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def isolated_keep(xyz, min_nb, max_jump, keep):  # type: ignore[no-untyped-def]
     """keep[r, c] = valid point with >= ``min_nb`` of its 8 neighbours valid and nearer than ``max_jump``."""
     h, w = xyz.shape[0], xyz.shape[1]

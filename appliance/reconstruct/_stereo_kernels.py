@@ -92,23 +92,6 @@ def to_levels(rect, lev0, inv_dl):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def step_histogram(rect, max_step, bins, out):  # type: ignore[no-untyped-def]
-    """Histogram (per row, summed by the caller) of |code step| between row neighbours, ``bins`` per level."""
-    hr, wr = rect.shape[0], rect.shape[1]
-    nb = out.shape[1]
-    for y in prange(hr):
-        for b in range(nb):
-            out[y, b] = 0
-        for x in range(wr - 1):
-            d = abs(np.float64(rect[y, x + 1]) - np.float64(rect[y, x]))
-            if d <= max_step:  # NaN compares false
-                b = int(d * bins)
-                if b < nb:
-                    out[y, b] += 1
-    return out
-
-
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def level_crossings(rect, code_offset, max_step, out):  # type: ignore[no-untyped-def]
     """Per rectified row, the sub-pixel x where the code crosses each level (NaN none, inf crossed twice)."""
     hr, wr = rect.shape[0], rect.shape[1]
