@@ -8,6 +8,30 @@ from numba import njit, prange
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def near_neighbours(xyz, r, c, lim2):  # type: ignore[no-untyped-def]
+    """How many of the 8 neighbours of the (valid) point (r, c) are valid and within sqrt(lim2) of it."""
+    h, w = xyz.shape[0], xyz.shape[1]
+    x = xyz[r, c, 0]
+    y = xyz[r, c, 1]
+    z = xyz[r, c, 2]
+    n = 0
+    for dr in range(-1, 2):
+        rr = r + dr
+        if rr < 0 or rr >= h:
+            continue
+        for dc in range(-1, 2):
+            cc = c + dc
+            if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
+                continue
+            ex = xyz[rr, cc, 0] - x
+            ey = xyz[rr, cc, 1] - y
+            ez = xyz[rr, cc, 2] - z
+            if ex * ex + ey * ey + ez * ez < lim2:  # NaN neighbours compare false
+                n += 1
+    return n
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def isolated_keep(xyz, min_nb, max_jump, keep):  # type: ignore[no-untyped-def]
     """keep[r, c] = valid point with >= ``min_nb`` of its 8 neighbours valid and nearer than ``max_jump``."""
@@ -15,27 +39,7 @@ def isolated_keep(xyz, min_nb, max_jump, keep):  # type: ignore[no-untyped-def]
     j2 = max_jump * max_jump
     for r in prange(h):
         for c in range(w):
-            x = xyz[r, c, 0]
-            y = xyz[r, c, 1]
-            z = xyz[r, c, 2]
-            if z != z:
-                keep[r, c] = False
-                continue
-            n = 0
-            for dr in range(-1, 2):
-                rr = r + dr
-                if rr < 0 or rr >= h:
-                    continue
-                for dc in range(-1, 2):
-                    cc = c + dc
-                    if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
-                        continue
-                    ex = xyz[rr, cc, 0] - x
-                    ey = xyz[rr, cc, 1] - y
-                    ez = xyz[rr, cc, 2] - z
-                    if ex * ex + ey * ey + ez * ez < j2:  # NaN neighbours compare false
-                        n += 1
-            keep[r, c] = n >= min_nb
+            keep[r, c] = xyz[r, c, 2] == xyz[r, c, 2] and near_neighbours(xyz, r, c, j2) >= min_nb
     return keep
 
 

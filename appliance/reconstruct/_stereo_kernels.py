@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from appliance.reconstruct._filter_kernels import near_neighbours
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 from appliance.reconstruct._geom_kernels import distort_jac
 
@@ -189,50 +190,35 @@ def smooth_crossings(tab, half, along_rows, max_res, out):  # type: ignore[no-un
     return out
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _run_mean(src, y, x, sy, sx, radius, max_span):  # type: ignore[no-untyped-def]
+    """Mean of src over (y + d sy, x + d sx), |d| <= radius, when all are finite and span <= max_span."""
+    s = 0.0
+    lo = np.inf
+    hi = -np.inf
+    for d in range(-radius, radius + 1):
+        c = np.float64(src[y + d * sy, x + d * sx])
+        if not math.isfinite(c):
+            return np.nan
+        s += c
+        lo = min(lo, c)
+        hi = max(hi, c)
+    return s / (2 * radius + 1) if hi - lo <= max_span else np.nan
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def box_mean(src, radius, max_span, scratch, out):  # type: ignore[no-untyped-def]
     """Separable (2r+1)^2 box mean of a quantised code map where the whole window is valid and spans at
     most ``max_span`` codes per axis pass (no edge inside); NaN elsewhere. ``scratch`` is (H, W)."""
     h, w = src.shape[0], src.shape[1]
-    n = 2 * radius + 1
     for y in prange(h):
         for x in range(w):
-            scratch[y, x] = _NAN
-            if x < radius or x + radius >= w:
-                continue
-            s = 0.0
-            lo = np.inf
-            hi = -np.inf
-            ok = True
-            for d in range(-radius, radius + 1):
-                c = np.float64(src[y, x + d])
-                if not math.isfinite(c):
-                    ok = False
-                    break
-                s += c
-                lo = min(lo, c)
-                hi = max(hi, c)
-            if ok and hi - lo <= max_span:
-                scratch[y, x] = s / n
+            inside = radius <= x < w - radius
+            scratch[y, x] = _run_mean(src, y, x, 0, 1, radius, max_span) if inside else _NAN
     for y in prange(h):
         for x in range(w):
-            out[y, x] = _NAN
-            if y < radius or y + radius >= h:
-                continue
-            s = 0.0
-            lo = np.inf
-            hi = -np.inf
-            ok = True
-            for d in range(-radius, radius + 1):
-                c = np.float64(scratch[y + d, x])
-                if not math.isfinite(c):
-                    ok = False
-                    break
-                s += c
-                lo = min(lo, c)
-                hi = max(hi, c)
-            if ok and hi - lo <= max_span:
-                out[y, x] = s / n
+            inside = radius <= y < h - radius
+            out[y, x] = _run_mean(scratch, y, x, 1, 0, radius, max_span) if inside else _NAN
     return out
 
 
@@ -493,37 +479,17 @@ def status_counts(status, n, out):  # type: ignore[no-untyped-def]
 def isolated_keep_sigma(xyz, sigma, min_nb, const_mm, k_sigma, k_footprint, inv_f, max_sigma, keep):  # type: ignore[no-untyped-def]
     """Keep a point with >= ``min_nb`` of its 8 neighbours within its own jump limit and sigma <= max_sigma.
 
-    The limit of a point is ``const_mm + k_sigma * sigma + k_footprint * depth / f`` (``inv_f`` = 1 / f px,
-    depth taken as the distance to the origin's z, i.e. the point's z).
+    The limit of a point is ``const_mm + k_sigma * sigma + k_footprint * z / f`` (``inv_f`` = 1 / f px; a NaN
+    sigma adds nothing).
     """
     h, w = xyz.shape[0], xyz.shape[1]
     for r in prange(h):
         for c in range(w):
             keep[r, c] = False
-            x = np.float64(xyz[r, c, 0])
-            if x != x:
-                continue
-            s = np.float64(sigma[r, c])
-            if not s <= max_sigma and s == s:
-                continue
-            y = np.float64(xyz[r, c, 1])
             z = np.float64(xyz[r, c, 2])
+            s = np.float64(sigma[r, c])
+            if z != z or (s == s and not s <= max_sigma):
+                continue
             lim = const_mm + k_footprint * abs(z) * inv_f + (k_sigma * s if s == s else 0.0)
-            lim2 = lim * lim
-            n = 0
-            for dr in range(-1, 2):
-                rr = r + dr
-                if rr < 0 or rr >= h:
-                    continue
-                for dc in range(-1, 2):
-                    cc = c + dc
-                    if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
-                        continue
-                    qx = np.float64(xyz[rr, cc, 0])
-                    if qx != qx:
-                        continue
-                    d2 = (qx - x) ** 2 + (np.float64(xyz[rr, cc, 1]) - y) ** 2 + (np.float64(xyz[rr, cc, 2]) - z) ** 2
-                    if d2 <= lim2:
-                        n += 1
-            keep[r, c] = n >= min_nb
+            keep[r, c] = near_neighbours(xyz, r, c, lim * lim) >= min_nb
     return keep
