@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+
 
 @njit(nogil=True, cache=True)
 def cholesky_solve(A, B):  # type: ignore[no-untyped-def]

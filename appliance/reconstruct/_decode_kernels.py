@@ -26,6 +26,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+
 BIG = np.uint32(0x7FFFFFFF)  # "no contrast seen yet"
 #: A Gray bit whose contrast is below this fraction of the next weakest bit marks a stripe edge.
 EDGE_RATIO = 0.75

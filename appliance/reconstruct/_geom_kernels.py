@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+
 NAN32 = np.float32(np.nan)
 _NAN = NAN32
 

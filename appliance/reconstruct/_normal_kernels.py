@@ -7,6 +7,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 
 

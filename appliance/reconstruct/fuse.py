@@ -17,6 +17,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit, prange
 
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+
 F32 = npt.NDArray[np.float32]
 
 DISAGREE_SIGMAS = 3.0

@@ -24,6 +24,8 @@ import threading
 import numpy as np
 from numba import njit, prange
 
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+
 KERNEL_LOCK = threading.Lock()
 """Held around the parallel kernels: numba's fallback 'workqueue' threading layer aborts the process when
 two threads launch parallel kernels at once (e.g. two simulated cameras rendering together)."""

@@ -1,0 +1,49 @@
+"""numba's on-disk kernel cache, in a folder keyed by the kernel sources (imported by every kernel module).
+
+numba decides whether a cached kernel is current from its own file's timestamp only: a kernel that inlines
+a helper from another file (the camera-camera filter uses ``_filter_kernels.near_neighbours``, every
+projection uses ``_geom_kernels.distort_jac``) would run stale code after that file changed, e.g. after an
+upgrade that keeps ``/var/cache/scan3d``. So the cache lives in ``<NUMBA_CACHE_DIR>/src-<hash>``, the hash of
+every kernel source: any change to any of them starts a fresh folder. Without ``NUMBA_CACHE_DIR`` numba keeps
+its default (``__pycache__`` beside the sources) and this module changes nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Any
+
+from numba.core import config as _numba_config
+
+config: Any = _numba_config  # numba's settings module (its attributes are made at run time)
+
+KERNEL_FILES = (
+    "reconstruct/_decode_kernels.py", "reconstruct/_filter_kernels.py", "reconstruct/_geom_kernels.py",
+    "reconstruct/_normal_kernels.py", "reconstruct/_procam_kernels.py", "reconstruct/_stereo_kernels.py",
+    "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py",
+)  # fmt: skip
+"""Every module of ``appliance`` with numba kernels (a test keeps the list complete)."""
+
+
+def source_key() -> str:
+    """Short hash (12 hex) of every kernel source file."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for rel in KERNEL_FILES:
+        h.update(rel.encode() + b"\0")
+        try:
+            h.update((root / rel).read_bytes())
+        except OSError:
+            h.update(b"(missing)")
+    return h.hexdigest()[:12]
+
+
+def _configure() -> None:
+    base = os.environ.get("NUMBA_CACHE_DIR") or config.CACHE_DIR  # the env may be set after numba's import
+    if base and not Path(base).name.startswith("src-"):
+        config.CACHE_DIR = os.path.join(base, f"src-{source_key()}")
+
+
+_configure()
