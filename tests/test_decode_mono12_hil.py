@@ -9,7 +9,6 @@ scaled from 12 bits to 8. Tolerances: decoded share within 0.5 percentage points
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 
 import numpy as np
@@ -17,53 +16,19 @@ import pytest
 
 pytest.importorskip("gi", reason="PyGObject is not installed (scripts/test installs it)")
 
-from appliance.config import parse_config
-from appliance.geometry.calibration_file import write_calibration
-from appliance.hardware.registry import build_rig
-from appliance.scan import ScanResult, scan_once, virtual_calibration
+from gige_scan_helpers import SMALL_RIG, scan, scan_through_fake_gige
 
 pytestmark = pytest.mark.hil
 
-RIG = """
-sequence: {kind: gray_phase, axes: x, periods_px: [16]}
-virtual_rig:
-  projector: {width: 640, height: 400, focal_px: 800, principal_px: [320, 200], position_mm: [190, 0, 0],
-              look_at_mm: [0, 0, 600]}
-  cameras:
-    cam0: {width: 320, height: 256, focal_px: 520, position_mm: [0, 0, 0], look_at_mm: [0, 0, 600]}
-reconstruction: {min_depth_mm: 300, max_depth_mm: 900}
-"""
-
-
-def _scan(cfg_text: str) -> ScanResult:
-    cfg = parse_config(cfg_text, "test.yaml")
-
-    return asyncio.run(scan_once(cfg))[0]
+RIG = "sequence: {kind: gray_phase, axes: x, periods_px: [16]}\n" + SMALL_RIG
 
 
 def test_mono12_gige_scan_decodes_like_the_mono8_scan(tmp_path: Path) -> None:
-    from appliance.fakes import gige as fake_gige
-
-    sim = _scan(RIG)
+    sim = scan(RIG)
     frames8 = sim.frames["cam0"].copy()
     assert frames8.dtype == np.uint8
     frames12 = frames8.astype(np.uint16) << 4
-    calib = tmp_path / "calibration.yaml"
-    write_calibration(calib, virtual_calibration(build_rig(parse_config(RIG)).virtual))
-
-    with fake_gige.LoopbackLab(n_addresses=1) as lab:
-        address = lab.addresses[0]
-        handle = lab.call(fake_gige.start_fake_camera, address, "SCAN3D-M12", frames12)
-        try:
-            gige_cfg = RIG + f"""
-cameras:
-  cam0: {{type: aravis, address: "{address}", pixel_format: Mono12, trigger: Software,
-          software_trigger: external, frame_timeout_ms: 3000}}
-calibration_file: {calib}
-"""
-            gige = lab.call(_scan, gige_cfg)
-        finally:
-            lab.call(handle.stop)
+    gige = scan_through_fake_gige(RIG, frames12, tmp_path, "SCAN3D-M12", "pixel_format: Mono12, ")
 
     got = gige.frames["cam0"]
     assert got.dtype == np.uint16 and int(got.max()) <= 4095

@@ -8,7 +8,6 @@ Tolerance: identical (the frames travel bit-exact, so the clouds must match exac
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 
 import numpy as np
@@ -16,51 +15,15 @@ import pytest
 
 pytest.importorskip("gi", reason="PyGObject is not installed (scripts/test installs it)")
 
-from appliance.config import parse_config
-from appliance.geometry.calibration_file import write_calibration
-from appliance.hardware.registry import build_rig
-from appliance.scan import ScanResult, scan_once, virtual_calibration
+from gige_scan_helpers import SMALL_RIG, scan, scan_through_fake_gige
 
 pytestmark = pytest.mark.hil
 
-RIG = """
-virtual_rig:
-  projector: {width: 640, height: 400, focal_px: 800, principal_px: [320, 200], position_mm: [190, 0, 0],
-              look_at_mm: [0, 0, 600]}
-  cameras:
-    cam0: {width: 320, height: 256, focal_px: 520, position_mm: [0, 0, 0], look_at_mm: [0, 0, 600]}
-reconstruction: {min_depth_mm: 300, max_depth_mm: 900}
-"""
-
-
-def _scan(cfg_text: str) -> ScanResult:
-    cfg = parse_config(cfg_text, "test.yaml")
-
-    return asyncio.run(scan_once(cfg))[0]
-
 
 def test_gige_scan_equals_sim_scan(tmp_path: Path) -> None:
-    from appliance.fakes import gige as fake_gige
-
-    sim = _scan(RIG)
+    sim = scan(SMALL_RIG)
     frames = sim.frames["cam0"].copy()
-    calib = tmp_path / "calibration.yaml"
-    rig = build_rig(parse_config(RIG))
-    write_calibration(calib, virtual_calibration(rig.virtual))
-
-    with fake_gige.LoopbackLab(n_addresses=1) as lab:
-        address = lab.addresses[0]
-        handle = lab.call(fake_gige.start_fake_camera, address, "SCAN3D-T1", frames)
-        try:
-            gige_cfg = RIG + f"""
-cameras:
-  cam0: {{type: aravis, address: "{address}", trigger: Software, software_trigger: external,
-          frame_timeout_ms: 3000}}
-calibration_file: {calib}
-"""
-            gige = lab.call(_scan, gige_cfg)
-        finally:
-            lab.call(handle.stop)
+    gige = scan_through_fake_gige(SMALL_RIG, frames, tmp_path, "SCAN3D-T1")
 
     np.testing.assert_array_equal(gige.frames["cam0"], frames)
     a, b = sim.cloud, gige.cloud

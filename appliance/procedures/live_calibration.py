@@ -200,18 +200,25 @@ class LiveCalibration:
         if not ok:
             raise CalibrationError(f"calibrate --live: cannot write {path}; check the folder (--save-frames)")
 
+    def _detections(self) -> tuple[dict[str, list[F64]], list[F64]]:
+        """Board corners found so far: per camera (image px), and all projector views together."""
+        cam_pts: dict[str, list[F64]] = {name: [] for name in self._sizes}
+        proj_pts: list[F64] = []
+        for c in self.captures:
+            for name in self._sizes:
+                cam, proj = c.views[name].camera, c.views[name].projector
+                if cam is not None:
+                    cam_pts[name].append(cam.image_points)
+                if proj is not None:
+                    proj_pts.append(proj.image_points)
+        return cam_pts, proj_pts
+
     def coverage(self) -> dict[str, float]:
         """Share of each device's image the board has covered so far (cameras and the projector)."""
         out: dict[str, float] = {}
-        proj_pts: list[F64] = []
+        cam_pts, proj_pts = self._detections()
         for name, size in self._sizes.items():
-            pts: list[F64] = []
-            for c in self.captures:
-                cam, proj = c.views[name].camera, c.views[name].projector
-                if cam is not None:
-                    pts.append(cam.image_points)
-                if proj is not None:
-                    proj_pts.append(proj.image_points)
+            pts = cam_pts[name]
             out[name] = float(np.mean(coverage_map(pts, size) > 0)) if pts else 0.0
         out[PROJECTOR_NAME] = (
             float(np.mean(coverage_map(proj_pts, self.projector_size) > 0)) if proj_pts else 0.0
@@ -238,16 +245,9 @@ class LiveCalibration:
     def hints(self) -> list[str]:
         """Per camera (then the projector): where to put the board next; empty when all is covered."""
         out: list[str] = []
-        proj_pts: list[F64] = []
+        cam_pts, proj_pts = self._detections()
         for name, size in self._sizes.items():
-            pts: list[F64] = []
-            for c in self.captures:
-                cam, proj = c.views[name].camera, c.views[name].projector
-                if cam is not None:
-                    pts.append(cam.image_points)
-                if proj is not None:
-                    proj_pts.append(proj.image_points)
-            hint = next_pose_hint(pts, size, name)
+            hint = next_pose_hint(cam_pts[name], size, name)
             if hint is not None:
                 out.append(hint)
         if not out and proj_pts:
