@@ -191,20 +191,34 @@ def smooth_crossings(tab, half, along_rows, max_res, out):  # type: ignore[no-un
     return out
 
 
-@njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _run_mean(src, y, x, sy, sx, radius, max_span):  # type: ignore[no-untyped-def]
-    """Mean of src over (y + d sy, x + d sx), |d| <= radius, when all are finite and span <= max_span."""
-    s = 0.0
-    lo = np.inf
-    hi = -np.inf
-    for d in range(-radius, radius + 1):
-        c = np.float64(src[y + d * sy, x + d * sx])
-        if not math.isfinite(c):
-            return np.nan
-        s += c
-        lo = min(lo, c)
-        hi = max(hi, c)
-    return s / (2 * radius + 1) if hi - lo <= max_span else np.nan
+# The box mean runs over whole rows, one window offset at a time (each pixel's sum still adds its window in
+# order, so the values are those of a per-pixel loop), so that its loops vectorise.
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _window_init(s, lo, hi):  # type: ignore[no-untyped-def]
+    for x in range(s.shape[0]):
+        s[x] = 0.0
+        lo[x] = np.inf
+        hi[x] = -np.inf
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _window_add(src, s, lo, hi):  # type: ignore[no-untyped-def]
+    for x in range(s.shape[0]):
+        c = np.float64(src[x])
+        s[x] += c
+        lo[x] = min(lo[x], c)
+        hi[x] = max(hi[x], c)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _window_mean(s, lo, hi, n, max_span, out):  # type: ignore[no-untyped-def]
+    """out = s / n where the window was all finite (its sum is) and spans at most ``max_span``, else NaN."""
+    nf = np.float64(n)
+    for x in range(s.shape[0]):
+        ok = (hi[x] - lo[x] <= max_span) & (s[x] - s[x] == 0.0)
+        out[x] = np.float32(s[x] / nf) if ok else _NAN
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -212,14 +226,33 @@ def box_mean(src, radius, max_span, scratch, out):  # type: ignore[no-untyped-de
     """Separable (2r+1)^2 box mean of a quantised code map where the whole window is valid and spans at
     most ``max_span`` codes per axis pass (no edge inside); NaN elsewhere. ``scratch`` is (H, W)."""
     h, w = src.shape[0], src.shape[1]
+    n = 2 * radius + 1
+    m = w - 2 * radius  # pixels of a row with the whole window inside
     for y in prange(h):
-        for x in range(w):
-            inside = radius <= x < w - radius
-            scratch[y, x] = _run_mean(src, y, x, 0, 1, radius, max_span) if inside else _NAN
+        s = np.empty(w, np.float64)
+        lo = np.empty(w, np.float64)
+        hi = np.empty(w, np.float64)
+        row = scratch[y]
+        for x in range(min(radius, w)):
+            row[x] = _NAN
+        for x in range(max(0, w - radius), w):
+            row[x] = _NAN
+        if m > 0:
+            _window_init(s[:m], lo[:m], hi[:m])
+            for d in range(n):
+                _window_add(src[y, d : d + m], s[:m], lo[:m], hi[:m])
+            _window_mean(s[:m], lo[:m], hi[:m], n, max_span, row[radius : radius + m])
     for y in prange(h):
-        for x in range(w):
-            inside = radius <= y < h - radius
-            out[y, x] = _run_mean(scratch, y, x, 1, 0, radius, max_span) if inside else _NAN
+        if not radius <= y < h - radius:
+            out[y, :] = _NAN
+            continue
+        s = np.empty(w, np.float64)
+        lo = np.empty(w, np.float64)
+        hi = np.empty(w, np.float64)
+        _window_init(s, lo, hi)
+        for d in range(-radius, radius + 1):
+            _window_add(scratch[y + d], s, lo, hi)
+        _window_mean(s, lo, hi, n, max_span, out[y])
     return out
 
 
