@@ -130,15 +130,17 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5) -> CodeGr
         None when fewer than 100 pixels are decoded.
     """
     rows = code[::stride]
-    vals = rows[:, ::stride][mask[::stride, ::stride]]
-    vals = vals[np.isfinite(vals)].astype(np.float64)
+    vals32 = rows[:, ::stride][mask[::stride, ::stride]]
+    vals32 = vals32[np.isfinite(vals32)]
+    vals = vals32.astype(np.float64)
     if vals.size < 100:
         return None
     d = np.abs(np.diff(rows, axis=1))
     d = d[np.isfinite(d)]
     d = d[d < 64.0]  # not across an occlusion
     per_px = float(d.mean()) if d.size else 1.0
-    uniq, counts = np.unique(vals, return_counts=True)
+    uniq32, counts = np.unique(vals32, return_counts=True)  # float32 sorts faster; the same values
+    uniq = uniq32.astype(np.float64)
     if uniq.size < 2:
         return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
     # stripe centres repeat; a rare value in between (a pixel on an edge) must not set the step
@@ -421,7 +423,7 @@ class StereoTriangulator:
         v0m, v1m = v0, self._v1r
         vgrid: CodeGrid | None = None
         if use_v:
-            vgrid = code_grid(np.ascontiguousarray(v0.T), np.ascontiguousarray(mask0.T))
+            vgrid = code_grid(v0.T, mask0.T)  # views: code_grid reads a subsample only
             vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
             vper = vgrid.per_px if vgrid is not None else 1.0
             C.remap_codes(v1, mask1, self._map1, 1.5 * vstep + 3.0 * vper, self._v1r)
