@@ -524,6 +524,28 @@ def isolated_keep_sigma(xyz, sigma, min_nb, const_mm, k_sigma, k_footprint, inv_
             s = np.float64(sigma[r, c])
             if z != z or (s == s and not s <= max_sigma):
                 continue
+            if min_nb <= 0:  # every point has at least 0 near neighbours: no need to count them
+                keep[r, c] = True
+                continue
             lim = const_mm + k_footprint * abs(z) * inv_f + (k_sigma * s if s == s else 0.0)
             keep[r, c] = near_neighbours(xyz, r, c, lim * lim) >= min_nb
     return keep
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def drop_unkept(xyz, sigma, keep):  # type: ignore[no-untyped-def]
+    """NaN the points and sigmas where ``keep`` is False (in place); returns how many pixels are kept."""
+    h, w = keep.shape[0], keep.shape[1]
+    kept = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = 0
+        for c in range(w):
+            k = keep[r, c]
+            n += np.int64(k)
+            if not k:
+                xyz[r, c, 0] = _NAN
+                xyz[r, c, 1] = _NAN
+                xyz[r, c, 2] = _NAN
+                sigma[r, c] = _NAN
+        kept[r] = n
+    return kept.sum()

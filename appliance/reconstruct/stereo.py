@@ -529,10 +529,7 @@ class StereoTriangulator:
         return self._apply(xyz, scratch)
 
     def _apply(self, xyz: F32, keep: npt.NDArray[np.bool_]) -> int:
-        np.logical_not(keep, out=keep)
-        xyz[keep] = np.nan
-        self.sigma[keep] = np.nan
-        return int(keep.size - np.count_nonzero(keep))
+        return int(C.drop_unkept(xyz, self.sigma, keep))
 
     @staticmethod
     def _noise_params(grid: CodeGrid, noise: CodeNoise | None, levels: int) -> F64:
