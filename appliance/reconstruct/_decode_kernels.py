@@ -450,6 +450,19 @@ def range_hist(hi, lo, shift, nbins):  # type: ignore[no-untyped-def]
     return parts.sum(axis=0)
 
 
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def level_counts(lev, mask):  # type: ignore[no-untyped-def]
+    """How many pixels with ``mask`` have each value 0..255 of ``lev`` (uint8, (H, W))."""
+    h = lev.shape[0]
+    nch = min(h, 64)
+    parts = np.zeros((nch, 256), np.int64)
+    for ch in prange(nch):
+        for y in range(ch * h // nch, (ch + 1) * h // nch):
+            for x in range(lev.shape[1]):
+                parts[ch, lev[y, x]] += np.int64(mask[y, x])
+    return parts.sum(axis=0)
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _range_row(frames, y, wb, used, r, mx, mn, maxval):  # type: ignore[no-untyped-def]
     w = frames.shape[2]

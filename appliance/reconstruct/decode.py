@@ -653,8 +653,11 @@ def stripe_widths(maps: DecodedMaps, sequence: Sequence | DecodePlan) -> dict[st
             out[axis] = {0.0: 1.0} if n else {}
             continue
         stripe = _gray_stripe(plan, axis)
-        lev = maps.levels[a][decoded] if maps.levels is not None else np.zeros(n, np.uint8)
-        counts = np.bincount(lev, minlength=1)
+        if maps.levels is None:
+            counts = np.array([n], np.int64)
+        else:
+            lev = np.ascontiguousarray(maps.levels[a], np.uint8)
+            counts = _k.level_counts(lev, np.ascontiguousarray(decoded, np.bool_))
         out[axis] = {float(stripe << k): float(c) / n for k, c in enumerate(counts) if c}
     return out
 
