@@ -56,7 +56,7 @@ def build_rig(cfg: AppConfig) -> Rig:
         from appliance.hardware.sim import SimWorld
         from appliance.sim.rig import VirtualRig
 
-        virtual = VirtualRig(cfg.virtual_rig)
+        virtual = VirtualRig(cfg.virtual_rig, keep_truth=False)  # the service renders; truth on request
         world = SimWorld(virtual)
     cameras: dict[str, Camera] = {}
     for name, cam_cfg in cfg.cameras.items():

@@ -156,7 +156,7 @@ class FrameRenderer:
     (axis, period) and kept. Thread-safe: one lock serialises renders of this camera.
     """
 
-    def __init__(self, proj_uv: F64, gain: F64, ambient: F64, imaging: ImagingConfig) -> None:
+    def __init__(self, proj_uv: F64, gain: F64 | F32, ambient: F64 | F32, imaging: ImagingConfig) -> None:
         h, w = gain.shape
         self.height, self.width = h, w
         self.imaging = imaging

@@ -26,6 +26,7 @@ from appliance.sim.render import FrameRenderer, ImageArray
 from appliance.sim.scene import Scene
 
 F64 = npt.NDArray[np.float64]
+F32 = npt.NDArray[np.float32]
 I32 = npt.NDArray[np.int32]
 BoolArray = npt.NDArray[np.bool_]
 
@@ -33,6 +34,9 @@ SHADOW_OFFSET_MM = 1e-4
 """Shadow rays start this far off the surface (along its normal) so they do not hit it again (mm)."""
 
 PROJECTOR_NAME = "projector"
+
+CHUNK_ROWS = 64
+"""Camera rows cast into the scene at a time (bounds the temporaries of the geometry to a few MB)."""
 
 
 def device_model(name: str, optics: DeviceOptics) -> CameraModel:
@@ -111,6 +115,10 @@ class VirtualRig:
         Folder that relative mesh paths resolve against (the configuration file's folder).
     scene : Scene, optional
         A prebuilt scene (e.g. with a swapped albedo) instead of ``cfg.scene``.
+    keep_truth : bool
+        Keep each camera's ground truth and pixel rays once computed (about 130 MB for 1280 x 1024).
+        False (the service) keeps only what rendering needs; :meth:`ground_truth` then computes the
+        truth on its first call.
 
     Attributes
     ----------
@@ -128,11 +136,12 @@ class VirtualRig:
     """
 
     def __init__(self, cfg: VirtualRigConfig, base_dir: Path | None = None,
-                 scene: Scene | None = None) -> None:
+                 scene: Scene | None = None, keep_truth: bool = True) -> None:
         if not cfg.cameras:
             raise ConfigError("virtual_rig.cameras is empty: add at least one camera")
         self.cfg = cfg
         self.imaging = cfg.imaging
+        self.keep_truth = keep_truth
         self.cameras: dict[str, CameraModel] = {n: device_model(n, o) for n, o in cfg.cameras.items()}
         self.projector: CameraModel = device_model(PROJECTOR_NAME, cfg.projector)
         self.scene = scene if scene is not None else Scene(cfg.scene, base_dir)
@@ -156,7 +165,8 @@ class VirtualRig:
     def set_scene(self, scene: Scene) -> None:
         """Replace the scene (e.g. a calibration board at another pose).
 
-        Geometry is recomputed lazily; the cameras' pixel rays are kept, so a new pose costs one ray cast.
+        Geometry is recomputed lazily; with ``keep_truth`` the cameras' pixel rays are kept, so a new pose
+        costs one ray cast.
         """
         with self._lock:
             self.scene = scene
@@ -173,83 +183,131 @@ class VirtualRig:
                 f"virtual rig: camera {camera!r} is not in virtual_rig.cameras {self.camera_names()}"
             ) from None
 
-    def _state(self, camera: str) -> tuple[GroundTruth, FrameRenderer]:
+    def _state(self, camera: str) -> FrameRenderer:
+        cam = self._check_camera(camera)
+        with self._lock:
+            if camera not in self._renderers:
+                truth, uv, gain, ambient = self._compute(cam, self.keep_truth)
+                if truth is not None:
+                    self._truth[camera] = truth
+                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging)
+            return self._renderers[camera]
+
+    def _rays_rows(self, cam: CameraModel, r0: int, r1: int) -> F64:
+        """Unit world directions (n, 3) of the pixel rays of rows ``r0:r1`` (kept when ``keep_truth``)."""
+        full = self._rays.get(cam.name)
+        if full is not None:
+            return full[r0 * cam.width: r1 * cam.width]
+        ys, xs = np.mgrid[r0:r1, 0:cam.width].astype(np.float64)
+        n = cam.undistort_pixels(np.stack([xs.ravel(), ys.ravel()], axis=1))
+        rays = np.concatenate([n, np.ones((n.shape[0], 1))], axis=1)
+        rays /= np.sqrt(_dot(rays, rays))[:, None]
+        dirs = np.empty_like(rays)
+        with _k.KERNEL_LOCK:
+            _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
+        return dirs
+
+    def _compute(self, cam: CameraModel, full: bool) -> tuple[GroundTruth | None, F64, F32, F32]:
+        """Cast the camera's pixels into the scene, :data:`CHUNK_ROWS` rows at a time.
+
+        Returns the ground truth (None unless ``full``), the projector coordinates (H, W, 2) (NaN where
+        no hit) and the gain and ambient light (H, W) float32 the renderer needs.
+        """
+        h, w = cam.height, cam.width
+        n = h * w
+        uv = np.full((n, 2), np.nan)
+        gain = np.zeros(n, dtype=np.float32)
+        ambient = np.zeros(n, dtype=np.float32)
+        keep_rays = full and cam.name not in self._rays
+        rays = np.empty((n, 3)) if keep_rays else None
+        if full:
+            xyz_all = np.empty((n, 3))
+            nrm_all = np.empty((n, 3))
+            depth_all = np.empty(n)
+            hit_all = np.empty(n, dtype=bool)
+            lit_all = np.empty(n, dtype=bool)
+            oid_all = np.empty(n, dtype=np.int32)
+        proj = self.projector
+        pw, ph = proj.width, proj.height
+        for r0 in range(0, h, CHUNK_ROWS):
+            r1 = min(h, r0 + CHUNK_ROWS)
+            s = slice(r0 * w, r1 * w)
+            dirs = self._rays_rows(cam, r0, r1)
+            if rays is not None:
+                rays[s] = dirs
+            m = dirs.shape[0]
+            centre = cam.center
+            hits = self.scene.intersect(centre, dirs, t_min=1e-6)
+            hit = hits.object_id >= 0
+            xyz = centre + np.where(hit, hits.t, np.nan)[:, None] * dirs
+            nrm = np.where(hit[:, None], hits.normal, np.nan)
+            flip = _dot(nrm, dirs) > 0
+            nrm[flip] *= -1.0
+            puv = np.empty((m, 2))
+            pz = np.empty(m)
+            with _k.KERNEL_LOCK:
+                _k.project_points(xyz, proj.R, proj.T, proj.K, proj.dist_padded(8), puv, pz)
+            to_p = proj.center - xyz
+            dist = np.sqrt(_dot(to_p, to_p))
+            ldir = to_p / dist[:, None]
+            cos_inc = _dot(nrm, ldir)
+            candidate = hit & (pz > 0) & (cos_inc > 0)
+            illum = np.zeros(m, dtype=bool)
+            sel = np.flatnonzero(candidate)
+            if sel.size:
+                start = xyz[sel] + SHADOW_OFFSET_MM * nrm[sel]
+                illum[sel] = ~self.scene.occluded(start, ldir[sel], dist[sel], t_min=1e-6)
+            albedo = self.scene.albedo(xyz, hits.object_id)
+            window = np.empty(m)
+            with _k.KERNEL_LOCK:
+                _k.projector_window(np.ascontiguousarray(puv[:, 0]), np.ascontiguousarray(puv[:, 1]), pw, ph,
+                                    self.imaging.projector_blur_px, window)
+            gain[s] = np.where(illum, self.imaging.projector_gain_dn * albedo * cos_inc * window, 0.0)
+            ambient[s] = self.imaging.ambient_dn * albedo
+            uv[s] = puv
+            if full:
+                dev = np.empty((m, 3))
+                with _k.KERNEL_LOCK:
+                    _k.affine_rows(xyz, cam.R, cam.T, dev)
+                with np.errstate(invalid="ignore"):
+                    inside = ((puv[:, 0] >= -0.5) & (puv[:, 0] < pw - 0.5) & (puv[:, 1] >= -0.5)
+                              & (puv[:, 1] < ph - 0.5))
+                xyz_all[s] = xyz
+                nrm_all[s] = nrm
+                depth_all[s] = dev[:, 2]
+                hit_all[s] = hit
+                lit_all[s] = illum & inside
+                oid_all[s] = hits.object_id
+        if rays is not None:
+            self._rays[cam.name] = rays
+        truth = None
+        if full:
+            truth = GroundTruth(
+                xyz=xyz_all.reshape(h, w, 3),
+                depth=depth_all.reshape(h, w),
+                hit=hit_all.reshape(h, w),
+                lit=lit_all.reshape(h, w),
+                proj_uv=uv.reshape(h, w, 2),
+                normal=nrm_all.reshape(h, w, 3),
+                object_id=oid_all.reshape(h, w),
+            )
+            for arr in (truth.xyz, truth.depth, truth.hit, truth.lit, truth.proj_uv, truth.normal,
+                        truth.object_id):
+                arr.flags.writeable = False
+        return truth, uv.reshape(h, w, 2), gain.reshape(h, w), ambient.reshape(h, w)
+
+    def ground_truth(self, camera: str) -> GroundTruth:
+        """Exact per-pixel geometry of ``camera`` (read-only arrays); see :class:`GroundTruth`.
+
+        Without ``keep_truth`` the first call computes it (about a second) and keeps it from then on.
+        """
         cam = self._check_camera(camera)
         with self._lock:
             if camera not in self._truth:
-                truth, gain, ambient = self._compute(cam)
+                truth, _, _, _ = self._compute(cam, True)
+                assert truth is not None
                 self._truth[camera] = truth
-                self._renderers[camera] = FrameRenderer(truth.proj_uv, gain, ambient, self.imaging)
-            return self._truth[camera], self._renderers[camera]
-
-    def _world_rays(self, cam: CameraModel) -> F64:
-        """Unit world directions (H*W, 3) of the camera's pixel rays, kept across scene changes."""
-        if cam.name not in self._rays:
-            rays = np.ascontiguousarray(cam.pixel_rays_device().reshape(-1, 3))
-            dirs = np.empty_like(rays)
-            with _k.KERNEL_LOCK:
-                _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
-            self._rays[cam.name] = dirs
-        return self._rays[cam.name]
-
-    def _compute(self, cam: CameraModel) -> tuple[GroundTruth, F64, F64]:
-        h, w = cam.height, cam.width
-        n = h * w
-        dirs = self._world_rays(cam)
-        centre = cam.center
-        hits = self.scene.intersect(centre, dirs, t_min=1e-6)
-        hit = hits.object_id >= 0
-        xyz = centre + np.where(hit, hits.t, np.nan)[:, None] * dirs
-        nrm = np.where(hit[:, None], hits.normal, np.nan)
-        flip = _dot(nrm, dirs) > 0
-        nrm[flip] *= -1.0
-        dev = np.empty((n, 3))
-        proj = self.projector
-        uv = np.empty((n, 2))
-        pz = np.empty(n)
-        with _k.KERNEL_LOCK:
-            _k.affine_rows(xyz, cam.R, cam.T, dev)
-            _k.project_points(xyz, proj.R, proj.T, proj.K, proj.dist_padded(8), uv, pz)
-        depth = dev[:, 2].copy()
-        to_p = proj.center - xyz
-        dist = np.sqrt(_dot(to_p, to_p))
-        ldir = to_p / dist[:, None]
-        cos_inc = _dot(nrm, ldir)
-        candidate = hit & (pz > 0) & (cos_inc > 0)
-        illum = np.zeros(n, dtype=bool)
-        sel = np.flatnonzero(candidate)
-        if sel.size:
-            start = xyz[sel] + SHADOW_OFFSET_MM * nrm[sel]
-            illum[sel] = ~self.scene.occluded(start, ldir[sel], dist[sel], t_min=1e-6)
-        pw, ph = proj.width, proj.height
-        with np.errstate(invalid="ignore"):
-            inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < ph - 0.5)
-        lit = illum & inside
-
-        albedo = self.scene.albedo(xyz, hits.object_id)
-        window = np.empty(n)
-        with _k.KERNEL_LOCK:
-            _k.projector_window(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]), pw, ph,
-                                self.imaging.projector_blur_px, window)
-        gain = np.where(illum, self.imaging.projector_gain_dn * albedo * cos_inc * window, 0.0)
-        ambient = self.imaging.ambient_dn * albedo
-        truth = GroundTruth(
-            xyz=xyz.reshape(h, w, 3),
-            depth=depth.reshape(h, w),
-            hit=hit.reshape(h, w),
-            lit=lit.reshape(h, w),
-            proj_uv=uv.reshape(h, w, 2),
-            normal=nrm.reshape(h, w, 3),
-            object_id=hits.object_id.reshape(h, w),
-        )
-        for arr in (truth.xyz, truth.depth, truth.hit, truth.lit, truth.proj_uv, truth.normal,
-                    truth.object_id):
-            arr.flags.writeable = False
-        return truth, gain.reshape(h, w), ambient.reshape(h, w)
-
-    def ground_truth(self, camera: str) -> GroundTruth:
-        """Exact per-pixel geometry of ``camera`` (read-only arrays); see :class:`GroundTruth`."""
-        return self._state(camera)[0]
+            return self._truth[camera]
 
     # --- images --------------------------------------------------------------------------------------------
 
@@ -277,7 +335,7 @@ class VirtualRig:
         -------
         ndarray, shape (H, W), uint8 (8-bit) or uint16 (12/16-bit)
         """
-        renderer = self._state(camera)[1]
+        renderer = self._state(camera)
         if out is None:
             out = np.empty((renderer.height, renderer.width), dtype=self.image_dtype)
         return renderer.render(frame, out, rng if rng is not None else self._rng[camera])
@@ -299,7 +357,7 @@ class VirtualRig:
         ndarray, shape (H, W), float32
             DN on the 8-bit scale (not clipped, not scaled to the bit depth).
         """
-        return self._state(camera)[1].clean(frame, blur=blur)
+        return self._state(camera).clean(frame, blur=blur)
 
     def render(self, sequence: Sequence, camera: str, out: ImageArray | None = None,
                seed: int | Literal["config"] | None = _CONFIG_SEED) -> ImageArray:
