@@ -3,15 +3,23 @@
 The service runs as a subprocess (what systemd runs) with everything under a temporary folder. A driver
 triggers scans through the control socket while a fault injector, in random order, reloads configurations
 that change the rig with a trigger right behind on the same connection, removes and restores the share,
-makes it full, writes empty and binary configurations, sends garbage to the control socket, kills the camera
-mid-scan (it stops delivering frames), and SIGKILLs and restarts the service. Meanwhile a watcher samples the
-share for partial scans and a pinger measures how long the service goes without answering ``status``.
+makes it full, hangs it, writes empty and binary configurations, sends garbage to the control socket, kills
+the camera mid-scan (it stops delivering frames), and SIGKILLs and restarts the service. Meanwhile a watcher
+samples the share for partial scans and a pinger measures how long the service goes without answering
+``status``.
+
+The share is a FUSE filesystem (``tests/share_hangfs.py``, passing through to a real folder) where FUSE is
+available (root or fusermount, /dev/fuse, fusepy and libfuse2): the ``share_hang`` fault makes every operation
+on it block, as a hard-mounted NFS/SMB share whose server stopped answering does, while scans are triggered,
+then lets them go. Without FUSE (``--no-fuse``, or when it is missing) the share is a plain folder and that
+fault is left out (said in the ledger's ``share``). The watcher and the final check read the backing folder,
+which is what the share shows, so they never block on a hung share themselves.
 
 The ledger at the end: every scan reported successful is on the share exactly once and complete (PLY read
 back, point count as in its sidecar); every failed one was reported with a reason; nothing partial was ever
 seen; no silent hang (> :data:`MAX_GAP_S` without an answer outside a restart); RSS at the start and the end.
 
-    scripts/soak [--scans 500] [--seed 1] [--rig small|default] [--json] [--keep DIR]
+    scripts/soak [--scans 500] [--seed 1] [--rig small|default] [--no-fuse] [--json] [--keep DIR]
 
 Exit status 0 when the ledger is clean, 1 otherwise.
 """
@@ -48,6 +56,8 @@ MAX_GAP_S = 10.0  # the service must answer status within this, outside a restar
 PING_S = 0.5
 WATCH_S = 0.05
 SCAN_WAIT_S = 120.0
+SHARE_TIMEOUT_S = 1.0  # output.share_timeout_s of the soak's service: a hung share counts as away after this
+HANGFS = REPO / "tests" / "share_hangfs.py"
 
 SMALL_RIG = {
     "projector": {"width": 320, "height": 200, "focal_px": 400, "principal_px": [160, 190],
@@ -57,8 +67,8 @@ SMALL_RIG = {
 }
 
 # fault -> relative weight (a plain scan has weight SCAN_WEIGHT)
-FAULTS = {"reload_rig_then_trigger": 3, "share_away": 2, "share_full": 2, "bad_config": 2, "garbage": 2,
-          "camera_dies": 1, "sigkill": 2}
+FAULTS = {"reload_rig_then_trigger": 3, "share_away": 2, "share_full": 2, "share_hang": 2, "bad_config": 2,
+          "garbage": 2, "camera_dies": 1, "sigkill": 2}
 SCAN_WEIGHT = 14
 
 
@@ -66,7 +76,8 @@ def base_config(tmp: Path, rig: str) -> dict[str, Any]:
     doc: dict[str, Any] = {
         "serial": "SOAK-1",
         "cameras": {"cam0": {"type": "sim"}},
-        "output": {"directory": str(tmp / "share"), "spool_directory": str(tmp / "spool"), "min_free_mb": 0},
+        "output": {"directory": str(tmp / "share"), "spool_directory": str(tmp / "spool"), "min_free_mb": 0,
+                   "share_timeout_s": SHARE_TIMEOUT_S},
         "service": {"control_socket": str(tmp / "sock"), "state_directory": str(tmp / "state"),
                     "config_poll_s": 0.2, "scan_timeout_s": 4.0, "stop_grace_s": 5.0,
                     "mdns": {"enabled": False}},
@@ -77,20 +88,86 @@ def base_config(tmp: Path, rig: str) -> dict[str, Any]:
     return doc
 
 
+def fuse_unavailable() -> str:
+    """Why the share cannot be a FUSE filesystem here ('' when it can)."""
+    if not os.path.exists("/dev/fuse"):
+        return "/dev/fuse is not present (no FUSE in this kernel or container)"
+    try:
+        import fuse  # type: ignore[import-untyped]  # noqa: F401
+    except ImportError:
+        return "fusepy is not installed (scripts/setup-env test installs it)"
+    except OSError as exc:  # fusepy raises EnvironmentError when libfuse.so.2 is missing
+        return f"libfuse2 is not installed ({exc}); scripts/install-system-packages installs it"
+    if shutil.which("fusermount") is None and os.geteuid() != 0:
+        return "fusermount (Debian package fuse) is missing and this is not root"
+    return ""
+
+
+class HangShare:
+    """The share as a FUSE filesystem: ``mnt`` passes through to ``backing``; :meth:`send` hangs or frees it."""
+
+    def __init__(self, backing: Path, mnt: Path) -> None:
+        self.backing, self.mnt = backing, mnt
+        backing.mkdir(parents=True, exist_ok=True)
+        mnt.mkdir(parents=True, exist_ok=True)
+        self.proc = subprocess.Popen([sys.executable, str(HANGFS), str(backing), str(mnt)], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        if self._line(15) != "ready":
+            self.close()
+            raise RuntimeError(f"the FUSE share did not mount on {mnt}")
+
+    def _line(self, timeout: float) -> str:
+        import select
+
+        assert self.proc.stdout is not None
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout)
+        return self.proc.stdout.readline().strip() if ready else ""
+
+    def send(self, cmd: str) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(cmd + "\n")
+        self.proc.stdin.flush()
+        if self._line(10) != "ok":
+            raise RuntimeError(f"the FUSE share did not take {cmd!r}")
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            if self.proc.poll() is None and self.proc.stdin is not None:
+                self.proc.stdin.write("go\n")
+                self.proc.stdin.flush()
+                self.proc.stdin.close()
+        for cmd in (["fusermount", "-u", "-z", str(self.mnt)], ["umount", "-l", str(self.mnt)]):
+            if not os.path.ismount(self.mnt):
+                break
+            with contextlib.suppress(OSError, subprocess.TimeoutExpired):
+                subprocess.run(cmd, timeout=10, capture_output=True, check=False)
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()  # closing /dev/fuse aborts the connection: any blocked call returns
+            self.proc.wait(5)
+
+
 class Soak:
     """One soak run: the service, the driver, the faults, the watcher, the pinger and the ledger."""
 
-    def __init__(self, tmp: Path, seed: int, rig: str, scans: int) -> None:
+    def __init__(self, tmp: Path, seed: int, rig: str, scans: int, fuse: bool = True) -> None:
         self.tmp = tmp
         self.rng = random.Random(seed)
         self.scans_wanted = scans
-        self.share = tmp / "share"
+        self.share = tmp / "share"  # what the service writes to
+        self.fuse_why = fuse_unavailable() if fuse else "--no-fuse"
+        self.hangfs: HangShare | None = None
+        # the folder the share shows: the FUSE filesystem's backing folder, or the share itself
+        self.files = tmp / "share-backing" if not self.fuse_why else self.share
         self.away = tmp / "share-away"
         self.sock = tmp / "sock"
         self.config = tmp / "appliance.yaml"
         self.good = base_config(tmp, rig)
         self.rig_variant = 0
         self.share.mkdir(parents=True, exist_ok=True)
+        if not self.fuse_why:
+            self.hangfs = HangShare(self.files, self.share)
         self.write_config(self.good)
         self.proc: subprocess.Popen[bytes] | None = None
         self.log = (tmp / "service.log").open("ab")
@@ -213,12 +290,22 @@ class Soak:
         self.wait_idle()
 
     def fault_share_away(self) -> None:
-        self.share.rename(self.away)
+        self.files.rename(self.away)  # on FUSE: every path on the mount answers ENOENT, as an unmounted share
         try:
             for _ in range(self.rng.randint(1, 3)):
                 self.trigger()
         finally:
-            self.away.rename(self.share)
+            self.away.rename(self.files)
+
+    def fault_share_hang(self) -> None:
+        assert self.hangfs is not None
+        self.hangfs.send("hang")  # every operation on the share blocks from now on
+        try:
+            for _ in range(self.rng.randint(1, 2)):
+                self.trigger()  # answered within the deadline: the scan spools
+            time.sleep(self.rng.uniform(0.0, 2.0 * SHARE_TIMEOUT_S))
+        finally:
+            self.hangfs.send("go")
 
     def fault_share_full(self) -> None:
         doc = json.loads(json.dumps(self.good))
@@ -290,7 +377,7 @@ class Soak:
 
     def watch_share(self) -> None:
         while not self._stop.is_set():
-            for side in list(self.share.glob("*/*.json")):
+            for side in list(self.files.glob("*/*.json")):
                 if side.name.startswith("."):
                     continue
                 try:
@@ -331,7 +418,7 @@ class Soak:
                    threading.Thread(target=self.ping, name="soak-ping", daemon=True)]
         for t in threads:
             t.start()
-        names = list(FAULTS)
+        names = [n for n in FAULTS if n != "share_hang" or self.hangfs is not None]
         weights = [FAULTS[n] for n in names] + [SCAN_WEIGHT]
         t0 = time.monotonic()
         first = self.rng.sample(names, len(names))  # every fault once, in random order, then at random
@@ -368,6 +455,8 @@ class Soak:
                 except subprocess.TimeoutExpired:
                     self.proc.kill()
                     self.exit_codes.append(-9)
+            if self.hangfs is not None:
+                self.hangfs.close()
         return self.check(time.monotonic() - t0)
 
     def check(self, seconds: float) -> dict[str, Any]:
@@ -375,12 +464,12 @@ class Soak:
 
         sidecars: collections.Counter[str] = collections.Counter()
         problems: list[str] = []
-        for side in self.share.glob("*/*.json"):
+        for side in self.files.glob("*/*.json"):
             sidecars[side.stem] += 1
         duplicated = [s for s, n in sidecars.items() if n > 1]
         lost, incomplete = [], []
         for scan_id in self.ok:
-            found = list(self.share.glob(f"*/{scan_id}.json"))
+            found = list(self.files.glob(f"*/{scan_id}.json"))
             if not found:
                 lost.append(scan_id)
                 continue
@@ -393,7 +482,7 @@ class Soak:
             if n != meta["counts"]["points"]:
                 incomplete.append(f"{scan_id}: {n} points in the PLY, {meta['counts']['points']} in the sidecar")
         no_reason = [r for r in self.failed if not str(r.get("error", "")).strip()]
-        leftovers = [str(p) for p in self.share.rglob(f"{TMP_PREFIX}*")]
+        leftovers = [str(p) for p in self.files.rglob(f"{TMP_PREFIX}*")]
         bad_exit = [c for c in self.exit_codes[-1:] if c != 0]
         problems.extend(f"driver: {e}" for e in self.driver_errors)
         if lost:
@@ -420,6 +509,7 @@ class Soak:
             "partial_seen": len(self.partial), "worst_unresponsive_s": round(self.worst_gap_s, 2),
             "faults": dict(sorted(self.faults.items())), "failure_results": dict(reasons.most_common(8)),
             "rss_mb_start_end": self.rss_mb, "seconds": round(seconds, 1), "problems": problems,
+            "share": "FUSE (hangs on demand)" if self.hangfs is not None else f"plain folder ({self.fuse_why})",
         }
 
 
@@ -429,13 +519,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--rig", choices=["small", "default"], default="small",
                     help="small: a 320x256 camera (fast); default: the shipped 1280x1024 virtual rig")
+    ap.add_argument("--no-fuse", action="store_true", help="a plain folder as the share (no share_hang fault)")
     ap.add_argument("--json", action="store_true", help="print the ledger as JSON")
     ap.add_argument("--keep", type=Path, default=None, help="run in this folder and keep it (default: a temp one)")
     a = ap.parse_args(argv)
     tmp = a.keep or Path(tempfile.mkdtemp(prefix="scan3d-soak-"))
     tmp.mkdir(parents=True, exist_ok=True)
     try:
-        ledger = Soak(tmp, a.seed, a.rig, a.scans).run()
+        ledger = Soak(tmp, a.seed, a.rig, a.scans, fuse=not a.no_fuse).run()
     finally:
         if a.keep is None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -446,7 +537,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{ledger['scans_failed_with_reason']} failed with a reason, {ledger['unanswered_by_sigkill']} lost "
               f"to SIGKILL; lost {ledger['lost']}, duplicated {ledger['duplicated']}, partial seen "
               f"{ledger['partial_seen']}; worst unresponsive {ledger['worst_unresponsive_s']} s; RSS "
-              f"{ledger['rss_mb_start_end']} MB; faults {ledger['faults']}; {ledger['seconds']} s")
+              f"{ledger['rss_mb_start_end']} MB; faults {ledger['faults']}; share {ledger['share']}; "
+              f"{ledger['seconds']} s")
         for p in ledger["problems"]:
             print(f"  PROBLEM: {p}")
     return 0 if not ledger["problems"] else 1
