@@ -538,7 +538,7 @@ def drop_unkept(xyz, sigma, keep):  # type: ignore[no-untyped-def]
     h, w = keep.shape[0], keep.shape[1]
     kept = np.zeros(h, np.int64)
     for r in prange(h):
-        n = 0
+        n = np.int64(0)
         for c in range(w):
             k = keep[r, c]
             n += np.int64(k)
