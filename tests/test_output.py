@@ -114,3 +114,31 @@ def test_preview_scale_bar_spans_depth_range() -> None:
     top, bottom = img[y0, bar_x].astype(int), img[y0 + bar_h - 1, bar_x].astype(int)
     assert np.abs(top - tile[30, 20].astype(int)).sum() < 40  # nearest depth: top of the bar
     assert np.abs(bottom - tile[30, 99].astype(int)).sum() < 40  # farthest: bottom
+
+
+def test_scan_ply_packed_in_chunks_reads_back_whole(tmp_path: Path) -> None:
+    """The share writer's PLY is packed a chunk at a time: across chunk boundaries (and a short last chunk)
+    the file is byte for byte the one-piece packing, its size and SHA-256 are those of its bytes, and an
+    independent reader gets every point back."""
+    import hashlib
+
+    from appliance.output.ply import RECORDS_PER_CHUNK, cloud_to_records
+    from appliance.output.scanfiles import scan_file_contents
+
+    n = 2 * RECORDS_PER_CHUNK + 17
+    cloud = _cloud(n=n)
+    meta = ScanMetadata("s", "2026-11-22T00:00:00+00:00", {}, "abc", {"points": n}, {}, "SN1")
+    ply = scan_file_contents(meta, cloud, [(1024, 1280)] * 2, preview=False)[0]
+    chunks = [bytes(c) for c in ply.chunks()]
+    assert len(chunks) == 1 + 3  # the header, then three record chunks
+    data = b"".join(chunks)
+    assert ply.size == len(data) and ply.sha256() == hashlib.sha256(data).hexdigest()
+    records = cloud_to_records(cloud, camera_field=True, normals=False)
+    assert data.endswith(records.tobytes())
+    with (tmp_path / "c.ply").open("wb") as f:
+        ply.write_to(f)
+    v = PlyData.read(str(tmp_path / "c.ply"))["vertex"]
+    assert v.count == n
+    np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], axis=1), cloud.xyz)
+    np.testing.assert_array_equal(v["camera"], cloud.camera)
+    np.testing.assert_array_equal(v["quality"], cloud.quality)

@@ -1,20 +1,21 @@
 """The three files of one scan: cloud (PLY), sidecar (JSON) and preview (PNG).
 
-:func:`scan_file_contents` renders them in memory (the PLY as its header and a view of its records, no copy),
-so the share writer can put them on the share through its deadlines; :func:`write_scan_files` writes them
-into a local folder.
+:func:`scan_file_contents` renders them in memory (the PLY as its header and its records, packed from the cloud
+a chunk at a time while written), so the share writer can put them on the share through its deadlines;
+:func:`write_scan_files` writes them into a local folder.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import hashlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
 from appliance.output.atomic import write_atomic
-from appliance.output.ply import cloud_to_records, ply_bytes_header
+from appliance.output.ply import PackedRecords, ply_bytes_header, vertex_dtype
 from appliance.output.preview import depth_image, render_preview
 from appliance.output.sidecar import ScanMetadata
 from appliance.reconstruct.types import PointCloud
@@ -35,27 +36,39 @@ class ScanFiles:
 
 @dataclass(frozen=True)
 class FileContent:
-    """One file of a scan, rendered: its name and its bytes in pieces (written one after the other)."""
+    """One file of a scan, rendered: its name and its bytes in pieces (written one after the other).
+
+    A piece is bytes, or a cloud's PLY records packed a chunk at a time while they are written
+    (:class:`appliance.output.ply.PackedRecords`).
+    """
 
     name: str
-    pieces: tuple[bytes | memoryview, ...]
+    pieces: tuple[bytes | memoryview | PackedRecords, ...]
 
     @property
     def size(self) -> int:
         """Length of the file (bytes)."""
-        return sum(memoryview(p).nbytes for p in self.pieces)
+        return sum(p.nbytes if isinstance(p, PackedRecords) else memoryview(p).nbytes for p in self.pieces)
+
+    def chunks(self) -> Iterator[memoryview]:
+        """The content in order, as byte views of at most a few MB each (a PLY's records are packed here)."""
+        for p in self.pieces:
+            if isinstance(p, PackedRecords):
+                yield from p
+            else:
+                yield memoryview(p).cast("B")
 
     def sha256(self) -> str:
         """Hex SHA-256 of the content."""
         h = hashlib.sha256()
-        for p in self.pieces:
-            h.update(p)
+        for c in self.chunks():
+            h.update(c)
         return h.hexdigest()
 
     def write_to(self, f: BinaryIO) -> None:
         """Write the pieces into the open binary file ``f``."""
-        for p in self.pieces:
-            f.write(p)
+        for c in self.chunks():
+            f.write(c)
 
 
 def make_scan_id(serial: str, counter: int, when: dt.datetime | None = None) -> str:
@@ -89,15 +102,15 @@ def scan_file_contents(
     -------
     list of FileContent
         ``<scan-id>.ply``, ``<scan-id>.png`` (optional) and ``<scan-id>.json``, in that order. The PLY's
-        records are a view of one packed array (N records), not a copy.
+        records are packed from the cloud a chunk at a time while written, never as one full copy.
     """
     import cv2
 
     sid = meta.scan_id
     camera_field = bool(len(cloud)) and bool((cloud.camera != cloud.camera[0]).any())
-    rec = cloud_to_records(cloud, camera_field=camera_field, normals=normals)
-    header = ply_bytes_header(cloud, rec.dtype, [f"scan3d scan {sid}", "units mm"])
-    out = [FileContent(f"{sid}.ply", (header, rec.data.cast("B")))]
+    dtype = vertex_dtype(cloud, camera_field=camera_field, normals=normals)
+    header = ply_bytes_header(cloud, dtype, [f"scan3d scan {sid}", "units mm"])
+    out = [FileContent(f"{sid}.ply", (header, PackedRecords(cloud, dtype)))]
     meta.files = {"cloud": f"{sid}.ply", "sidecar": f"{sid}.json"}
     if preview:
         depths = [depth_image(cloud, i, s) for i, s in enumerate(shapes)]

@@ -458,8 +458,7 @@ class ShareWriter:
         closed = False
         try:
             if isinstance(content, FileContent):
-                for piece in content.pieces:
-                    mv = memoryview(piece).cast("B")
+                for mv in content.chunks():
                     for off in range(0, mv.nbytes, CHUNK):
                         self._op(f"writing {name}", partial(_write_all, fd, mv[off:off + CHUNK]))
             else:
