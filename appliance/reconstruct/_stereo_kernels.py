@@ -72,6 +72,45 @@ def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-
     return out
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _bilinear_within(src, ix, iy, tx, ty, max_spread):  # type: ignore[no-untyped-def]
+    c00 = src[iy, ix]
+    c01 = src[iy, ix + 1]
+    c10 = src[iy + 1, ix]
+    c11 = src[iy + 1, ix + 1]
+    lo = min(min(c00, c01), min(c10, c11))
+    hi = max(max(c00, c01), max(c10, c11))
+    if not hi - lo <= max_spread:  # NaN compares false: rejected
+        return _NAN
+    a = c00 + tx * (c01 - c00)
+    b = c10 + tx * (c11 - c10)
+    return a + ty * (b - a)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def remap_pair(src_a, src_b, mask, srcmap, spread_a, spread_b, out_a, out_b):  # type: ignore[no-untyped-def]
+    """:func:`remap_codes` of two code maps of one camera (u and v) in one pass: the same values."""
+    h, w = src_a.shape[0], src_a.shape[1]
+    hr, wr = out_a.shape[0], out_a.shape[1]
+    for y in prange(hr):
+        for x in range(wr):
+            sx = np.float64(srcmap[y, x, 0])
+            sy = np.float64(srcmap[y, x, 1])
+            va = _NAN
+            vb = _NAN
+            if sx >= 0.0 and sy >= 0.0 and sx < w - 1 and sy < h - 1:
+                ix = int(sx)
+                iy = int(sy)
+                if mask[iy, ix] and mask[iy, ix + 1] and mask[iy + 1, ix] and mask[iy + 1, ix + 1]:
+                    tx = sx - ix
+                    ty = sy - iy
+                    va = _bilinear_within(src_a, ix, iy, tx, ty, spread_a)
+                    vb = _bilinear_within(src_b, ix, iy, tx, ty, spread_b)
+            out_a[y, x] = va
+            out_b[y, x] = vb
+    return out_a
+
+
 # per-pixel outcome of the matcher (see stereo.STAGES for the words)
 ST_NONE = 0  # not decoded in the reference camera: not a candidate
 ST_OUTSIDE = 1  # outside the rows both cameras share

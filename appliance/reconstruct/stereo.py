@@ -404,8 +404,16 @@ class StereoTriangulator:
         )
         hi = max(float(np.nanmax(u0, initial=0.0)), float(np.nanmax(u1, initial=0.0)))
         nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
+        vgrid: CodeGrid | None = None
+        if use_v:
+            vgrid = code_grid(v0.T, mask0.T)  # views: code_grid reads a subsample only
+            vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
+            vper = vgrid.per_px if vgrid is not None else 1.0
         C.remap_codes(u0, mask0, self._map0, spread, self._u0r)
-        C.remap_codes(u1, mask1, self._map1, spread, self._u1r)
+        if use_v:  # cam1's u and v in one pass
+            C.remap_pair(u1, v1, mask1, self._map1, spread, 1.5 * vstep + 3.0 * vper, self._u1r, self._v1r)
+        else:
+            C.remap_codes(u1, mask1, self._map1, spread, self._u1r)
         C.to_levels(self._u0r, lev_origin, 1.0 / dl)
         C.to_levels(self._u1r, lev_origin, 1.0 / dl)
         np.subtract(u0, np.float32(lev_origin), out=self._lev0)
@@ -421,12 +429,7 @@ class StereoTriangulator:
                 C.smooth_crossings(raw, levels, False, MAX_RES_PX, sm)
                 C.smooth_crossings(sm, SMOOTH_ROWS, True, MAX_RES_PX, raw)  # back into the raw table
         v0m, v1m = v0, self._v1r
-        vgrid: CodeGrid | None = None
         if use_v:
-            vgrid = code_grid(v0.T, mask0.T)  # views: code_grid reads a subsample only
-            vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
-            vper = vgrid.per_px if vgrid is not None else 1.0
-            C.remap_codes(v1, mask1, self._map1, 1.5 * vstep + 3.0 * vper, self._v1r)
             if vgrid is not None and vgrid.quantised:
                 radius = int(min(8, max(1, math.ceil(vgrid.stripe_px))))
                 span = (2 * radius + 1) * vper + 2.0 * vstep
