@@ -96,13 +96,14 @@ class RayTable:
                 else:
                     und = self.camera.undistort_pixels(np.stack([xs, np.full(w, float(row))], axis=1))
                     tx[k], ty[k] = und[:, 0], und[:, 1]
-            r = np.arange(h)
-            g = r // step + 1
-            t = ((r % step) / step)[:, None]
             err = 0.0
-            for k, tab in enumerate((tx, ty)):
-                interp = catmull_rom(tab[g - 1], tab[g], tab[g + 1], tab[g + 2], t)
-                err = max(err, float(np.max(np.abs(interp - self.normalized[..., k]))))
+            for r0 in range(0, h, 64):  # 64 rows at a time: float64 temporaries of a few MB, not ~100
+                r = np.arange(r0, min(h, r0 + 64))
+                g = r // step + 1
+                t = ((r % step) / step)[:, None]
+                for k, tab in enumerate((tx, ty)):
+                    interp = catmull_rom(tab[g - 1], tab[g], tab[g + 1], tab[g + 2], t)
+                    err = max(err, float(np.max(np.abs(interp - self.normalized[r0:r0 + r.size, :, k]))))
             self._row_tables[step] = (tx, ty, err)
         return self._row_tables[step]
 
