@@ -415,3 +415,23 @@ def test_unknown_frame_kind_is_refused() -> None:
     light = projected_light(WhiteFrame(), np.array([-3.0, 0.0, 10.0, 319.4, 330.0]), np.full(5, 100.0),
                             PROJ.width, PROJ.height, 0.5)
     np.testing.assert_allclose(light, [0.0, 0.8413, 1.0, 0.5793, 0.0], atol=2e-4)  # Phi(1), Phi(0.2)
+
+
+def test_lean_rig_renders_the_same_and_computes_truth_on_request() -> None:
+    """The service's rig (keep_truth=False) casts the same geometry in 64-row chunks as the full rig: identical
+    frames (noise included) and identical ground truth, which it computes only when asked for."""
+    from appliance.config.schema import PlaneObject, SphereObject
+
+    cam = DeviceOptics(width=160, height=150, focal_px=250.0, dist=(-0.08, 0.12, 0.0005, -0.0003, 0.0),
+                       look_at_mm=(0.0, 0.0, 500.0))  # 150 rows: two full chunks and a short one
+    scene = (PlaneObject(point_mm=(0, 0, 600), normal=(0, 0.1, -1), texture=0.3),
+             SphereObject(center_mm=(-20, 10, 520), radius_mm=40))
+    cfg = VirtualRigConfig(cameras={"cam0": cam}, projector=PROJ, scene=scene, imaging=ImagingConfig(seed=5))
+    full, lean = VirtualRig(cfg), VirtualRig(cfg, keep_truth=False)
+    seq = gray_phase_sequence(PROJ.width, PROJ.height, periods=(16,), steps=4)
+    np.testing.assert_array_equal(full.render(seq, "cam0"), lean.render(seq, "cam0"))
+    assert not lean._truth and not lean._rays  # rendering kept neither
+    a, b = full.ground_truth("cam0"), lean.ground_truth("cam0")
+    for name in ("xyz", "depth", "hit", "lit", "proj_uv", "normal", "object_id"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert np.isfinite(a.depth).mean() > 0.9 and a.lit.mean() > 0.5
