@@ -42,6 +42,21 @@ def project_dirs(rot, a0, b0, step, hr, wr, kmat, d):  # type: ignore[no-untyped
     return out
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _bilinear_within(src, ix, iy, tx, ty, max_spread):  # type: ignore[no-untyped-def]
+    c00 = src[iy, ix]
+    c01 = src[iy, ix + 1]
+    c10 = src[iy + 1, ix]
+    c11 = src[iy + 1, ix + 1]
+    lo = min(min(c00, c01), min(c10, c11))
+    hi = max(max(c00, c01), max(c10, c11))
+    if not hi - lo <= max_spread:  # NaN compares false: rejected
+        return _NAN
+    a = c00 + tx * (c01 - c00)
+    b = c10 + tx * (c11 - c10)
+    return a + ty * (b - a)
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-def]
     """Bilinear resampling of a code map; NaN unless all 4 neighbours are valid and within ``max_spread``."""
@@ -56,35 +71,9 @@ def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-
                 ix = int(sx)
                 iy = int(sy)
                 if mask[iy, ix] and mask[iy, ix + 1] and mask[iy + 1, ix] and mask[iy + 1, ix + 1]:
-                    c00 = src[iy, ix]
-                    c01 = src[iy, ix + 1]
-                    c10 = src[iy + 1, ix]
-                    c11 = src[iy + 1, ix + 1]
-                    lo = min(min(c00, c01), min(c10, c11))
-                    hi = max(max(c00, c01), max(c10, c11))
-                    if hi - lo <= max_spread:  # NaN compares false: rejected
-                        tx = sx - ix
-                        ty = sy - iy
-                        a = c00 + tx * (c01 - c00)
-                        b = c10 + tx * (c11 - c10)
-                        val = a + ty * (b - a)
+                    val = _bilinear_within(src, ix, iy, sx - ix, sy - iy, max_spread)
             out[y, x] = val
     return out
-
-
-@njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _bilinear_within(src, ix, iy, tx, ty, max_spread):  # type: ignore[no-untyped-def]
-    c00 = src[iy, ix]
-    c01 = src[iy, ix + 1]
-    c10 = src[iy + 1, ix]
-    c11 = src[iy + 1, ix + 1]
-    lo = min(min(c00, c01), min(c10, c11))
-    hi = max(max(c00, c01), max(c10, c11))
-    if not hi - lo <= max_spread:  # NaN compares false: rejected
-        return _NAN
-    a = c00 + tx * (c01 - c00)
-    b = c10 + tx * (c11 - c10)
-    return a + ty * (b - a)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
