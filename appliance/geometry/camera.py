@@ -152,18 +152,19 @@ class CameraModel:
             und = cv2.undistortPoints(pts, K, self.dist, R=None, P=None, criteria=crit)
         return und.reshape(-1, 2).astype(np.float64)  # type: ignore[no-any-return]
 
-    def pixel_rays_device(self) -> F64:
-        """Unit ray directions of every pixel in the device frame.
+    def pixel_rays_device(self, row0: int = 0, row1: int | None = None) -> F64:
+        """Unit ray directions of every pixel of rows ``row0:row1`` (default all) in the device frame.
 
         Returns
         -------
-        ndarray, shape (height, width, 3), float64
+        ndarray, shape (row1 - row0, width, 3), float64
         """
-        ys, xs = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        row1 = self.height if row1 is None else row1
+        ys, xs = np.mgrid[row0:row1, 0 : self.width].astype(np.float64)
         n = self.undistort_pixels(np.stack([xs.ravel(), ys.ravel()], axis=1))
         d = np.concatenate([n, np.ones((n.shape[0], 1))], axis=1)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return d.reshape(self.height, self.width, 3)
+        return d.reshape(row1 - row0, self.width, 3)
 
     def with_pose(self, R: F64, T: F64) -> CameraModel:
         """A copy with another pose."""

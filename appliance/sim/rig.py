@@ -198,10 +198,7 @@ class VirtualRig:
         full = self._rays.get(cam.name)
         if full is not None:
             return full[r0 * cam.width: r1 * cam.width]
-        ys, xs = np.mgrid[r0:r1, 0:cam.width].astype(np.float64)
-        n = cam.undistort_pixels(np.stack([xs.ravel(), ys.ravel()], axis=1))
-        rays = np.concatenate([n, np.ones((n.shape[0], 1))], axis=1)
-        rays /= np.sqrt(_dot(rays, rays))[:, None]
+        rays = np.ascontiguousarray(cam.pixel_rays_device(r0, r1).reshape(-1, 3))
         dirs = np.empty_like(rays)
         with _k.KERNEL_LOCK:
             _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
