@@ -113,14 +113,17 @@ async def running_service(config: Path) -> AsyncIterator[D.Service]:
 
 def warm_kernels() -> None:
     """Start and stop the service once on the small rig, outside any measured loop: numba loads its kernels
-    (holding the interpreter) on the first start in a process; tests under ``loop_guard`` start after this."""
+    (holding the interpreter) on the first start in a process; tests under ``loop_guard`` start after this.
+    Both sequences the face tests use (the reference one and two axes): each needs kernels of its own, which a
+    clean clone compiles (seconds of held interpreter) on first use."""
 
     async def once(cfg: Path) -> None:
         async with running_service(cfg):
             pass
 
-    with tempfile.TemporaryDirectory(prefix="scan3d-warm-") as tmp:
-        asyncio.run(once(appliance_copy(Path(tmp), top={"sequence": {"axes": "xy"}})))
+    for top in ({}, {"sequence": {"axes": "xy"}}):
+        with tempfile.TemporaryDirectory(prefix="scan3d-warm-") as tmp:
+            asyncio.run(once(appliance_copy(Path(tmp), top=top)))
 
 
 @pytest.fixture(scope="module")
