@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import mmap
 import re
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -76,6 +77,38 @@ class ScanResult:
     """What the camera-camera matcher did (modes ``stereo`` and ``both``)."""
 
 
+class FrameMemory:
+    """A camera's frame buffer (F, H, W) in its own anonymous memory map, whose frames can be given back.
+
+    A released frame reads as zeros until written again; its pages return to the system at once
+    (``madvise(MADV_DONTNEED)``) and are mapped again, zeroed, when the camera next writes it.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (frames, height, width).
+    dtype : numpy dtype
+        uint8 or uint16.
+    """
+
+    def __init__(self, shape: tuple[int, int, int], dtype: np.dtype[Any]) -> None:
+        self.frame_bytes = int(shape[1]) * int(shape[2]) * dtype.itemsize
+        # private: given-back pages are freed (a shared anonymous map would keep them in shmem)
+        self._map = mmap.mmap(-1, max(1, int(shape[0]) * self.frame_bytes),
+                              flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)  # fmt: skip
+        self.frames: FrameArray = np.frombuffer(
+            self._map, dtype=dtype, count=int(np.prod(shape))
+        ).reshape(shape)
+
+    def release(self, index: int) -> None:
+        """Give back the whole pages of frame ``index`` (the partial pages at its ends stay)."""
+        page = mmap.PAGESIZE
+        start = -(-index * self.frame_bytes // page) * page
+        stop = (index + 1) * self.frame_bytes // page * page
+        if stop > start:
+            self._map.madvise(mmap.MADV_DONTNEED, start, stop - start)
+
+
 class Scanner:
     """Runs scans on one rig with one calibration and one configuration.
 
@@ -87,9 +120,14 @@ class Scanner:
         The devices (see :func:`appliance.hardware.registry.build_rig`).
     calibration : Calibration
         Camera(s) and projector models; camera names must match ``cfg.cameras``.
+    keep_frames : bool
+        Keep every captured frame until the next scan (:attr:`ScanResult.frames`). False (the service): each
+        frame's memory goes back to the system once the decoder is done with it, so a camera holds about the
+        white frame and the frames in flight instead of its whole sequence (27 MB for 22 frames of
+        1280x1024), and ``ScanResult.frames`` is empty.
     """
 
-    def __init__(self, cfg: AppConfig, rig: Rig, calibration: Calibration) -> None:
+    def __init__(self, cfg: AppConfig, rig: Rig, calibration: Calibration, *, keep_frames: bool = True) -> None:
         self.cfg = cfg
         self.rig = rig
         self.calibration = calibration
@@ -110,7 +148,10 @@ class Scanner:
         self._white_index = next(
             (i for i, f in enumerate(self.sequence.frames) if isinstance(f, WhiteFrame)), None
         )
+        self.keep_frames = keep_frames
         self._buffers: dict[str, FrameArray] = {}
+        self._releasable: dict[str, FrameMemory] = {}
+        self._unreleased: dict[str, set[int]] = {}
         self._bits: dict[str, int] = {}
         self._decoders: dict[str, StreamingDecoder] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
@@ -132,12 +173,20 @@ class Scanner:
             bits = pixel_format_bits(info.pixel_format)
             dtype = np.uint8 if bits == 8 else np.uint16
             if name not in self._buffers or self._buffers[name].shape != (n, *shape) or self._bits.get(name) != bits:
-                buf: FrameArray = np.zeros((n, *shape), dtype)  # type: ignore[assignment]
+                if self.keep_frames:
+                    buf: FrameArray = np.zeros((n, *shape), dtype)  # type: ignore[assignment]
+                    self._releasable.pop(name, None)
+                else:
+                    mem = FrameMemory((n, *shape), np.dtype(dtype))
+                    self._releasable[name] = mem
+                    buf = mem.frames
+                self._unreleased[name] = set()
                 self._buffers[name] = buf
                 self._bits[name] = bits
                 # thresholds in the camera's own scale (Mono12: 0..4095 in uint16)
                 params = dataclasses.replace(self.params, max_value=float((1 << bits) - 1))
-                self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, params)
+                # the frames stay in this buffer for the whole scan: the decoder keeps references, not copies
+                self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, params, borrow_frames=True)
                 self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
         await self.rig.projector.open()
         await self.rig.projector.load(self.sequence)
@@ -166,7 +215,7 @@ class Scanner:
             dec, buf = self._decoders[name], self._buffers[name]
             dec.reset()
             for i in range(buf.shape[0]):
-                dec.push(i, buf[i])
+                self._push(name, i, buf[i])
             maps = dec.finish()
             dec.reset()
             return maps
@@ -195,10 +244,10 @@ class Scanner:
         pushes: list[asyncio.Future[None]] = []
 
         def on_frame_factory(name: str) -> Any:
-            dec, ex = self._decoders[name], self._executors[name]
+            ex = self._executors[name]
 
             def on_frame(index: int, frame: FrameArray) -> None:  # camera thread
-                fut: Future[None] = ex.submit(dec.push, index, frame)
+                fut: Future[None] = ex.submit(self._push, name, index, frame)
                 loop.call_soon_threadsafe(pushes.append, asyncio.wrap_future(fut, loop=loop))
 
             return on_frame
@@ -260,9 +309,25 @@ class Scanner:
         self.scans_done += 1
         shapes = {name: (int(b.shape[1]), int(b.shape[2])) for name, b in self._buffers.items()}
         rec = self.reconstructor
-        return ScanResult(cloud, maps, white, timings, shapes, dict(self._buffers),
+        frames = dict(self._buffers) if self.keep_frames else {}
+        return ScanResult(cloud, maps, white, timings, shapes, frames,
                           [st.as_dict() for st in rec.stages], list(rec.warnings), health,
                           rec.stereo_report)  # fmt: skip
+
+    def _push(self, name: str, index: int, frame: FrameArray) -> None:
+        """Push frame ``index`` of camera ``name`` into its decoder (in its decode thread); without
+        ``keep_frames``, give back the memory of every frame the decoder no longer reads (not the white one)."""
+        dec = self._decoders[name]
+        dec.push(index, frame)
+        mem = self._releasable.get(name)
+        if mem is None:
+            return
+        pending = self._unreleased[name]
+        pending.add(index)
+        held = dec.borrowed
+        for i in [i for i in pending if i not in held and i != self._white_index]:
+            mem.release(i)
+            pending.discard(i)
 
     def _reconstruct(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]]

@@ -91,8 +91,10 @@ def _same(a: DecodedMaps, b: DecodedMaps) -> bool:
     )
 
 
-def _stream(seq: Sequence, frames: npt.NDArray[np.generic], seed: int, params: DecodeParams) -> DecodedMaps:
-    dec = StreamingDecoder(seq, (H, W), frames.dtype, params)
+def _stream(
+    seq: Sequence, frames: npt.NDArray[np.generic], seed: int, params: DecodeParams, borrow: bool = False
+) -> DecodedMaps:
+    dec = StreamingDecoder(seq, (H, W), frames.dtype, params, borrow_frames=borrow)
     for i in np.random.default_rng(seed).permutation(len(seq)):
         dec.push(int(i), frames[i])
     return dec.finish()
@@ -339,6 +341,8 @@ def test_streaming_equals_batch_bit_for_bit(name: str, seq: Sequence, dtype: typ
     assert batch.mask.mean() > 0.8, name
     for seed in (0, 1, 2):
         assert _same(_stream(seq, frames, seed, params), batch), (name, seed)
+        # frames kept by reference (a scan's buffer) instead of copied: the same maps
+        assert _same(_stream(seq, frames, seed, params, borrow=True), batch), (name, seed, "borrowed")
 
 
 def test_streaming_reset_and_errors() -> None:

@@ -17,7 +17,7 @@ from appliance.config.backends import SimCameraConfig
 from appliance.errors import ScanError
 from appliance.hardware.registry import build_rig
 from appliance.reconstruct.decode import decode
-from appliance.scan import Scanner, load_calibration_for, scan_once
+from appliance.scan import FrameMemory, Scanner, load_calibration_for, scan_once
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -47,6 +47,66 @@ def test_streaming_scan_equals_batch_decode() -> None:
     assert np.array_equal(batch.u, stream.u, equal_nan=True)
     assert np.array_equal(batch.quality, stream.quality, equal_nan=True)
     assert len(result.cloud) > 0.5 * result.maps["cam0"].mask.sum()
+
+
+def _rss_anon_kb() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("RssAnon:"):
+            return int(line.split()[1])
+    raise AssertionError("no RssAnon in /proc/self/status")
+
+
+def test_released_frames_read_zero_and_give_their_memory_back() -> None:
+    mem = FrameMemory((8, 1000, 1000), np.dtype(np.uint8))  # frames of 1e6 bytes: not page multiples
+    frames = mem.frames
+    assert frames.shape == (8, 1000, 1000) and frames.dtype == np.uint8 and frames.flags.writeable
+    before = _rss_anon_kb()
+    frames[...] = np.arange(8, dtype=np.uint8)[:, None, None] + 1
+    written = _rss_anon_kb()
+    assert written - before > 7000  # 8 MB touched
+    for i in range(0, 8, 2):
+        mem.release(i)
+    released = _rss_anon_kb()
+    assert written - released > 3500  # four frames' whole pages are back (at most 2 pages each stay)
+    for i in range(8):
+        inner = frames[i, 5:-5]  # away from the partial pages shared with the neighbours
+        assert (inner == (0 if i % 2 == 0 else i + 1)).all(), i
+    frames[2] = 200  # a released frame is written again like any other
+    assert (frames[2] == 200).all() and (frames[3] == 4).all()
+
+
+def test_the_service_scanner_keeps_no_frames_and_scans_the_same() -> None:
+    cfg = small_config()
+
+    async def run(keep: bool) -> tuple[object, list[int]]:
+        rig = build_rig(cfg)
+        scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig), keep_frames=keep)
+        try:
+            await scanner.warm_up()
+            result = await scanner.scan()
+            buf = scanner._buffers["cam0"]
+            lit = [int(i) for i in np.flatnonzero(buf.reshape(buf.shape[0], -1).max(axis=1) > 0)]
+            return result, lit
+        finally:
+            await scanner.close()
+
+    kept, lit_kept = asyncio.run(run(True))
+    lean, lit_lean = asyncio.run(run(False))
+    assert len(lit_kept) == len(kept.frames["cam0"])  # type: ignore[attr-defined]
+    assert lean.frames == {}  # type: ignore[attr-defined]
+    white = next(i for i, f in enumerate(small_scanner_frames(cfg)) if type(f).__name__ == "WhiteFrame")
+    assert lit_lean == [white]  # every frame but the white one (the points' intensity) was given back
+    a, b = kept.cloud, lean.cloud  # type: ignore[attr-defined]
+    assert len(a) == len(b) > 1000
+    np.testing.assert_array_equal(a.xyz, b.xyz)
+    np.testing.assert_array_equal(a.intensity, b.intensity)
+
+
+def small_scanner_frames(cfg: AppConfig) -> tuple[object, ...]:
+    from appliance.scan import build_sequence
+
+    proj = cfg.virtual_rig.projector
+    return tuple(build_sequence(cfg.sequence, proj.width, proj.height).frames)
 
 
 def test_dead_camera_fails_one_scan_and_the_next_succeeds(monkeypatch: pytest.MonkeyPatch) -> None:

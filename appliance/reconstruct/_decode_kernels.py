@@ -74,13 +74,14 @@ def _gray_to_binary(g):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _add_bit(d_row, bit, code, cst):  # type: ignore[no-untyped-def]
-    """Fold one Gray bit's signed contrast row ``d_row`` into code (uint32) and its contrast row (uint16)."""
+    """Fold one Gray bit's signed contrast row ``d_row`` into code (uint32) and its contrast row (uint16, or
+    uint8 when the caller knows every ``|d|`` is at most 255)."""
     on = np.uint32(1 << bit)
     off = np.uint32(0)
     for x in range(d_row.shape[0]):
         code[x] |= on if d_row[x] > 0 else off
-    for x in range(d_row.shape[0]):
-        cst[x] = np.uint16(min(abs(d_row[x]), 65535))
+    for x in range(d_row.shape[0]):  # uint16, or uint8 where every contrast fits (pairs of 8-bit frames)
+        cst[x] = min(abs(d_row[x]), 65535)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -189,7 +190,7 @@ def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2):  # type: ignore[no-
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _fold_cst(cst, bit, relg, keys, cf, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
-    """Streaming: a bit's stored contrasts (uint16) into the axis' gate state, as :func:`_fold_d` does."""
+    """Streaming: a bit's stored contrasts (uint8 or uint16) into the axis' gate state, as :func:`_fold_d` does."""
     for x in range(cst.shape[0]):
         cf[x] = np.float32(cst[x])
     _fold_weak(cf, bit, relg, weak, qa)
@@ -785,6 +786,24 @@ def stream_phase(img, sk, ck, ssum, csum):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def stream_phase_int(img, sk, ck, ssum, csum):  # type: ignore[no-untyped-def]
+    """Add one phase step (H, W) into int32 sums, with the coefficients as integers (multiples of the quantum).
+
+    Exact, like the float64 sums, where the caller checked that no sum can leave int32."""
+    h, w = img.shape
+    si = np.int32(sk)
+    ci = np.int32(ck)
+    for y in prange(h):
+        row = img[y]
+        ss = ssum[y]
+        cs = csum[y]
+        for x in range(w):
+            val = np.int32(row[x])
+            ss[x] += val * si
+            cs[x] += val * ci
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
     """Running per-pixel maximum / minimum (contrast range when there are no white/black frames)."""
     h, w = img.shape
@@ -799,10 +818,13 @@ def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_finish(  # type: ignore[no-untyped-def]
-    hi, lo, code, cst, gray_tab, ssum, csum, axis_tab, ph_tab, ph_period, rel, thr, finest, nthreads, u, v, mask,
-    quality, levels,
+    hi, lo, code, cst, gray_tab, ssum, csum, quantum, axis_tab, ph_tab, ph_period, rel, thr, finest, nthreads, u, v,
+    mask, quality, levels,
 ):  # fmt: skip
-    """Final step of streaming: state arrays (H, W) / (2, H, W) / (G, H, W) / (S, H, W) -> outputs."""
+    """Final step of streaming: state arrays (H, W) / (2, H, W) / (G, H, W) / (S, H, W) -> outputs.
+
+    ``ssum``/``csum`` are float64 sums, or int32 sums in units of ``quantum`` (1.0 for float64): each row is
+    scaled to float64 (exactly: a power of two) before the step shared with :func:`decode_stack`."""
     h, w = hi.shape
     nch = min(h, 8 * nthreads)
     for ch in prange(nch):
@@ -817,9 +839,15 @@ def stream_finish(  # type: ignore[no-untyped-def]
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
+        ss64 = np.empty((ssum.shape[0], w), np.float64)
+        cs64 = np.empty((ssum.shape[0], w), np.float64)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
             hr = hi[y]
             lr = lo[y]
+            for s in range(ssum.shape[0]):
+                for x in range(w):
+                    ss64[s, x] = np.float64(ssum[s, y, x]) * quantum
+                    cs64[s, x] = np.float64(csum[s, y, x]) * quantum
             for x in range(w):
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
@@ -829,7 +857,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
                 _fold_cst(cst[g, y], gray_tab[g, 1], scratch[8], axis_tab[a, 6] != 0, cf, weak[a], qg[a], m1[a],
                           m2[a])  # fmt: skip
             _finish_row(
-                lit, code[:, y, :], weak, qg, m1, m2, ssum[:, y, :], csum[:, y, :], axis_tab, ph_tab, ph_period,
+                lit, code[:, y, :], weak, qg, m1, m2, ss64, cs64, axis_tab, ph_tab, ph_period,
                 finest, u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[0, y], levels[1, y],
                 scratch,
                 fl, ok,

@@ -58,8 +58,10 @@ FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
 #: A coarser phase set unwraps a finer one only up to this period ratio (its phase error, scaled by the
 #: ratio, must stay well inside half the finer period).
 MAX_PERIOD_RATIO = 16.0
-#: Phase coefficients are quantised to this step so that sums of products are exact in float64.
-COEFFICIENT_QUANTUM = 2.0**-20
+#: Phase coefficients are quantised to this step so that sums of products are exact in float64 (in any order:
+#: streaming equals batch), and, for 8-bit frames and up to 128 steps a set, in int32 (the streaming decoder's
+#: sums then take half the memory). A coefficient moves by at most 2**-17 (a phase error below 1e-5 rad).
+COEFFICIENT_QUANTUM = 2.0**-16
 _AXES: tuple[Axis, Axis] = ("x", "y")
 #: Output blocks of decode() / StreamingDecoder.finish() without ``out`` (a few cameras' maps at once).
 _POOL = BufferPool(max_blocks=4)
@@ -436,6 +438,9 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
         "ph_idx": np.array(ph_idx, np.int64),
         "ph_sin": np.array(ph_sin, np.float64),
         "ph_cos": np.array(ph_cos, np.float64),
+        # the same coefficients in units of the quantum (exact integers)
+        "ph_sin_q": np.rint(np.array(ph_sin, np.float64) / COEFFICIENT_QUANTUM).astype(np.int64),
+        "ph_cos_q": np.rint(np.array(ph_cos, np.float64) / COEFFICIENT_QUANTUM).astype(np.int64),
         "used": np.array(used, np.int64),
         "mean_idx": np.array(plan.mean_frames, np.int64),
     }
@@ -684,6 +689,10 @@ class StreamingDecoder:
         ``np.uint8`` or ``np.uint16``.
     params : DecodeParams
         Thresholds (``max_value`` gives the significant bits of uint16 data).
+    borrow_frames : bool
+        The caller keeps every pushed frame unchanged until :meth:`finish` (a scan's frame buffer): the first
+        frame of a Gray pair, or a Gray frame waiting for its reference, is kept by reference instead of
+        copied, which saves one image per Gray bit (10 MB for 8 bits of 1280x1024).
     """
 
     def __init__(
@@ -692,6 +701,8 @@ class StreamingDecoder:
         shape: tuple[int, int],
         dtype: Any = np.uint8,
         params: DecodeParams = DecodeParams(),
+        *,
+        borrow_frames: bool = False,
     ) -> None:
         self.plan = _as_plan(sequence)
         self.params = params
@@ -708,10 +719,28 @@ class StreamingDecoder:
         self._hi = np.empty((h, w), self.dtype)
         self._lo = np.empty((h, w), self.dtype)
         self._code = np.empty((2, h, w), np.uint32)
-        self._cst = np.zeros((max(len(t["gray_tab"]), 1), h, w), np.uint16)
+        self._gray_axes = sorted({int(a) for a in t["gray_tab"][:, 0]})
+        # per-bit contrasts: |pos - neg| of 8-bit pairs fits uint8; a single frame against white and black
+        # (|2 f - w - b|, up to 510) or 16-bit data needs uint16
+        pairs_only = bool(np.all(t["gray_tab"][:, 2:] >= 0)) if len(t["gray_tab"]) else True
+        cst_dtype = np.uint8 if self.dtype == np.uint8 and pairs_only else np.uint16
+        self._cst = np.zeros((max(len(t["gray_tab"]), 1), h, w), cst_dtype)
         nset = len(self.plan.phase)
-        self._ssum = np.empty((max(nset, 1), h, w), np.float64)
-        self._csum = np.empty((max(nset, 1), h, w), np.float64)
+        # phase sums: int32 in units of the coefficient quantum where no sum can leave int32 (8-bit frames:
+        # the container's maximum, not the stated significant bits, bounds what a frame can hold), else float64;
+        # both exact, so the order of the pushes does not matter
+        top = float(self._maxval)
+        ph_set = np.repeat(np.arange(nset), [p.steps for p in self.plan.phase]).astype(np.int64)
+        bound = 0.0
+        for k in range(nset):
+            rows = ph_set == k
+            bound = max(bound, top * float(np.abs(t["ph_sin_q"][rows]).sum()),
+                        top * float(np.abs(t["ph_cos_q"][rows]).sum()))  # fmt: skip
+        self._int_sums = bound < 2.0**31 - 1
+        sum_dtype = np.int32 if self._int_sums else np.float64
+        self._quantum = COEFFICIENT_QUANTUM if self._int_sums else 1.0
+        self._ssum = np.empty((max(nset, 1), h, w), sum_dtype)
+        self._csum = np.empty((max(nset, 1), h, w), sum_dtype)
         self._mean = frozenset(self.plan.mean_frames) if self.plan.white < 0 else frozenset()
         self._msum = np.empty((h, w) if self._mean else (0, 0), np.int32)
         # role of each frame: ("white"|"black"|"pos"|"neg"|"single"|"phase"|"mean", row in its table)
@@ -719,21 +748,24 @@ class StreamingDecoder:
         if self.plan.white >= 0:
             self._role[self.plan.white] = ("white", 0)
             self._role[self.plan.black] = ("black", 0)
+        # the first-arrived frame of each Gray pair, or a single Gray frame waiting for its reference
+        self._borrow = borrow_frames
         self._pending: dict[int, npt.NDArray[Any]] = {}
+        self._pending_index: dict[int, int] = {}  # Gray row -> index of the frame held for it
         for g, (a, bit, pos, neg) in enumerate(t["gray_tab"].tolist()):
             del a, bit
             if pos >= 0 and neg >= 0:
                 self._role[pos] = ("pos", g)
                 self._role[neg] = ("neg", g)
-                self._pending[g] = np.empty((h, w), self.dtype)  # first-arrived frame of the pair
             else:
                 self._role[pos if pos >= 0 else neg] = ("single", g)
-                self._pending[g] = np.empty((h, w), self.dtype)  # waits for its reference
+            if not borrow_frames:
+                self._pending[g] = np.empty((h, w), self.dtype)
         for k, idx in enumerate(t["ph_idx"].tolist()):
             self._role[idx] = ("phase", k)
         for idx in self._mean:
             self._role.setdefault(idx, ("mean", 0))
-        self._ph_set = np.repeat(np.arange(nset), [p.steps for p in self.plan.phase]).astype(np.int64)
+        self._ph_set = ph_set
         self._pushed: set[int] = set()
         self._waiting: set[int] = set()  # gray rows with one frame stored in _pending
         self._levels_shape = (2, h, w)
@@ -741,15 +773,20 @@ class StreamingDecoder:
 
     def reset(self) -> None:
         """Forget the frames pushed so far; buffers are kept for the next scan."""
-        self._code.fill(0)  # the per-bit contrasts need no reset: every Gray row's push overwrites all of its row
-        self._ssum.fill(0.0)
-        self._csum.fill(0.0)
+        # the per-bit contrasts need no reset: every Gray row's push overwrites all of its row; an axis without
+        # Gray bits is never read, and left untouched its pages stay unmapped (5 MB a 1280x1024 camera)
+        for a in self._gray_axes:
+            self._code[a].fill(0)
+        self._ssum.fill(0)
+        self._csum.fill(0)
         self._msum.fill(0)
         if self.plan.white < 0:
             self._hi.fill(0)
             self._lo.fill(self._maxval)
         self._pushed.clear()
         self._waiting.clear()
+        if self._borrow:
+            self._pending.clear()
 
     def _reference_ready(self) -> bool:
         """Whether single Gray frames can be thresholded: white and black, or every mean frame, pushed."""
@@ -800,15 +837,18 @@ class StreamingDecoder:
             _k.stream_sum(img, self._msum)
         if kind == "phase":
             s = int(self._ph_set[row])
-            _k.stream_phase(
-                img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s]
-            )
+            if self._int_sums:
+                _k.stream_phase_int(img, int(t["ph_sin_q"][row]), int(t["ph_cos_q"][row]), self._ssum[s],
+                                    self._csum[s])  # fmt: skip
+            else:
+                _k.stream_phase(
+                    img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s]
+                )
         elif kind == "single":
             if self._reference_ready():
                 self._single(row, img)
             else:
-                np.copyto(self._pending[row], img)
-                self._waiting.add(row)
+                self._keep(row, img, index)
         elif kind in ("pos", "neg"):
             if row in self._waiting:
                 a, bit, _, _ = (int(x) for x in t["gray_tab"][row])
@@ -817,10 +857,26 @@ class StreamingDecoder:
                 _k.stream_pair(pos, neg, bit, self._code[a], self._cst[row])
                 self._waiting.discard(row)
             else:
-                np.copyto(self._pending[row], img)
-                self._waiting.add(row)
+                self._keep(row, img, index)
         if index in self._mean:
             self._flush_singles()
+
+    def _keep(self, row: int, img: npt.NDArray[Any], index: int) -> None:
+        """Hold Gray row ``row``'s frame until its partner (or reference) arrives: a reference or a copy."""
+        if self._borrow:
+            self._pending[row] = img
+        else:
+            np.copyto(self._pending[row], img)
+        self._pending_index[row] = index
+        self._waiting.add(row)
+
+    @property
+    def borrowed(self) -> frozenset[int]:
+        """Indices of the pushed frames this decoder still reads from the caller's memory (``borrow_frames``);
+        every other pushed frame may be overwritten or released."""
+        if not self._borrow:
+            return frozenset()
+        return frozenset(self._pending_index[r] for r in self._waiting)
 
     def _flush_singles(self) -> None:
         if not self._reference_ready():
@@ -868,7 +924,8 @@ class StreamingDecoder:
         hist = _k.range_hist(self._hi, self._lo, shift, nbins)
         thr = lit_threshold(hist, self.dtype, self.params)
         _k.stream_finish(
-            self._hi, self._lo, self._code, self._cst, t["gray_tab"], self._ssum, self._csum, t["axis_tab"],
+            self._hi, self._lo, self._code, self._cst, t["gray_tab"], self._ssum, self._csum, self._quantum,
+            t["axis_tab"],
             t["ph_tab"], t["ph_period"], float(self.params.relative_contrast), float(thr),
             bool(self.params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
             out.levels,

@@ -351,7 +351,7 @@ class Service:
         calibration = load_calibration_for(cfg, rig)
         watched = {n: WatchedCamera(c, self.hardware.on_camera_captured) for n, c in rig.cameras.items()}
         rig.cameras = dict(watched)
-        return rig, Scanner(cfg, rig, calibration), watched
+        return rig, Scanner(cfg, rig, calibration, keep_frames=False), watched
 
     # --- configuration ---------------------------------------------------------------------------
 

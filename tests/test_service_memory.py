@@ -1,0 +1,99 @@
+"""Resident memory of ``scan3d run`` on the virtual rig: the reference configuration (one 1280x1024 camera)
+and a two-camera rig, each through 10 scans triggered one after the other, peak (``VmHWM``) within the
+service's budget (400 / 600 MB).
+
+A first start loads (or, on a clean clone, compiles) the kernels into the cache, so that the measured start
+loads them as an appliance does after its first boot: compiling holds memory a loaded kernel does not.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from appliance.service.control import request
+
+REPO = Path(__file__).resolve().parents[1]
+
+SECOND_CAMERA = {
+    "width": 1280, "height": 1024, "focal_px": 2400.0, "dist": [-0.08, 0.12, 0.0005, -0.0003, 0.0],
+    "position_mm": [-190.0, 0.0, 0.0], "look_at_mm": [0.0, 0.0, 600.0],
+}  # fmt: skip
+
+
+def _config(tmp: Path, cameras: int) -> Path:
+    """``config/appliance.yaml`` with its files under ``tmp``, mDNS off; ``cameras`` = 2 adds ``cam1``."""
+    doc: dict[str, Any] = yaml.safe_load((REPO / "config" / "appliance.yaml").read_text())
+    doc["output"].update(directory=str(tmp / "share"), spool_directory=str(tmp / "spool"), min_free_mb=0)
+    doc["service"].update(control_socket=str(tmp / "ctl.sock"), state_directory=str(tmp / "state"),
+                          mdns={"enabled": False})  # fmt: skip
+    if cameras == 2:
+        from appliance.config.schema import VirtualRigConfig
+
+        cam0 = VirtualRigConfig().cameras["cam0"].model_dump(mode="json")
+        doc["cameras"]["cam1"] = {"type": "sim"}
+        doc["virtual_rig"]["cameras"] = {"cam0": cam0, "cam1": SECOND_CAMERA}
+    (tmp / "share").mkdir(parents=True, exist_ok=True)
+    path = tmp / "appliance.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def _status_mb(pid: int, key: str) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no {key} in /proc/{pid}/status")
+
+
+def _run(config: Path, scans: int) -> tuple[float, float, float]:
+    """``scan3d run`` with ``scans`` scans triggered one after the other; (RSS at ready, RSS after, peak) MB."""
+    sock = config.parent / "ctl.sock"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "appliance", "run", "--config", str(config)], cwd=REPO,
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            assert proc.poll() is None, f"scan3d run ended: {proc.stderr.read() if proc.stderr else ''}"
+            try:
+                st = request(sock, {"cmd": "status"}, 5).get("status", {})
+                if st.get("state") == "idle" and st.get("phase") == "ready":
+                    break
+            except Exception:  # not listening yet
+                pass
+            assert time.monotonic() < deadline, "scan3d run not ready within 180 s"
+            time.sleep(0.2)
+        ready = _status_mb(proc.pid, "VmRSS")
+        for i in range(scans):
+            reply = request(sock, {"cmd": "trigger", "wait": True}, 120)
+            assert reply.get("ok"), (i, reply)
+        return ready, _status_mb(proc.pid, "VmRSS"), _status_mb(proc.pid, "VmHWM")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("cameras", "budget_mb"), [(1, 400.0), (2, 600.0)])
+def test_scan3d_run_peak_memory_within_budget(
+    tmp_path: Path, cameras: int, budget_mb: float, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _run(_config(tmp_path / "warm", cameras), 1)  # the kernel cache, as after an appliance's first boot
+    ready, after, peak = _run(_config(tmp_path / "measured", cameras), 10)
+    with capsys.disabled():
+        print(f"\nscan3d run, {cameras} camera(s): {ready:.0f} MB at ready, {after:.0f} MB after 10 scans, "
+              f"peak {peak:.0f} MB (budget {budget_mb:.0f})")  # fmt: skip
+    assert peak <= budget_mb, f"peak resident memory {peak:.0f} MB over the {budget_mb:.0f} MB budget"
