@@ -94,7 +94,8 @@ def test_page_follows_the_service_live(tmp_path: Path) -> None:
                 await asyncio.to_thread(save, good.replace("busy_policy: refuse", "busy_policy: maybe"))
                 await until(f"!{el}('rejected').hidden && {el}('rejected').textContent.includes('busy_policy')", 5)
                 assert "REJECTED" in await browser.evaluate(f"{el}('rejected').textContent")
-                assert "validate-config" in await browser.evaluate(f"{el}('advice').textContent")
+                # the error and its advice arrive in the same state event, but may be drawn a moment later
+                await until(f"{el}('advice').textContent.includes('validate-config')", 5)
                 assert "config" in await browser.evaluate(f"{el}('error').textContent")
                 await asyncio.to_thread(save, good)  # put right: the rejection goes away
                 try:

@@ -168,7 +168,6 @@ class FrameRenderer:
         self._ambient = np.ascontiguousarray(ambient, dtype=np.float32).ravel()
         self._tables: dict[tuple[str, float], tuple[F32, F32]] = {}
         self._clean = np.empty((h, w), dtype=np.float32)
-        self._blurred = np.empty((h, w), dtype=np.float32)
         self._lock = threading.Lock()
         self.dtype: type[np.uint8] | type[np.uint16] = np.uint8 if imaging.bit_depth == 8 else np.uint16
         self._scale = float(2 ** (imaging.bit_depth - 8))
@@ -217,9 +216,10 @@ class FrameRenderer:
         with self._lock:
             src = self._clean_into(frame)
             if im.camera_blur_px > 0:
-                cv2.GaussianBlur(src, (0, 0), im.camera_blur_px, dst=self._blurred,
+                # in place: OpenCV's separable filter buffers its own rows (the same values as into another
+                # image, without a second 5 MB float32 image per camera)
+                cv2.GaussianBlur(src, (0, 0), im.camera_blur_px, dst=src,
                                  sigmaY=im.camera_blur_px, borderType=cv2.BORDER_REPLICATE)
-                src = self._blurred
             shot = 1.0 / im.electrons_per_dn if im.shot_noise else 0.0
             with _k.KERNEL_LOCK:
                 _k.add_noise_quantise(src.ravel(), key, im.read_noise_dn**2, shot, self._scale, self._full,
