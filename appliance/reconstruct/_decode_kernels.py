@@ -773,34 +773,17 @@ def stream_sum(img, msum):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_phase(img, sk, ck, ssum, csum):  # type: ignore[no-untyped-def]
-    """Add one phase step (H, W) into the set's sums (exact: quantised coefficients)."""
+    """Add one phase step (H, W) into the set's sums, exactly: float64 sums with the quantised coefficients as
+    floats, or int32 sums with them as integers in units of the quantum (the caller checked that no sum can
+    leave int32; the product is formed in 64 bits)."""
     h, w = img.shape
     for y in prange(h):
         row = img[y]
         ss = ssum[y]
         cs = csum[y]
         for x in range(w):
-            val = np.float64(row[x])
-            ss[x] += val * sk
-            cs[x] += val * ck
-
-
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def stream_phase_int(img, sk, ck, ssum, csum):  # type: ignore[no-untyped-def]
-    """Add one phase step (H, W) into int32 sums, with the coefficients as integers (multiples of the quantum).
-
-    Exact, like the float64 sums, where the caller checked that no sum can leave int32."""
-    h, w = img.shape
-    si = np.int32(sk)
-    ci = np.int32(ck)
-    for y in prange(h):
-        row = img[y]
-        ss = ssum[y]
-        cs = csum[y]
-        for x in range(w):
-            val = np.int32(row[x])
-            ss[x] += val * si
-            cs[x] += val * ci
+            ss[x] += row[x] * sk
+            cs[x] += row[x] * ck
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")

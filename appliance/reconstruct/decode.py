@@ -838,12 +838,11 @@ class StreamingDecoder:
         if kind == "phase":
             s = int(self._ph_set[row])
             if self._int_sums:
-                _k.stream_phase_int(img, int(t["ph_sin_q"][row]), int(t["ph_cos_q"][row]), self._ssum[s],
-                                    self._csum[s])  # fmt: skip
+                sk, ck = int(t["ph_sin_q"][row]), int(t["ph_cos_q"][row])
+                _k.stream_phase(img, sk, ck, self._ssum[s], self._csum[s])
             else:
-                _k.stream_phase(
-                    img, float(t["ph_sin"][row]), float(t["ph_cos"][row]), self._ssum[s], self._csum[s]
-                )
+                fs, fc = float(t["ph_sin"][row]), float(t["ph_cos"][row])
+                _k.stream_phase(img, fs, fc, self._ssum[s], self._csum[s])
         elif kind == "single":
             if self._reference_ready():
                 self._single(row, img)
