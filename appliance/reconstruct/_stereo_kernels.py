@@ -57,46 +57,40 @@ def _bilinear_within(src, ix, iy, tx, ty, max_spread):  # type: ignore[no-untype
     return a + ty * (b - a)
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _source_cell(srcmap, mask, y, x):  # type: ignore[no-untyped-def]
+    """Rectified pixel (y, x) -> (inside, ix, iy, tx, ty): its source cell, whose 4 corners are all decoded."""
+    h, w = mask.shape[0], mask.shape[1]
+    sx = np.float64(srcmap[y, x, 0])
+    sy = np.float64(srcmap[y, x, 1])
+    if not (sx >= 0.0 and sy >= 0.0 and sx < w - 1 and sy < h - 1):
+        return False, 0, 0, 0.0, 0.0
+    ix = int(sx)
+    iy = int(sy)
+    ok = mask[iy, ix] and mask[iy, ix + 1] and mask[iy + 1, ix] and mask[iy + 1, ix + 1]
+    return ok, ix, iy, sx - ix, sy - iy
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-def]
     """Bilinear resampling of a code map; NaN unless all 4 neighbours are valid and within ``max_spread``."""
-    h, w = src.shape[0], src.shape[1]
     hr, wr = out.shape[0], out.shape[1]
     for y in prange(hr):
         for x in range(wr):
-            sx = np.float64(srcmap[y, x, 0])
-            sy = np.float64(srcmap[y, x, 1])
-            val = _NAN
-            if sx >= 0.0 and sy >= 0.0 and sx < w - 1 and sy < h - 1:
-                ix = int(sx)
-                iy = int(sy)
-                if mask[iy, ix] and mask[iy, ix + 1] and mask[iy + 1, ix] and mask[iy + 1, ix + 1]:
-                    val = _bilinear_within(src, ix, iy, sx - ix, sy - iy, max_spread)
-            out[y, x] = val
+            ok, ix, iy, tx, ty = _source_cell(srcmap, mask, y, x)
+            out[y, x] = _bilinear_within(src, ix, iy, tx, ty, max_spread) if ok else _NAN
     return out
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def remap_pair(src_a, src_b, mask, srcmap, spread_a, spread_b, out_a, out_b):  # type: ignore[no-untyped-def]
     """:func:`remap_codes` of two code maps of one camera (u and v) in one pass: the same values."""
-    h, w = src_a.shape[0], src_a.shape[1]
     hr, wr = out_a.shape[0], out_a.shape[1]
     for y in prange(hr):
         for x in range(wr):
-            sx = np.float64(srcmap[y, x, 0])
-            sy = np.float64(srcmap[y, x, 1])
-            va = _NAN
-            vb = _NAN
-            if sx >= 0.0 and sy >= 0.0 and sx < w - 1 and sy < h - 1:
-                ix = int(sx)
-                iy = int(sy)
-                if mask[iy, ix] and mask[iy, ix + 1] and mask[iy + 1, ix] and mask[iy + 1, ix + 1]:
-                    tx = sx - ix
-                    ty = sy - iy
-                    va = _bilinear_within(src_a, ix, iy, tx, ty, spread_a)
-                    vb = _bilinear_within(src_b, ix, iy, tx, ty, spread_b)
-            out_a[y, x] = va
-            out_b[y, x] = vb
+            ok, ix, iy, tx, ty = _source_cell(srcmap, mask, y, x)
+            out_a[y, x] = _bilinear_within(src_a, ix, iy, tx, ty, spread_a) if ok else _NAN
+            out_b[y, x] = _bilinear_within(src_b, ix, iy, tx, ty, spread_b) if ok else _NAN
     return out_a
 
 
