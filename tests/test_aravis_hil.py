@@ -426,6 +426,27 @@ def _capture_via_fake_gige(
     *,
     frame_timeout_ms: float = 5000.0,
 ) -> dict[str, npt.NDArray[Any]]:
+    """:func:`_capture_once`, and once more, with new fakes, when a fake's frame 0 never arrives.
+
+    Open: under a CPU hog, about 1 capture in 10-30 with two fakes at once loses frame 0. The fake counts it
+    as served, Aravis' stream never completes it, and that fake then sends nothing more. This is not seen on
+    an idle machine (0 in 12), nor with a later frame. Each capture is checked as before.
+    """
+    try:
+        return _capture_once(frames_per_camera, base_address, frame_timeout_ms=frame_timeout_ms)
+    except aravis_backend.FrameLostError as exc:
+        if exc.frame_index != 0:
+            raise
+        print(f"\nfake GigE capture: frame 0 never arrived ({exc}); once more with new fakes", flush=True)
+        return _capture_once(frames_per_camera, base_address, frame_timeout_ms=frame_timeout_ms)
+
+
+def _capture_once(
+    frames_per_camera: dict[str, npt.NDArray[Any]],
+    base_address: str,
+    *,
+    frame_timeout_ms: float,
+) -> dict[str, npt.NDArray[Any]]:
     """Send each camera's frames through a fake GigE Vision camera and capture them with the aravis backend.
 
     The frame timeout is generous (5 s): these tests check what arrives, not how fast; a loaded CI machine
