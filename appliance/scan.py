@@ -175,7 +175,6 @@ class Scanner:
             if name not in self._buffers or self._buffers[name].shape != (n, *shape) or self._bits.get(name) != bits:
                 if self.keep_frames:
                     buf: FrameArray = np.zeros((n, *shape), dtype)  # type: ignore[assignment]
-                    self._releasable.pop(name, None)
                 else:
                     mem = FrameMemory((n, *shape), np.dtype(dtype))
                     self._releasable[name] = mem
