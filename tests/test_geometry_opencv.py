@@ -206,3 +206,22 @@ def test_a_tenth_of_a_pixel_is_caught(monkeypatch: pytest.MonkeyPatch) -> None:
     bad_dist[0] *= 1.001  # k1 off by 0.1 %
     wrong = CameraModel("cam", model.K, bad_dist, model.width, model.height, model.R, model.T)
     assert undistort_error_px(model, xyz, wrong.undistort_pixels) > UNDISTORT_TOL_PX
+
+
+def test_undistort_inverts_the_model_where_it_can_and_is_nan_where_it_folds() -> None:
+    """Strong barrel distortion (k1 = -0.6) folds over beyond r ~ 0.75: pixels the model reaches come back to
+    1e-12 through the forward model; pixels past the fold (no undistorted point maps there) are NaN, not a
+    wrong point."""
+    cam = CameraModel("c", np.array([[800.0, 0, 640], [0, 800, 512], [0, 0, 1]]), np.array([-0.6, 0, 0, 0, 0]),
+                      1280, 1024)  # fmt: skip
+    rng = np.random.default_rng(3)
+    ang, rad = rng.uniform(0, 2 * np.pi, 5000), 0.7 * np.sqrt(rng.uniform(0, 1, 5000))  # inside the fold
+    und = np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
+    xd, yd = cam.distort_normalized(und[:, 0], und[:, 1])
+    px = np.stack([800 * xd + 640, 800 * yd + 512], axis=1)
+    back = cam.undistort_pixels(px)
+    np.testing.assert_allclose(back, und, atol=1e-11)
+    # the largest distorted radius the model reaches: r_d(r) = r (1 - 0.6 r^2) peaks at r = 1 / sqrt(1.8)
+    r_max = (1 / np.sqrt(1.8)) * (1 - 0.6 / 1.8)
+    far = np.array([[640 + 800 * (r_max + 0.05), 512.0], [640.0, 512 - 800 * (r_max + 0.1)]])
+    assert np.isnan(cam.undistort_pixels(far)).all()

@@ -107,8 +107,10 @@ def _run(config: Path, scans: int) -> dict[str, float]:
         for i in range(scans):
             reply = request(sock, {"cmd": "trigger", "wait": True}, 120)
             assert reply.get("ok"), (i, reply)
+        maps = Path(f"/proc/{proc.pid}/maps").read_text()
         return {"ready": ready, "after": _status_mb(proc.pid, "VmRSS"), "peak": _status_mb(proc.pid, "VmHWM"),
-                "file": _status_mb(proc.pid, "RssFile"), "anon_peak": sampler.stop()}  # fmt: skip
+                "file": _status_mb(proc.pid, "RssFile"), "anon_peak": sampler.stop(),
+                "opencv": float("/cv2/" in maps or "opencv_python" in maps)}  # fmt: skip
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -129,6 +131,7 @@ def test_scan3d_run_peak_memory_within_budget(
         print(f"\nscan3d run, {cameras} camera(s): {m['ready']:.0f} MB at ready, {m['after']:.0f} MB after 10 "
               f"scans, peak {m['peak']:.0f} MB (budget {budget_mb:.0f}); of it file-backed {m['file']:.0f} MB, "
               f"anonymous peak {m['anon_peak']:.0f} MB")  # fmt: skip
+    assert not m["opencv"], "scan3d run on the virtual rig loaded OpenCV (60 MB of code it does not need)"
     own = m["anon_peak"] + CODE_PAGES_MB
     assert own <= budget_mb, (
         f"anonymous peak {m['anon_peak']:.0f} MB + {CODE_PAGES_MB:.0f} MB of code pages over the "

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from appliance.output.font import CAP_H, draw_text, text_size
 from appliance.reconstruct.types import PointCloud
 
 PERCENTILE_SAMPLES = 100_000
@@ -15,6 +17,14 @@ CHUNK_POINTS = 131_072
 """Points (and preview rows, times 1/8) handled at a time: the preview's temporaries stay a few MB."""
 NO_POINT_BGR = (40, 40, 40)
 """Colour of pixels without a point."""
+MIN_COVERAGE = 0.5
+"""A scaled-down pixel holds a depth when at least this fraction of the area it covers has one."""
+
+_COLOUR_ANCHORS = (
+    (0.00, (30, 15, 90)), (0.12, (45, 70, 210)), (0.30, (20, 195, 225)), (0.45, (60, 215, 75)),
+    (0.60, (225, 225, 40)), (0.74, (250, 150, 25)), (0.87, (215, 45, 20)), (1.00, (125, 10, 10)),
+)  # fmt: skip
+"""Colour map anchors: (position in [0, 1], RGB), far (dark blue) to near (dark red), linear in between."""
 
 
 def depth_image(cloud: PointCloud, camera: int, shape: tuple[int, int]) -> npt.NDArray[np.float32]:
@@ -37,6 +47,79 @@ def depth_image(cloud: PointCloud, camera: int, shape: tuple[int, int]) -> npt.N
     return img
 
 
+@functools.cache
+def depth_lut() -> npt.NDArray[np.uint8]:
+    """The preview's colour map: 256 BGR colours, index 0 far (dark blue) to 255 near (dark red).
+
+    Returns
+    -------
+    ndarray, shape (256, 3), uint8
+        Read-only; interpolated linearly between the anchors of ``_COLOUR_ANCHORS``.
+    """
+    pos = np.array([p for p, _ in _COLOUR_ANCHORS])
+    rgb = np.array([c for _, c in _COLOUR_ANCHORS], np.float64)
+    t = np.arange(256) / 255.0
+    lut = np.rint(np.stack([np.interp(t, pos, rgb[:, ch]) for ch in (2, 1, 0)], axis=1)).astype(np.uint8)
+    lut.flags.writeable = False
+    return lut
+
+
+def downscale_depth(depth: npt.NDArray[np.float32], shape: tuple[int, int]) -> npt.NDArray[np.float32]:
+    """Scale a depth map down by area averaging, ignoring empty pixels.
+
+    Output pixel (i, j) covers the source rectangle ``[i * H / h, (i + 1) * H / h) x [j * W / w, (j + 1) * W / w)``;
+    each source pixel counts with the exact area it shares with it. The result is the weighted mean of the
+    finite depths there, or NaN when they cover less than :data:`MIN_COVERAGE` of the rectangle. Worked a block
+    of rows at a time (float64 sums for the block only).
+
+    Parameters
+    ----------
+    depth : ndarray, shape (H, W), float32
+        Depth (mm), NaN where empty.
+    shape : (int, int)
+        ``(h, w)`` of the result (px), ``1 <= h <= H``, ``1 <= w <= W``.
+
+    Returns
+    -------
+    ndarray, shape (h, w), float32
+        Depth (mm), NaN where empty.
+    """
+    if not isinstance(depth, np.ndarray) or depth.dtype != np.float32 or depth.ndim != 2:
+        got = f"{depth.dtype} {depth.shape}" if isinstance(depth, np.ndarray) else type(depth).__name__
+        raise ValueError(f"depth = {got}: must be a 2-D float32 array")
+    big_h, big_w = depth.shape
+    h, w = shape
+    if not (1 <= h <= big_h and 1 <= w <= big_w):
+        raise ValueError(f"shape = {shape}: must be (h, w) with 1 <= h <= {big_h} and 1 <= w <= {big_w}")
+    col_idx, col_wt = _area_taps(big_w, w)
+    row_idx, row_wt = _area_taps(big_h, h)
+    min_area = MIN_COVERAGE * (big_h / h) * (big_w / w)
+    out = np.empty((h, w), np.float32)
+    step = max(1, CHUNK_POINTS * h // (big_h * big_w))  # output rows per block (about CHUNK_POINTS source px)
+    for o0 in range(0, h, step):
+        o1 = min(o0 + step, h)
+        n = o1 - o0
+        s0, s1 = int(row_idx[:, o0:o1].min()), int(row_idx[:, o0:o1].max()) + 1
+        src = depth[s0:s1]
+        finite = np.isfinite(src)
+        vals = np.where(finite, src, np.float32(0))
+        # across the rows (whole rows: cheap copies), then along them: sums of depth and of finite area
+        col_sum, col_area, tmp = np.zeros((n, big_w)), np.zeros((n, big_w)), np.empty((n, big_w))
+        for idx, wt in zip(row_idx[:, o0:o1] - s0, row_wt[:, o0:o1, None], strict=True):
+            col_sum += np.multiply(vals[idx], wt, out=tmp)
+            col_area += np.multiply(finite[idx], wt, out=tmp)
+        total, area, tmp = np.zeros((n, w)), np.zeros((n, w)), np.empty((n, w))
+        for idx, wt in zip(col_idx, col_wt, strict=True):
+            total += np.multiply(np.take(col_sum, idx, axis=1), wt, out=tmp)
+            area += np.multiply(np.take(col_area, idx, axis=1), wt, out=tmp)
+        empty = area < min_area
+        area[empty] = 1.0
+        total /= area
+        total[empty] = np.nan
+        out[o0:o1] = total
+    return out
+
+
 def render_preview(
     depths: list[npt.NDArray[np.float32]], title: str = "", max_width_px: int = 1280
 ) -> npt.NDArray[np.uint8]:
@@ -47,52 +130,65 @@ def render_preview(
     depths : list of ndarray, shape (H, W), float32
         Depth maps (mm), NaN where empty.
     title : str
-        Text drawn at the top left.
+        Text drawn at the top left, white on black (:mod:`appliance.output.font` at twice its size).
     max_width_px : int
-        The picture is scaled down to at most this width (px).
-    """
-    import cv2
+        The tiles are scaled down (:func:`downscale_depth`) so that they and the 4-px gaps between them are
+        at most this wide (px), at least 1 px a tile; the scale bar adds 94 px beside them. One camera up to
+        this width is drawn at full size (no resampling).
 
+    Returns
+    -------
+    ndarray, shape (H', W', 3), uint8
+        The picture: tiles (near = warm, :data:`NO_POINT_BGR` where empty) on black, 4 px apart, then the
+        scale bar on white.
+    """
     lo, hi = _colour_range(depths)
-    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, :]
+    lut = depth_lut()
     gap, margin = 4, 90
-    full_w = sum(d.shape[1] for d in depths) + gap * (len(depths) - 1)
-    scale = min(1.0, max_width_px / full_w)
-    # tiles are coloured straight into the canvas (at full size) or one at a time, then scaled into it
+    room = max_width_px - gap * (len(depths) - 1)  # for the tiles: less the gaps between them
+    scale = min(1.0, max(1, room) / sum(d.shape[1] for d in depths))
     sizes = [(d.shape[1], d.shape[0]) if scale == 1.0 else
-             (max(1, round(d.shape[1] * scale)), max(1, round(d.shape[0] * scale))) for d in depths]  # fmt: skip
+             (max(1, int(d.shape[1] * scale)), max(1, round(d.shape[0] * scale))) for d in depths]  # fmt: skip
     h = max(sz[1] for sz in sizes)
     w = sum(sz[0] for sz in sizes) + gap * (len(depths) - 1)
     canvas = np.full((h, w + gap + margin, 3), 255, np.uint8)
     canvas[:, : w + gap] = 0
     x = 0
     for d, (sw, sh) in zip(depths, sizes, strict=True):
-        if scale == 1.0:
-            _colour_into(d, lo, hi, lut, canvas[:sh, x : x + sw])
-        else:
-            tile = np.empty((*d.shape, 3), np.uint8)
-            _colour_into(d, lo, hi, lut, tile)
-            canvas[:sh, x : x + sw] = cv2.resize(tile, (sw, sh), interpolation=cv2.INTER_AREA)
-            del tile
+        small = d if (sh, sw) == d.shape else downscale_depth(d, (sh, sw))
+        _colour_into(small, lo, hi, lut, canvas[:sh, x : x + sw])
+        del small
         x += sw + gap
+    black, white = (0, 0, 0), (255, 255, 255)
     bar_h, bar_w = int(h * 0.8), 24
-    ramp = np.linspace(255, 0, bar_h).astype(np.uint8)[:, None].repeat(bar_w, axis=1)
-    bar = cv2.applyColorMap(ramp, cv2.COLORMAP_TURBO)  # same mapping as the tiles: near = warm
     y0 = (h - bar_h) // 2
     x0 = w + gap + 8
-    canvas[y0 : y0 + bar_h, x0 : x0 + bar_w] = bar
-    font = cv2.FONT_HERSHEY_SIMPLEX
+    ramp = np.linspace(255, 0, bar_h).astype(np.uint8)  # same mapping as the tiles: near (top) = warm
+    canvas[y0 : y0 + bar_h, x0 : x0 + bar_w] = lut[ramp][:, None, :]
     for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
         y = y0 + int(frac * (bar_h - 1))
-        val = lo + frac * (hi - lo)
-        cv2.line(canvas, (x0 + bar_w, y), (x0 + bar_w + 4, y), (0, 0, 0), 1)
-        cv2.putText(canvas, f"{val:.0f}", (x0 + bar_w + 6, y + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(canvas, "z mm", (x0, max(12, y0 - 6)), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        if 0 <= y < h:
+            canvas[y, x0 + bar_w : x0 + bar_w + 5] = black
+        draw_text(canvas, f"{lo + frac * (hi - lo):.0f}", x0 + bar_w + 7, y - CAP_H // 2, black)
+    draw_text(canvas, "z mm", x0, max(1, y0 - 4 - CAP_H), black)
     if title:
-        (tw, th), base = cv2.getTextSize(title, font, 0.55, 1)
-        cv2.rectangle(canvas, (4, 20 - th - 4), (12 + tw, 20 + base + 2), (0, 0, 0), -1)  # legible on any colour
-        cv2.putText(canvas, title, (8, 20), font, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+        tw, th = text_size(title, 2)
+        canvas[4 : 8 + th + 2, 4 : 8 + tw + 4] = black  # legible on any colour
+        draw_text(canvas, title, 8, 8, white, 2)
     return canvas
+
+
+def _area_taps(n_in: int, n_out: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.float64]]:
+    """Source indices and overlaps (px) of each output pixel of an area scaling ``n_in`` -> ``n_out``, both
+    (K, n_out): output pixel j covers ``[j * n_in / n_out, (j + 1) * n_in / n_out)``; unused taps weigh 0."""
+    j = np.arange(n_out + 1)
+    edge = j * n_in / n_out  # exact at whole pixels (integer product, one division)
+    a, b = edge[:-1], edge[1:]
+    first = np.floor(a).astype(np.intp)
+    last = np.minimum(np.ceil(b).astype(np.intp), n_in) - 1
+    idx = first + np.arange(int((last - first).max()) + 1)[:, None]
+    weight = np.clip(np.minimum(b, idx + 1) - np.maximum(a, idx), 0.0, None)
+    return np.minimum(idx, n_in - 1), weight
 
 
 def _colour_into(

@@ -16,6 +16,7 @@ from typing import BinaryIO
 
 from appliance.output.atomic import write_atomic
 from appliance.output.ply import PackedRecords, ply_bytes_header, vertex_dtype
+from appliance.output.png import encode_png
 from appliance.output.preview import depth_image, render_preview
 from appliance.output.sidecar import ScanMetadata
 from appliance.reconstruct.types import PointCloud
@@ -104,8 +105,6 @@ def scan_file_contents(
         ``<scan-id>.ply``, ``<scan-id>.png`` (optional) and ``<scan-id>.json``, in that order. The PLY's
         records are packed from the cloud a chunk at a time while written, never as one full copy.
     """
-    import cv2
-
     sid = meta.scan_id
     camera_field = bool(len(cloud)) and bool((cloud.camera != cloud.camera[0]).any())
     dtype = vertex_dtype(cloud, camera_field=camera_field, normals=normals)
@@ -114,10 +113,7 @@ def scan_file_contents(
     meta.files = {"cloud": f"{sid}.ply", "sidecar": f"{sid}.json"}
     if preview:
         depths = [depth_image(cloud, i, s) for i, s in enumerate(shapes)]
-        ok, buf = cv2.imencode(".png", render_preview(depths, sid))
-        if not ok:  # pragma: no cover - cv2 encodes any uint8 BGR image
-            raise RuntimeError("PNG encoding failed")
-        out.append(FileContent(f"{sid}.png", (buf.tobytes(),)))
+        out.append(FileContent(f"{sid}.png", (encode_png(render_preview(depths, sid)),)))
         meta.files["preview"] = f"{sid}.png"
     out.append(FileContent(f"{sid}.json", (meta.to_json().encode(),)))
     return out

@@ -22,9 +22,10 @@ import math
 import threading
 
 import numpy as np
+from numba import get_thread_id as numba_thread_id  # type: ignore[attr-defined]
 from numba import njit, prange
 
-import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+import appliance._numba_cache as _numba_cache  # the cache folder, before any kernel is defined
 
 KERNEL_LOCK = threading.Lock()
 """Held around the parallel kernels: numba's fallback 'workqueue' threading layer aborts the process when
@@ -608,3 +609,79 @@ def project_points(xyz: np.ndarray, R: np.ndarray, T: np.ndarray, K: np.ndarray,
         yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
         uv[i, 0] = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
         uv[i, 1] = K[1, 1] * yd + K[1, 2]
+
+
+
+BLUR_RADIUS = 4
+"""Taps either side of the blur kernels (a compile-time constant, so the tap loop unrolls and the pixel loop
+vectorises); a wider Gaussian is applied as several narrower ones (their variances add)."""
+
+
+def gaussian_passes(sigma: float) -> tuple[int, np.ndarray]:
+    """``(n, w)``: the Gaussian of ``sigma`` (px) as ``n`` passes of one of ``sigma / sqrt(n)`` whose radius
+    ``round(4 sigma / sqrt(n))`` fits :data:`BLUR_RADIUS`; ``w`` its weights, shape (2 BLUR_RADIUS + 1,),
+    float32, normalised, zero beyond that radius."""
+    n = max(1, math.ceil((4.0 * sigma / (BLUR_RADIUS + 0.5)) ** 2))
+    s = sigma / math.sqrt(n)
+    r = max(1, min(BLUR_RADIUS, round(4.0 * s)))
+    x = np.arange(-BLUR_RADIUS, BLUR_RADIUS + 1, dtype=np.float64)
+    w = np.where(np.abs(x) <= r, np.exp(-0.5 * (x / s) ** 2), 0.0)
+    return n, (w / w.sum()).astype(np.float32)
+
+
+def blur_scratch(height: int, width: int) -> np.ndarray:
+    """Scratch rows for :func:`gaussian_blur_inplace` of an (H, W) image: one per thread for the horizontal
+    pass, then the vertical pass's ring of ``2 BLUR_RADIUS + 1`` rows; float32."""
+    rows = max(int(_numba_cache.config.NUMBA_NUM_THREADS), 2 * BLUR_RADIUS + 1)
+    return np.empty((rows, width + 2 * BLUR_RADIUS), np.float32)
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def gaussian_blur_inplace(img: np.ndarray, w: np.ndarray, scratch: np.ndarray) -> None:
+    """One pass of a separable blur of ``img`` (H, W, float32, C order) in place, borders replicated.
+
+    ``w`` (2 :data:`BLUR_RADIUS` + 1,) symmetric weights (:func:`gaussian_passes`), ``scratch``
+    :func:`blur_scratch`. Rows are blurred in parallel (each through its thread's padded copy), columns in
+    one pass down the image that keeps the original rows it still needs in a ring.
+    """
+    h, wd = img.shape
+    rad = BLUR_RADIUS
+    for y in prange(h):
+        buf = scratch[numba_thread_id()]
+        for x in range(wd):
+            buf[x + rad] = img[y, x]
+        for x in range(rad):
+            buf[x] = buf[rad]
+            buf[wd + rad + x] = buf[wd + rad - 1]
+        for x in range(wd):
+            acc = w[rad] * buf[x + rad]
+            for k in range(rad):
+                acc += w[k] * (buf[x + k] + buf[x + 2 * rad - k])
+            img[y, x] = acc
+    _blur_columns(img, w, scratch)
+
+
+@njit(nogil=True, cache=True)
+def _blur_columns(img: np.ndarray, w: np.ndarray, ring: np.ndarray) -> None:
+    """The vertical pass of :func:`gaussian_blur_inplace`: original row ``j`` lives in ``ring[j % n]``."""
+    h, wd = img.shape
+    rad = BLUR_RADIUS
+    n = 2 * rad + 1
+    for j in range(min(rad, h)):
+        for x in range(wd):
+            ring[j % n, x] = img[j, x]
+    for y in range(h):
+        j = y + rad
+        if j < h:  # the last original row this one needs; not yet overwritten
+            for x in range(wd):
+                ring[j % n, x] = img[j, x]
+        row = img[y]
+        mid = ring[y % n]
+        for x in range(wd):
+            row[x] = w[rad] * mid[x]
+        for k in range(rad):
+            lo = ring[min(max(y - rad + k, 0), h - 1) % n]
+            hi = ring[min(max(y + rad - k, 0), h - 1) % n]
+            wk = w[k]
+            for x in range(wd):
+                row[x] += wk * (lo[x] + hi[x])

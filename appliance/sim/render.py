@@ -28,7 +28,6 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -173,6 +172,17 @@ class FrameRenderer:
         self._scale = float(2 ** (imaging.bit_depth - 8))
         self._full = float(2**imaging.bit_depth - 1)
         self._gamma = 1.0 if imaging.gamma_corrected else float(imaging.projector_gamma)
+        blur = imaging.camera_blur_px
+        self._blur_passes: int
+        self._blur_w: npt.NDArray[np.float32]
+        self._blur_passes, self._blur_w = _k.gaussian_passes(blur) if blur > 0 else (0, np.ones(1, np.float32))
+        self._blur_scratch: F32 = _k.blur_scratch(h, w) if blur > 0 else np.empty((1, 1), np.float32)
+
+    def _blur(self, img: F32) -> None:
+        """The camera defocus, in place (a Gaussian of sigma ``camera_blur_px``, borders replicated)."""
+        for _ in range(self._blur_passes):
+            with _k.KERNEL_LOCK:
+                _k.gaussian_blur_inplace(img, self._blur_w, self._blur_scratch)
 
     def _table(self, frame: PhaseFrame) -> tuple[F32, F32]:
         key = (frame.axis, float(frame.period))
@@ -198,10 +208,8 @@ class FrameRenderer:
         """
         with self._lock:
             img = self._clean_into(frame).copy()
-        if blur and self.imaging.camera_blur_px > 0:
-            s = self.imaging.camera_blur_px
-            img = np.asarray(cv2.GaussianBlur(img, (0, 0), s, sigmaY=s, borderType=cv2.BORDER_REPLICATE),
-                             dtype=np.float32)
+            if blur:
+                self._blur(img)
         return img
 
     def render(self, frame: Frame, out: ImageArray, rng: np.random.Generator) -> ImageArray:
@@ -215,11 +223,7 @@ class FrameRenderer:
         key = np.uint64(rng.integers(0, 2**63, dtype=np.int64))
         with self._lock:
             src = self._clean_into(frame)
-            if im.camera_blur_px > 0:
-                # in place: OpenCV's separable filter buffers its own rows (the same values as into another
-                # image, without a second 5 MB float32 image per camera)
-                cv2.GaussianBlur(src, (0, 0), im.camera_blur_px, dst=src,
-                                 sigmaY=im.camera_blur_px, borderType=cv2.BORDER_REPLICATE)
+            self._blur(src)  # in place, through per-thread scratch rows (no second image per camera)
             shot = 1.0 / im.electrons_per_dn if im.shot_noise else 0.0
             with _k.KERNEL_LOCK:
                 _k.add_noise_quantise(src.ravel(), key, im.read_noise_dn**2, shot, self._scale, self._full,
