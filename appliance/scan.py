@@ -141,6 +141,8 @@ class Scanner:
                 "calibrate them or rename the cameras in the configuration"
             )
         self.sequence = build_sequence(cfg.sequence, proj.width, proj.height)
+        if rig.virtual is not None:  # its renderers keep projector coordinates of the coded axes only
+            rig.virtual.coded_axes = frozenset(str(a) for f in self.sequence.frames if (a := getattr(f, "axis", None)))
         rc = cfg.reconstruction
         self.params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast)
         self.reconstructor = Reconstructor(calibration, cfg.sequence.axes, rc, self.sequence)

@@ -461,3 +461,17 @@ def test_camera_blur_matches_opencv_gaussian(sigma: float) -> None:
     else:
         assert passes > 1 and inner.max() < 0.02, inner.max()
         assert diff.max() < 0.2 * 255, diff.max()  # only the replicated border differs
+
+
+def test_renderer_keeps_only_the_coded_axes_and_rebuilds_for_another() -> None:
+    """A rig told that only columns are coded keeps no row coordinates (5 MB a 1280x1024 camera); a row frame
+    rebuilds that camera's renderer with both axes and renders exactly what a rig with both renders."""
+    both = _rig(PlaneObject(point_mm=(0.0, 0.0, 520.0), normal=(0.1, 0.2, -1.0)))
+    lean = _rig(PlaneObject(point_mm=(0.0, 0.0, 520.0), normal=(0.1, 0.2, -1.0)))
+    lean.coded_axes = frozenset({"x"})
+    cols, rows = GrayFrame("x", 2), GrayFrame("y", 1)
+    np.testing.assert_array_equal(lean.render_clean(cols, "cam0"), both.render_clean(cols, "cam0"))
+    assert lean._renderers["cam0"].axes == {"x"} and set(lean._renderers["cam0"]._coord) == {"x"}
+    np.testing.assert_array_equal(lean.render_clean(WhiteFrame(), "cam0"), both.render_clean(WhiteFrame(), "cam0"))
+    np.testing.assert_array_equal(lean.render_clean(rows, "cam0"), both.render_clean(rows, "cam0"))
+    assert lean._renderers["cam0"].axes == {"x", "y"}

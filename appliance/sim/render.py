@@ -108,31 +108,28 @@ def projected_light(frame: Frame, u: F64, v: F64, width: int, height: int, proje
         _k.projector_window(uu, vv, width, height, projector_blur_px, win)
     coord = np.nan_to_num(uu if frame_light(frame, 0.0).axis == "x" else vv, nan=-1e6)
     out = np.empty(uu.size)
-    _shade(frame, coord, None, win, np.zeros(uu.size), projector_blur_px, gamma, out)
+    _shade(frame, coord, win, np.zeros(uu.size), projector_blur_px, gamma, out)
     return out
 
 
-def _shade(frame: Frame, coord: F64 | F32, table: tuple[F32, F32] | None, gain: F64 | F32, ambient: F64 | F32,
-           sigma: float, gamma: float, out: F64 | F32) -> None:
-    """Noise-free DN ``ambient + gain * light ** gamma``; ``table``: cos/sin of a phase frame's angle."""
+def _shade(frame: Frame, coord: F64 | F32, gain: F64 | F32, ambient: F64 | F32, sigma: float, gamma: float,
+           out: F64 | F32) -> None:
+    """Noise-free DN ``ambient + gain * light ** gamma`` of ``frame`` at projector coordinates ``coord``."""
     with _k.KERNEL_LOCK:
-        _shade_locked(frame, coord, table, gain, ambient, sigma, gamma, out)
+        _shade_locked(frame, coord, gain, ambient, sigma, gamma, out)
 
 
-def _shade_locked(frame: Frame, coord: F64 | F32, table: tuple[F32, F32] | None, gain: F64 | F32,
-                  ambient: F64 | F32, sigma: float, gamma: float, out: F64 | F32) -> None:
+def _shade_locked(frame: Frame, coord: F64 | F32, gain: F64 | F32, ambient: F64 | F32, sigma: float,
+                  gamma: float, out: F64 | F32) -> None:
     fl = frame_light(frame, sigma)
     if fl.kind in (_WHITE, _BLACK):
         _k.shade_const(1.0 if fl.kind == _WHITE else 0.0, gain, ambient, gamma, out)
     elif fl.kind == _GRAY:
         _k.shade_gray(coord, gain, ambient, fl.stripe, fl.bit, fl.inverted, sigma, gamma, out)
     else:
-        if table is None:
-            table = (np.empty(coord.size, dtype=np.float32), np.empty(coord.size, dtype=np.float32))
-            _k.phase_table(coord, fl.freq, table[0], table[1])
         mc = fl.modulation * math.cos(fl.phase0)
         ms = fl.modulation * math.sin(fl.phase0)
-        _k.shade_phase(table[0], table[1], gain, ambient, mc, ms, gamma, out)
+        _k.shade_phase(coord, fl.freq / (2.0 * math.pi), _k.TRIG, gain, ambient, mc, ms, gamma, out)
 
 
 class FrameRenderer:
@@ -151,21 +148,26 @@ class FrameRenderer:
 
     Notes
     -----
-    Phase frames use per-pixel cos/sin tables of ``2π u / P``, built on the first frame of each
-    (axis, period) and kept. Thread-safe: one lock serialises renders of this camera.
+    Phase frames evaluate ``cos`` and ``sin`` of ``2π u / P`` from a shared 65 536-step table by linear
+    interpolation (1.2e-9), not from per-pixel tables. Thread-safe: one lock serialises renders of this
+    camera.
     """
 
-    def __init__(self, proj_uv: F64, gain: F64 | F32, ambient: F64 | F32, imaging: ImagingConfig) -> None:
+    def __init__(self, proj_uv: F64, gain: F64 | F32, ambient: F64 | F32, imaging: ImagingConfig,
+                 axes: frozenset[str] | None = None) -> None:
         h, w = gain.shape
         self.height, self.width = h, w
         self.imaging = imaging
+        self.axes = frozenset(("x", "y")) if axes is None else frozenset(axes)
+        """The projector axes this renderer can render coded frames of."""
         # float32 coordinates (1e-4 px apart at 1280 px, far below the projector blur; half the memory of
-        # float64: 10 MB a 1280x1024 camera), one axis at a time (no float64 copy of both)
+        # float64: 5 MB an axis of a 1280x1024 camera), one axis at a time (no float64 copy of both), only
+        # of the axes asked for
         self._coord = {axis: np.nan_to_num(np.asarray(proj_uv[..., k], dtype=np.float32), nan=-1e6).ravel()
-                       for k, axis in enumerate(("x", "y"))}  # fmt: skip
+                       for k, axis in enumerate(("x", "y")) if axis in self.axes}  # fmt: skip
+        self._no_coord = np.zeros(0, np.float32)  # white and black frames read no coordinate
         self._gain = np.ascontiguousarray(gain, dtype=np.float32).ravel()
         self._ambient = np.ascontiguousarray(ambient, dtype=np.float32).ravel()
-        self._tables: dict[tuple[str, float], tuple[F32, F32]] = {}
         self._clean = np.empty((h, w), dtype=np.float32)
         self._lock = threading.Lock()
         self.dtype: type[np.uint8] | type[np.uint16] = np.uint8 if imaging.bit_depth == 8 else np.uint16
@@ -184,20 +186,16 @@ class FrameRenderer:
             with _k.KERNEL_LOCK:
                 _k.gaussian_blur_inplace(img, self._blur_w, self._blur_scratch)
 
-    def _table(self, frame: PhaseFrame) -> tuple[F32, F32]:
-        key = (frame.axis, float(frame.period))
-        if key not in self._tables:
-            coord = self._coord[frame.axis]
-            table = (np.empty(coord.size, dtype=np.float32), np.empty(coord.size, dtype=np.float32))
-            with _k.KERNEL_LOCK:
-                _k.phase_table(coord, 2.0 * math.pi / frame.period, table[0], table[1])
-            self._tables[key] = table
-        return self._tables[key]
-
     def _clean_into(self, frame: Frame) -> F32:
         fl = frame_light(frame, self.imaging.projector_blur_px)
-        table = self._table(frame) if isinstance(frame, PhaseFrame) else None
-        _shade(frame, self._coord[fl.axis], table, self._gain, self._ambient, self.imaging.projector_blur_px,
+        if fl.kind in (_WHITE, _BLACK):
+            coord = self._no_coord
+        elif fl.axis in self._coord:
+            coord = self._coord[fl.axis]
+        else:
+            raise PatternError(f"virtual rig: this renderer keeps axes {sorted(self.axes)}; a frame of axis "
+                               f"{fl.axis!r} needs one built with it (VirtualRig.coded_axes)")
+        _shade(frame, coord, self._gain, self._ambient, self.imaging.projector_blur_px,
                self._gamma, self._clean.ravel())
         return self._clean
 

@@ -145,6 +145,9 @@ class VirtualRig:
         self.cameras: dict[str, CameraModel] = {n: device_model(n, o) for n, o in cfg.cameras.items()}
         self.projector: CameraModel = device_model(PROJECTOR_NAME, cfg.projector)
         self.scene = scene if scene is not None else Scene(cfg.scene, base_dir)
+        self.coded_axes: frozenset[str] | None = None
+        """The projector axes the renderers keep per-pixel coordinates for (None: both, 5 MB each for a
+        1280x1024 camera); a frame of another axis rebuilds the camera's renderer with both."""
         self._truth: dict[str, GroundTruth] = {}
         self._renderers: dict[str, FrameRenderer] = {}
         self._rays: dict[str, F64] = {}
@@ -183,14 +186,17 @@ class VirtualRig:
                 f"virtual rig: camera {camera!r} is not in virtual_rig.cameras {self.camera_names()}"
             ) from None
 
-    def _state(self, camera: str) -> FrameRenderer:
+    def _state(self, camera: str, frame: Frame | None = None) -> FrameRenderer:
         cam = self._check_camera(camera)
+        axis = getattr(frame, "axis", None)
         with self._lock:
-            if camera not in self._renderers:
+            have = self._renderers.get(camera)
+            if have is None or (axis is not None and axis not in have.axes):
+                axes = self.coded_axes if have is None else None
                 truth, uv, gain, ambient = self._compute(cam, self.keep_truth)
                 if truth is not None:
                     self._truth[camera] = truth
-                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging)
+                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging, axes)
             return self._renderers[camera]
 
     def _rays_rows(self, cam: CameraModel, r0: int, r1: int) -> F64:
@@ -332,7 +338,7 @@ class VirtualRig:
         -------
         ndarray, shape (H, W), uint8 (8-bit) or uint16 (12/16-bit)
         """
-        renderer = self._state(camera)
+        renderer = self._state(camera, frame)
         if out is None:
             out = np.empty((renderer.height, renderer.width), dtype=self.image_dtype)
         return renderer.render(frame, out, rng if rng is not None else self._rng[camera])
@@ -354,7 +360,7 @@ class VirtualRig:
         ndarray, shape (H, W), float32
             DN on the 8-bit scale (not clipped, not scaled to the bit depth).
         """
-        return self._state(camera).clean(frame, blur=blur)
+        return self._state(camera, frame).clean(frame, blur=blur)
 
     def render(self, sequence: Sequence, camera: str, out: ImageArray | None = None,
                seed: int | Literal["config"] | None = _CONFIG_SEED) -> ImageArray:
