@@ -1,11 +1,11 @@
 """Resident memory of ``scan3d run`` on the virtual rig: the reference configuration (one 1280x1024 camera)
 and a two-camera rig, each through 10 scans triggered one after the other.
 
-The budget of the service (400 / 600 MB peak resident) is asserted on what the service itself allocates, its
-anonymous memory, with the file-backed part taken at the least this machine has shown (112 MB): the clean
-code pages of the libraries (llvmlite's LLVM is 170 MB on disk, OpenCV 60 MB) that the kernel maps into the
-process vary from one install of the same files to another, 112-176 MB for identical processes, and the
-kernel drops them first when memory is short. The peak resident figure (``VmHWM``) is printed beside it.
+The budget of the service (400 / 600 MB) is held against its peak resident memory (``VmHWM``), file-backed
+code pages included. How many clean code pages of llvmlite's LLVM (a 170 MB library) the kernel maps into
+the process depends on the page cache, not on the process: 95 MB in a checkout whose libraries have sat in
+the cache for a while, 140 MB right after ``pip`` wrote them (a fresh clone, as in CI), for the same
+anonymous memory. The test prints both parts. The service loads no OpenCV (checked on its memory map).
 
 A first start loads (or, on a clean clone, compiles) the kernels into the cache, so that the measured start
 loads them as an appliance does after its first boot: compiling holds memory a loaded kernel does not.
@@ -28,8 +28,6 @@ import yaml
 from appliance.service.control import request
 
 REPO = Path(__file__).resolve().parents[1]
-CODE_PAGES_MB = 112.0
-"""The file-backed resident memory of ``scan3d run`` at its leanest on this machine (MB)."""
 
 SECOND_CAMERA = {
     "width": 1280, "height": 1024, "focal_px": 2400.0, "dist": [-0.08, 0.12, 0.0005, -0.0003, 0.0],
@@ -132,8 +130,7 @@ def test_scan3d_run_peak_memory_within_budget(
               f"scans, peak {m['peak']:.0f} MB (budget {budget_mb:.0f}); of it file-backed {m['file']:.0f} MB, "
               f"anonymous peak {m['anon_peak']:.0f} MB")  # fmt: skip
     assert not m["opencv"], "scan3d run on the virtual rig loaded OpenCV (60 MB of code it does not need)"
-    own = m["anon_peak"] + CODE_PAGES_MB
-    assert own <= budget_mb, (
-        f"anonymous peak {m['anon_peak']:.0f} MB + {CODE_PAGES_MB:.0f} MB of code pages over the "
-        f"{budget_mb:.0f} MB budget"
+    assert m["peak"] <= budget_mb, (
+        f"scan3d run peaked at {m['peak']:.0f} MB resident (anonymous {m['anon_peak']:.0f} MB, file-backed "
+        f"{m['file']:.0f} MB): over the {budget_mb:.0f} MB budget"
     )
