@@ -138,6 +138,11 @@ def is_ip_address(address: str) -> bool:
     return True
 
 
+FOREIGN_STREAM_RETRIES = 3
+"""New streams opened in a row, at most, when one received another camera's packets (see
+``AravisCamera._took_foreign_packets``)."""
+
+
 @dataclass
 class AcquisitionStats:
     """Counters of one camera since it was created."""
@@ -148,6 +153,8 @@ class AcquisitionStats:
     scans_ok: int = 0
     scans_failed: int = 0
     reconnects: int = 0
+    foreign_streams: int = 0
+    """New streams given up because they received another camera's packets before their first acquisition."""
 
 
 class FrameLostError(CameraError):
@@ -222,6 +229,7 @@ class AravisCamera:
         self._abort = threading.Event()
         self._buffers: list[Any] = []
         self._buffer_size = 0
+        self._fresh_stream = False  # no acquisition yet on the current stream
         self._job: _Job | None = None
         self._last_frame_id: int | None = None
         self._trigger_now = config.trigger
@@ -398,7 +406,8 @@ class AravisCamera:
         self._executor.submit(self._acquire, job)
 
     def _prepare(self, job: _Job) -> None:
-        for attempt in range(2):
+        failed = foreign = 0
+        while True:
             if self.connected:
                 self._alive()  # one register read: notices a camera that restarted behind our back
             info = self._ensure_open()
@@ -414,13 +423,42 @@ class AravisCamera:
             try:
                 self._set_trigger(self._trigger_now)
                 self._fill_pool(job.n_frames + SPARE_BUFFERS)
+                if foreign < FOREIGN_STREAM_RETRIES and self._took_foreign_packets():
+                    foreign += 1
+                    continue
+                self._fresh_stream = False
                 return
             except self._glib.Error as exc:
                 self._mark_lost(f"configuring the acquisition failed ({exc.message})")
-                if attempt:
+                if failed:
                     raise CameraError(
                         self._msg(f"cannot configure the acquisition ({exc.message}); check the camera")
                     ) from exc
+                failed += 1
+
+    def _took_foreign_packets(self) -> bool:
+        """True (and the camera closed, to be reopened) when a new stream received packets before its first
+        acquisition: another camera's.
+
+        Where raw sockets are allowed (e.g. as root) Aravis receives through a packet socket that sees every
+        GVSP packet on the interface until its port filter is attached. A stream opened while another camera
+        streamed took that camera's frames, and their higher frame ids then made it discard its own first
+        frames as late (frame 0 never arrived, 2 in 25 two-camera captures under load). A plain UDP socket
+        (the service, without CAP_NET_RAW) only ever sees its own port.
+        """
+        if not self._fresh_stream:
+            return False
+        try:
+            received = int(self._stream.get_info_uint64_by_name("n_received_packets"))
+        except (AttributeError, TypeError, self._glib.Error):  # Aravis before 0.8.23: no stream info
+            return False
+        if received == 0:
+            return False
+        log.warning("%s", self._msg(f"a new stream received {received} packets of another camera before its "
+                                    "first acquisition; opening a new one"))  # fmt: skip
+        self.stats.foreign_streams += 1
+        self._teardown()
+        return True
 
     # --- blocking helpers (worker thread) ---------------------------------------------------------------
 
@@ -495,6 +533,7 @@ class AravisCamera:
                     else aravis.GvStreamPacketResend.NEVER,
                 )
             self._stream = stream
+            self._fresh_stream = True
             _x, _y, width, height = camera.get_region()
             pixel_format = camera.get_pixel_format_as_string()
             vendor = camera.get_vendor_name() or ""
