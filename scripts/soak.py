@@ -176,6 +176,7 @@ class Soak:
         self.unanswered = 0  # triggers whose reply was lost to a SIGKILL
         self.faults: collections.Counter[str] = collections.Counter()
         self.partial: list[str] = []
+        self.watcher_error = ""
         self.attempts = 0
         self.restarting = threading.Event()
         self.worst_gap_s = 0.0
@@ -376,8 +377,19 @@ class Soak:
     # --- watcher and pinger ----------------------------------------------------------------------------
 
     def watch_share(self) -> None:
+        try:
+            self._watch_share()
+        except BaseException as exc:  # the ledger must not pass without its watcher
+            self.watcher_error = f"{type(exc).__name__}: {exc}"
+            raise
+
+    def _watch_share(self) -> None:
         while not self._stop.is_set():
-            for side in list(self.files.glob("*/*.json")):
+            try:
+                sides = list(self.files.glob("*/*.json"))
+            except FileNotFoundError:
+                sides = []  # the share, or a day folder, went away while being listed: look again
+            for side in sides:
                 if side.name.startswith("."):
                     continue
                 try:
@@ -493,6 +505,8 @@ class Soak:
             problems.append(f"{len(incomplete)} incomplete: {incomplete[:5]}")
         if self.partial:
             problems.append(f"{len(self.partial)} partial file sightings: {self.partial[:5]}")
+        if self.watcher_error:
+            problems.append(f"the share watcher stopped: {self.watcher_error}")
         if no_reason:
             problems.append(f"{len(no_reason)} failed trigger(s) without a reason: {no_reason[:3]}")
         if leftovers:
