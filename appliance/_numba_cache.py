@@ -2,10 +2,10 @@
 
 numba decides whether a cached kernel is current from its own file's timestamp only: a kernel that inlines
 a helper from another file (the camera-camera filter uses ``_filter_kernels.near_neighbours``, every
-projection uses ``_geom_kernels.distort_jac``) would run stale code after that file changed, e.g. after an
-upgrade that keeps ``/var/cache/scan3d``. So the cache lives in ``<NUMBA_CACHE_DIR>/src-<hash>``, the hash of
-every kernel source: any change to any of them starts a fresh folder. Without ``NUMBA_CACHE_DIR`` numba keeps
-its default (``__pycache__`` beside the sources) and this module changes nothing.
+projection uses ``geometry/_distortion_kernels.distort_jac``) would run stale code after that file changed,
+e.g. after an upgrade that keeps ``/var/cache/scan3d``. So the cache lives in ``<NUMBA_CACHE_DIR>/src-<hash>``,
+the hash of every kernel source: any change to any of them starts a fresh folder. Without ``NUMBA_CACHE_DIR``
+numba keeps its default (``__pycache__`` beside the sources) and this module changes nothing.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ config: Any = _numba_config  # numba's settings module (its attributes are made 
 KERNEL_FILES = (
     "reconstruct/_decode_kernels.py", "reconstruct/_filter_kernels.py", "reconstruct/_geom_kernels.py",
     "reconstruct/_normal_kernels.py", "reconstruct/_procam_kernels.py", "reconstruct/_stereo_kernels.py",
-    "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py",
+    "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py", "geometry/_distortion_kernels.py",
 )  # fmt: skip
 """Every module of ``appliance`` with numba kernels (a test keeps the list complete)."""
 

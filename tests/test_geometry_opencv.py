@@ -17,8 +17,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from appliance.geometry._distortion_kernels import distort_jac
 from appliance.geometry.camera import CameraModel
-from appliance.reconstruct._geom_kernels import distort_jac
 from appliance.sim._sim_kernels import project_points
 
 F64 = npt.NDArray[np.float64]

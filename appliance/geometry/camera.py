@@ -15,8 +15,6 @@ import numpy.typing as npt
 from appliance.errors import CalibrationError
 
 F64 = npt.NDArray[np.float64]
-UNDISTORT_CHUNK = 65_536
-"""Points inverted at a time by :meth:`CameraModel.undistort_pixels` (bounds its temporaries to a few MB)."""
 UNDISTORT_ITERATIONS = 30
 """Newton steps at most; from the distorted point as the first guess, ordinary lenses settle in 3-6."""
 
@@ -135,10 +133,10 @@ class CameraModel:
         """Distorted pixels (N, 2) -> normalised undistorted image coordinates (N, 2).
 
         The distortion model is inverted to 1e-12 (normalised units) by Newton's method on its exact Jacobian
-        for up to 8 coefficients, :data:`UNDISTORT_CHUNK` points at a time (no OpenCV: the service never
-        loads it); with the thin-prism / tilt terms (12 or 14 coefficients) by OpenCV's
-        ``undistortPointsIter``. A pixel whose inversion does not converge (outside the region where the
-        model is invertible) is NaN.
+        (``_distortion_kernels.undistort_points``, the Jacobian the triangulation uses) for up to 12
+        coefficients, without OpenCV (the service never loads it); with the tilt terms (14 coefficients) by
+        OpenCV's ``undistortPointsIter``. A pixel whose inversion does not converge, or lands past a fold of
+        the model (outside the region where it is invertible), is NaN.
         """
         pts = np.asarray(px, dtype=np.float64).reshape(-1, 2)
         K = self.K
@@ -146,37 +144,16 @@ class CameraModel:
         xd = (pts[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
         if self.dist.size == 0 or not np.any(self.dist):
             return np.stack([xd, yd], axis=1)
-        if self.dist.size > 8:
+        if self.dist.size > 12:
             return self._undistort_opencv(xd, yd)
+        from appliance.geometry._distortion_kernels import undistort_points
+
         out = np.empty((pts.shape[0], 2))
-        for a in range(0, pts.shape[0], UNDISTORT_CHUNK):
-            b = min(a + UNDISTORT_CHUNK, pts.shape[0])
-            out[a:b, 0], out[a:b, 1] = self._invert_distortion(xd[a:b], yd[a:b])
+        undistort_points(xd, yd, self.dist_padded(12), UNDISTORT_ITERATIONS, out)
         return out
 
-    def _invert_distortion(self, xd: F64, yd: F64) -> tuple[F64, F64]:
-        """Normalised undistorted (x, y) whose distortion is (xd, yd): Newton's method, 8 coefficients."""
-        d = self.dist_padded(8)[:8]
-        x, y = xd.copy(), yd.copy()
-        for _ in range(UNDISTORT_ITERATIONS):
-            fx, fy, jxx, jxy, jyy, _radial = _distortion_jacobian(x, y, d)
-            ex, ey = fx - xd, fy - yd
-            if not np.any(np.abs(ex) + np.abs(ey) > 1e-13):  # NaN compares False: those are settled below
-                break
-            det = jxx * jyy - jxy * jxy
-            with np.errstate(divide="ignore", invalid="ignore"):
-                x -= (jyy * ex - jxy * ey) / det
-                y -= (jxx * ey - jxy * ex) / det
-        fx, fy, jxx, jxy, jyy, radial = _distortion_jacobian(x, y, d)
-        err = np.hypot(fx - xd, fy - yd)
-        # the lens's own branch: the model keeps its orientation there (a preimage past a fold is no ray)
-        bad = ~((err <= 1e-12) & (radial > 0) & (jxx * jyy - jxy * jxy > 0))
-        x[bad] = np.nan
-        y[bad] = np.nan
-        return x, y
-
     def _undistort_opencv(self, xd: F64, yd: F64) -> F64:
-        """Thin-prism / tilt models: OpenCV's iterative inversion (to 1e-12, 100 iterations at most)."""
+        """Tilted-sensor models: OpenCV's iterative inversion (to 1e-12, 100 iterations at most)."""
         import cv2
 
         pts = np.ascontiguousarray(np.stack([xd, yd], axis=1).reshape(-1, 1, 2))
@@ -205,23 +182,6 @@ class CameraModel:
     def with_pose(self, R: F64, T: F64) -> CameraModel:
         """A copy with another pose."""
         return CameraModel(self.name, self.K, self.dist, self.width, self.height, R, T, self.rms)
-
-
-def _distortion_jacobian(x: F64, y: F64, d: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
-    """The distortion (8 coefficients ``d``, OpenCV order) of normalised points and its Jacobian:
-    ``(xd, yd, dxd/dx, dxd/dy (= dyd/dx), dyd/dy, radial factor)``, each of the shape of ``x``."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = d
-    r2 = x * x + y * y
-    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    radial = num / den
-    d_radial = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (den * den)
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    jxx = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x
-    jyy = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x
-    jxy = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
-    return xd, yd, jxx, jxy, jyy, radial
 
 
 ProjectorModel = CameraModel

@@ -1,4 +1,5 @@
-"""numba kernels shared by the triangulation modules (private): distortion, point store, coarse ray rows.
+"""numba kernels shared by the triangulation modules (private): point store, coarse ray rows (the distortion
+and its Jacobian: ``geometry/_distortion_kernels.distort_jac``).
 
 Distortion vectors here are always 12 long: ``k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4`` (OpenCV order, zeros
 padded). Camera tables hold normalised undistorted coordinates ``(x/z, y/z)`` in the device frame.
@@ -14,26 +15,6 @@ import appliance._numba_cache  # noqa: F401  (the cache folder, before any kerne
 NAN32 = np.float32(np.nan)
 _NAN = NAN32
 
-
-@njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def distort_jac(x, y, d):  # type: ignore[no-untyped-def]
-    """Distorted normalised coords and their 2x2 Jacobian w.r.t. (x, y)."""
-    r2 = x * x + y * y
-    num = 1.0 + r2 * (d[0] + r2 * (d[1] + r2 * d[4]))
-    den = 1.0 + r2 * (d[5] + r2 * (d[6] + r2 * d[7]))
-    dnum = d[0] + r2 * (2.0 * d[1] + 3.0 * r2 * d[4])
-    dden = d[5] + r2 * (2.0 * d[6] + 3.0 * r2 * d[7])
-    rad = num / den
-    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
-    xd = x * rad + 2.0 * d[2] * x * y + d[3] * (r2 + 2.0 * x * x) + r2 * (d[8] + r2 * d[9])
-    yd = y * rad + d[2] * (r2 + 2.0 * y * y) + 2.0 * d[3] * x * y + r2 * (d[10] + r2 * d[11])
-    sx = d[8] + 2.0 * r2 * d[9]
-    sy = d[10] + 2.0 * r2 * d[11]
-    j11 = rad + 2.0 * x * x * drad + 2.0 * d[2] * y + 6.0 * d[3] * x + 2.0 * x * sx
-    j12 = 2.0 * x * y * drad + 2.0 * d[2] * x + 2.0 * d[3] * y + 2.0 * y * sx
-    j21 = 2.0 * x * y * drad + 2.0 * d[2] * x + 2.0 * d[3] * y + 2.0 * x * sy
-    j22 = rad + 2.0 * y * y * drad + 6.0 * d[2] * y + 2.0 * d[3] * x + 2.0 * y * sy
-    return xd, yd, j11, j12, j21, j22
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def store_point(out, r, col, z, mx, my, zmin, zmax, to_world, rwc, cwc):  # type: ignore[no-untyped-def]

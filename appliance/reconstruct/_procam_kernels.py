@@ -12,9 +12,10 @@ import numpy as np
 from numba import njit, prange
 
 import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+from appliance.geometry._distortion_kernels import distort_jac
 from appliance.reconstruct._filter_kernels import keep_row, pairs_between_spans, pairs_in_span
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
-from appliance.reconstruct._geom_kernels import distort_jac, ray_row, ray_span, store_point
+from appliance.reconstruct._geom_kernels import ray_row, ray_span, store_point
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -14,9 +14,9 @@ import numpy as np
 from numba import njit, prange
 
 import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+from appliance.geometry._distortion_kernels import distort_jac
 from appliance.reconstruct._filter_kernels import near_neighbours
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
-from appliance.reconstruct._geom_kernels import distort_jac
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
