@@ -359,39 +359,73 @@ def _gate_init(weak, qg, m1, m2):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _lit_span(lit):  # type: ignore[no-untyped-def]
+    """(first, last + 1) of the lit pixels of a row; (0, 0) when none is lit."""
+    w = lit.shape[0]
+    c0 = 0
+    while c0 < w and not lit[c0]:
+        c0 += 1
+    if c0 == w:
+        return 0, 0
+    c1 = w
+    while not lit[c1 - 1]:
+        c1 -= 1
+    return c0, c1
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _unlit(u, v, mask, quality, lev0, lev1, lo, hi):  # type: ignore[no-untyped-def]
+    """Outputs of unlit pixels lo .. hi - 1 (what the final step gives them: no code, no quality)."""
+    for x in range(lo, hi):
+        u[x] = _FNAN
+        v[x] = _FNAN
+        mask[x] = False
+        quality[x] = _F0
+        lev0[x] = np.uint8(0)
+        lev1[x] = np.uint8(0)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _finish_row(  # type: ignore[no-untyped-def]
-    lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest, u, v, mask, quality, lev0, lev1,
-    scratch, fl, ok,
+    lit_row, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest, u_row, v_row, mask_row,
+    quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1,
 ):  # fmt: skip
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
-    ``lit`` bool (W,) and ``scratch[0]`` (phase floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`;
-    ``code``, ``weak``, ``m1``, ``m2`` uint32 (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits;
-    ``ssum``/``csum`` float64 (S, W); ``lev0``/``lev1`` uint8 (W,) out: Gray bits dropped on x / y;
-    ``scratch`` float32 (10, W), ``fl`` uint32 (W,), ``ok`` bool (W,) are scratch.
+    Runs over columns ``c0 .. c1 - 1`` (the row's lit span, see :func:`_lit_span`); the caller gives the
+    pixels outside it their unlit outputs (:func:`_unlit`). ``lit`` bool (W,) and ``scratch[0]`` (phase
+    floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`; ``code``, ``weak``, ``m1``, ``m2`` uint32
+    (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits; ``ssum``/``csum`` float64 (S, W);
+    ``lev0``/``lev1`` uint8 (W,) out: Gray bits dropped on x / y; ``scratch`` float32 (10, W), ``fl`` uint32
+    (W,), ``ok`` bool (W,) are scratch.
     """
-    relv = scratch[0]
-    cg = scratch[1]
-    cc = scratch[2]
-    qa = scratch[3]
-    qmin = scratch[4]
-    mod = scratch[5]
-    cph = scratch[6]
-    cb = scratch[7]
-    mprev = scratch[9]
+    lit = lit_row[c0:c1]
+    fl = fl_row[c0:c1]
+    ok = ok_row[c0:c1]
+    relv = scratch[0, c0:c1]
+    cg = scratch[1, c0:c1]
+    cc = scratch[2, c0:c1]
+    qa = scratch[3, c0:c1]
+    qmin = scratch[4, c0:c1]
+    mod = scratch[5, c0:c1]
+    cph = scratch[6, c0:c1]
+    cb = scratch[7, c0:c1]
+    mprev = scratch[9, c0:c1]
     qmin[:] = _FINF
     for a in range(2):
-        out = u if a == 0 else v
+        out = u_row[c0:c1] if a == 0 else v_row[c0:c1]
+        lev = lev0_row[c0:c1] if a == 0 else lev1_row[c0:c1]
         if axis_tab[a, 0] == 0:
             out[:] = _FNAN
-            (lev0 if a == 0 else lev1)[:] = np.uint8(0)
+            lev[:] = np.uint8(0)
             continue
         stripe = np.float64(axis_tab[a, 2])
+        ca = code[a, c0:c1]
         if axis_tab[a, 1] != 0:
             tol = 1 if axis_tab[a, 4] != 0 else 0
-            _gray_level(weak[a], tol, axis_tab[a, 7], finest, fl, ok)
-            _gray_index(code[a], fl, stripe, axis_tab[a, 3], cg, ok)
-            qa[:] = qg[a]
+            _gray_level(weak[a, c0:c1], tol, axis_tab[a, 7], finest, fl, ok)
+            _gray_index(ca, fl, stripe, axis_tab[a, 3], cg, ok)
+            qa[:] = qg[a, c0:c1]
         else:
             ok[:] = True
             qa[:] = _FINF
@@ -403,13 +437,13 @@ def _finish_row(  # type: ignore[no-untyped-def]
             if ph_tab[s, 0] != a:
                 continue
             period = ph_period[s]
-            _phase_wrapped(ssum[s], csum[s], 4.0 / np.float64(ph_tab[s, 1]), period, mod, cph)
+            _phase_wrapped(ssum[s, c0:c1], csum[s, c0:c1], 4.0 / np.float64(ph_tab[s, 1]), period, mod, cph)
             src = ph_tab[s, 2]
             if src == -2:
                 cb[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
                 _unwrap(cph, cb, period, cc)
             elif src == -3:
-                _gray_edge(code[a], m1[a], m2[a], stripe, cg, cb)
+                _gray_edge(ca, m1[a, c0:c1], m2[a, c0:c1], stripe, cg, cb)
                 _unwrap(cph, cb, period, cc)
                 _unwrap_gate(fl, stripe, period, ok)
             elif src > 0:
@@ -427,9 +461,9 @@ def _finish_row(  # type: ignore[no-untyped-def]
             mprev[:] = mod
             pprev = period
         _emit_axis(cc, ok, lit, out)
-        _emit_level(fl, lit, lev0 if a == 0 else lev1)
+        _emit_level(fl, lit, lev)
         _min_into(qmin, qa)
-    _mask_quality(lit, qmin, mask, quality)
+    _mask_quality(lit, qmin, mask_row[c0:c1], quality_row[c0:c1])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -440,15 +474,37 @@ def _finish_row(  # type: ignore[no-untyped-def]
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def range_hist(hi, lo, shift, nbins):  # type: ignore[no-untyped-def]
     """Histogram of ``max(hi - lo, 0) >> shift`` (clipped to ``nbins - 1``) over (H, W) images."""
-    h = hi.shape[0]
+    h, w = hi.shape[0], hi.shape[1]
     nch = min(h, 64)
-    parts = np.zeros((nch, nbins), np.int64)
+    # neighbouring pixels mostly fall in one bin: four sub-histograms (small ones only) keep the increments
+    # of consecutive pixels independent
+    ways = 4 if nbins <= 1024 else 1
+    parts = np.zeros((nch, ways, nbins), np.int64)
+    top = np.int32(nbins - 1)
     for ch in prange(nch):
+        dd = np.empty(w, np.int32)
+        p = parts[ch]
         for y in range(ch * h // nch, (ch + 1) * h // nch):
-            for x in range(hi.shape[1]):
-                d = max(np.int32(hi[y, x]) - np.int32(lo[y, x]), 0) >> shift
-                parts[ch, min(d, nbins - 1)] += 1
-    return parts.sum(axis=0)
+            a = hi[y]
+            b = lo[y]
+            for x in range(w):
+                dd[x] = min(max(np.int32(a[x]) - np.int32(b[x]), 0) >> shift, top)
+            m = 0
+            if ways == 4:
+                m = w - w % 4
+                for x in range(0, m, 4):
+                    p[0, dd[x]] += 1
+                    p[1, dd[x + 1]] += 1
+                    p[2, dd[x + 2]] += 1
+                    p[3, dd[x + 3]] += 1
+            for x in range(m, w):
+                p[0, dd[x]] += 1
+    out = np.zeros(nbins, np.int64)
+    for ch in range(nch):
+        for k in range(ways):
+            for i in range(nbins):
+                out[i] += parts[ch, k, i]
+    return out
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -522,17 +578,18 @@ def _mean_diff(one, msum, n, sign, d):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _gray_row(  # type: ignore[no-untyped-def]
-    frames, y, wb, gray_tab, mean_idx, axis_tab, relg, d, cf, msum, code, weak, qg, m1, m2
+    frames, y, c0, c1, wb, gray_tab, mean_idx, axis_tab, relg_row, d_row, cf_row, msum_row, code, weak, qg, m1, m2
 ):
-    """Every Gray bit of row ``y``: pairs compare pattern and inverse, single frames (white + black) / 2
-    or, without white and black, the mean of the reference phase set ``mean_idx``."""
-    w = frames.shape[2]
+    """Every Gray bit of row ``y``, columns ``c0 .. c1 - 1``: pairs compare pattern and inverse, single
+    frames (white + black) / 2 or, without white and black, the mean of the reference phase set ``mean_idx``."""
+    w = c1 - c0
+    relg, d, cf, msum = relg_row[c0:c1], d_row[c0:c1], cf_row[c0:c1], msum_row[c0:c1]
     nmean = np.int32(mean_idx.shape[0])
     if nmean > 0 and wb[0] < 0:
         for x in range(w):
             msum[x] = 0
         for i in range(mean_idx.shape[0]):
-            row = frames[mean_idx[i], y]
+            row = frames[mean_idx[i], y, c0:c1]
             for x in range(w):
                 msum[x] += np.int32(row[x])
     for g in range(gray_tab.shape[0]):
@@ -541,21 +598,22 @@ def _gray_row(  # type: ignore[no-untyped-def]
         ip = gray_tab[g, 2]
         ineg = gray_tab[g, 3]
         if ip >= 0 and ineg >= 0:
-            p = frames[ip, y]
-            n = frames[ineg, y]
+            p = frames[ip, y, c0:c1]
+            n = frames[ineg, y, c0:c1]
             for x in range(w):
                 d[x] = np.int32(p[x]) - np.int32(n[x])
         else:
-            one = frames[ip if ip >= 0 else ineg, y]
+            one = frames[ip if ip >= 0 else ineg, y, c0:c1]
             sign = np.int32(1) if ip >= 0 else np.int32(-1)
             if wb[0] >= 0:
-                wr = frames[wb[0], y]
-                br = frames[wb[1], y]
+                wr = frames[wb[0], y, c0:c1]
+                br = frames[wb[1], y, c0:c1]
                 for x in range(w):
                     d[x] = sign * (2 * np.int32(one[x]) - np.int32(wr[x]) - np.int32(br[x]))
             else:
                 _mean_diff(one, msum, nmean, sign, d)
-        _fold_d(d, bit, relg, axis_tab[a, 6] != 0, cf, code[a], weak[a], qg[a], m1[a], m2[a])
+        _fold_d(d, bit, relg, axis_tab[a, 6] != 0, cf, code[a, c0:c1], weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1],
+                m2[a, c0:c1])
 
 
 _N5 = np.uint16(5)
@@ -615,33 +673,37 @@ def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2):  # type: ig
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gray_row16(frames, y, wb, gray_tab, axis_tab, rg16, d, c16, w16, q16, a16, b16):  # type: ignore[no-untyped-def]
+def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d_row, c16, w16, q16, a16, b16):  # type: ignore[no-untyped-def]
     """:func:`_gray_row` for 8-bit frames with white/black or inverses, in 16-bit lanes."""
+    d = d_row[c0:c1]
+    rg = rg16[c0:c1]
     for g in range(gray_tab.shape[0]):
         a = gray_tab[g, 0]
         bit = gray_tab[g, 1]
         ip = gray_tab[g, 2]
         ineg = gray_tab[g, 3]
         if ip >= 0 and ineg >= 0:
-            _diff16(frames[ip, y], frames[ineg, y], d)
+            _diff16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], d)
         else:
             sign = np.int16(1) if ip >= 0 else np.int16(-1)
-            _single16(frames[ip if ip >= 0 else ineg, y], frames[wb[0], y], frames[wb[1], y], sign, d)
-        _fold16(d, bit, rg16, axis_tab[a, 6] != 0, c16[a], w16[a], q16[a], a16[a], b16[a])
+            _single16(frames[ip if ip >= 0 else ineg, y, c0:c1], frames[wb[0], y, c0:c1], frames[wb[1], y, c0:c1],
+                      sign, d)  # fmt: skip
+        _fold16(d, bit, rg, axis_tab[a, 6] != 0, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1],
+                b16[a, c0:c1])  # fmt: skip
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: ignore[no-untyped-def]
-    w = frames.shape[2]
+def _phase_row(frames, y, c0, c1, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  # type: ignore[no-untyped-def]
+    w = c1 - c0
     for s in range(ph_tab.shape[0]):
-        ss = ssum[s]
-        cs = csum[s]
+        ss = ssum[s, c0:c1]
+        cs = csum[s, c0:c1]
         for x in range(w):
             ss[x] = 0.0
             cs[x] = 0.0
         first = ph_tab[s, 3]
         for k in range(first, first + ph_tab[s, 1]):
-            row = frames[ph_idx[k], y]
+            row = frames[ph_idx[k], y, c0:c1]
             sk = ph_sin[k]
             ck = ph_cos[k]
             for x in range(w):
@@ -690,31 +752,40 @@ def decode_stack(  # type: ignore[no-untyped-def]
         q16 = np.empty((2, w), np.int16)
         a16 = np.empty((2, w), np.uint16)
         b16 = np.empty((2, w), np.uint16)
-        for y in range(ch * h // nch, (ch + 1) * h // nch):
+        for y in range(ch, h, nch):  # rows interleaved: lit rows cluster, every chunk gets its share
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
+            # only the lit span of the row is decoded: unlit pixels decode to nothing whatever their frames
+            c0, c1 = _lit_span(lit)
+            vrow = v[y] if v.shape[0] == h else vnone
+            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], 0, c0)
+            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], max(c0, c1), w)
+            if c1 <= c0:
+                continue
             if narrow:
-                _relg16(scratch[8], rg16)
-                c16[:] = np.uint16(0)
-                w16[:] = np.uint16(0)
-                q16[:] = _NINF
-                a16[:] = _NBIG
-                b16[:] = _NBIG
-                _gray_row16(frames, y, wb, gray_tab, axis_tab, rg16, d16, c16, w16, q16, a16, b16)
+                _relg16(scratch[8, c0:c1], rg16[c0:c1])
+                for a in range(2):
+                    c16[a, c0:c1] = np.uint16(0)
+                    w16[a, c0:c1] = np.uint16(0)
+                    q16[a, c0:c1] = _NINF
+                    a16[a, c0:c1] = _NBIG
+                    b16[a, c0:c1] = _NBIG
+                _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d16, c16, w16, q16, a16, b16)
                 for a in range(2):
                     if axis_tab[a, 1] != 0:
-                        _widen16(c16[a], w16[a], q16[a], a16[a], b16[a], axis_tab[a, 6] != 0, code[a], weak[a],
-                                 qg[a], m1[a], m2[a])  # fmt: skip
+                        _widen16(c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1],
+                                 axis_tab[a, 6] != 0, code[a, c0:c1], weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1],
+                                 m2[a, c0:c1])  # fmt: skip
             else:
-                code[:] = np.uint32(0)
-                _gate_init(weak, qg, m1, m2)
-                _gray_row(frames, y, wb, gray_tab, mean_idx, axis_tab, scratch[8], d, cf, msum, code, weak, qg, m1,
-                          m2)  # fmt: skip
-            _phase_row(frames, y, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
+                for a in range(2):
+                    code[a, c0:c1] = np.uint32(0)
+                    _gate_init(weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1])
+                _gray_row(frames, y, c0, c1, wb, gray_tab, mean_idx, axis_tab, scratch[8], d, cf, msum, code, weak,
+                          qg, m1, m2)  # fmt: skip
+            _phase_row(frames, y, c0, c1, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
                 lit, code, weak, qg, m1, m2, ssum, csum, axis_tab, ph_tab, ph_period, finest,
-                u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[0, y], levels[1, y], scratch,
-                fl, ok,
+                u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1,
             )  # fmt: skip
 
 
@@ -824,24 +895,28 @@ def stream_finish(  # type: ignore[no-untyped-def]
         vnone = np.empty(w, np.float32)
         ss64 = np.empty((ssum.shape[0], w), np.float64)
         cs64 = np.empty((ssum.shape[0], w), np.float64)
-        for y in range(ch * h // nch, (ch + 1) * h // nch):
+        for y in range(ch, h, nch):  # rows interleaved, as in decode_stack
             hr = hi[y]
             lr = lo[y]
-            for s in range(ssum.shape[0]):
-                for x in range(w):
-                    ss64[s, x] = np.float64(ssum[s, y, x]) * quantum
-                    cs64[s, x] = np.float64(csum[s, y, x]) * quantum
             for x in range(w):
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
+            c0, c1 = _lit_span(lit)  # as in decode_stack: the same outputs
+            vrow = v[y] if v.shape[0] == h else vnone
+            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], 0, c0)
+            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], max(c0, c1), w)
+            if c1 <= c0:
+                continue
+            for s in range(ssum.shape[0]):
+                for x in range(c0, c1):
+                    ss64[s, x] = np.float64(ssum[s, y, x]) * quantum
+                    cs64[s, x] = np.float64(csum[s, y, x]) * quantum
             _gate_init(weak, qg, m1, m2)
             for g in range(gray_tab.shape[0]):
                 a = gray_tab[g, 0]
-                _fold_cst(cst[g, y], gray_tab[g, 1], scratch[8], axis_tab[a, 6] != 0, cf, weak[a], qg[a], m1[a],
-                          m2[a])  # fmt: skip
+                _fold_cst(cst[g, y, c0:c1], gray_tab[g, 1], scratch[8, c0:c1], axis_tab[a, 6] != 0, cf[c0:c1],
+                          weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1])  # fmt: skip
             _finish_row(
                 lit, code[:, y, :], weak, qg, m1, m2, ss64, cs64, axis_tab, ph_tab, ph_period,
-                finest, u[y], v[y] if v.shape[0] == h else vnone, mask[y], quality[y], levels[0, y], levels[1, y],
-                scratch,
-                fl, ok,
+                finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1,
             )  # fmt: skip
