@@ -141,56 +141,84 @@ def level_crossings(rect, code_offset, max_step, out):  # type: ignore[no-untype
     return out
 
 
-@njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _fit_line(tab, y, k, sy, sk, half, max_res):  # type: ignore[no-untyped-def]
-    """Robust local line fit at (y, k) over the entries (y + d sy, k + d sk), |d| <= half."""
-    hr, nk = tab.shape[0], tab.shape[1]
-    x0 = float(tab[y, k])
-    a = x0
-    b = 0.0
-    for it in range(2):
-        s1 = 0.0
-        sd = 0.0
-        sdd = 0.0
-        sx = 0.0
-        sdx = 0.0
-        for d in range(-half, half + 1):
-            yy = y + d * sy
-            kk = k + d * sk
-            if yy < 0 or yy >= hr or kk < 0 or kk >= nk:
-                continue
-            x = np.float64(tab[yy, kk])
-            if not math.isfinite(x):
-                continue
-            if it == 1 and abs(x - (a + b * d)) > max_res:
-                continue
-            s1 += 1.0
-            sd += d
-            sdd += d * d
-            sx += x
-            sdx += d * x
-        det = s1 * sdd - sd * sd
-        if s1 < 3.0 or det < 1e-9:
-            return x0
-        a = (sx * sdd - sd * sdx) / det
-        b = (s1 * sdx - sd * sx) / det
-        if it == 1:
-            break
-        if abs(x0 - a) > max_res:
-            return x0
-        # a second fit only when the first has an outlier
-        clean = True
-        for d in range(-half, half + 1):
-            yy = y + d * sy
-            kk = k + d * sk
-            if 0 <= yy < hr and 0 <= kk < nk:
-                x = np.float64(tab[yy, kk])
-                if math.isfinite(x) and abs(x - (a + b * d)) > max_res:
-                    clean = False
-                    break
-        if clean:
-            break
-    return a
+@njit(nogil=True, cache=True, error_model="numpy")
+def _line_fits(buf, half, max_res, wt, xf, s, out):  # type: ignore[no-untyped-def]
+    """Robust local line fit of every entry of a line: ``buf`` (n + 2 half,) holds it between ``half`` NaN
+    each side, ``out`` (n,) receives the fits; ``wt``, ``xf`` (n + 2 half,) and ``s`` (8, n) are scratch.
+
+    The fit at entry i spans entries i + d, |d| <= half, that are finite. The raw value stays where the entry
+    is not finite, fewer than 3 entries are, or the fit misses the entry itself by more than ``max_res``; a
+    second fit leaves out the entries more than ``max_res`` off the first, where there are any (rare: one
+    scalar pass). The sums run over d outside and the entries inside, so the loops vectorise; a NaN / inf
+    entry adds exact zeros, so the fits equal a per-entry loop's bit for bit.
+    """
+    n = out.shape[0]
+    for j in range(buf.shape[0]):
+        x = buf[j]
+        f = (x - x) == 0.0  # finite
+        wt[j] = 1.0 if f else 0.0
+        xf[j] = x if f else 0.0
+    s1, sd, sdd, sx, sdx, a, b, state = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
+    for i in range(n):
+        s1[i] = 0.0
+        sd[i] = 0.0
+        sdd[i] = 0.0
+        sx[i] = 0.0
+        sdx[i] = 0.0
+    for d in range(-half, half + 1):
+        fd = np.float64(d)
+        wd = wt[half + d : half + d + n]
+        xd = xf[half + d : half + d + n]
+        for i in range(n):
+            w = wd[i]
+            x = xd[i]
+            s1[i] += w
+            sd[i] += w * fd
+            sdd[i] += w * (fd * fd)
+            sx[i] += x
+            sdx[i] += fd * x
+    # state: 0 the first fit, 1 a second fit, 2 the raw value
+    for i in range(n):
+        det = s1[i] * sdd[i] - sd[i] * sd[i]
+        ok = (s1[i] >= 3.0) & (det >= 1e-9)
+        dd = det if ok else 1.0
+        a[i] = (sx[i] * sdd[i] - sd[i] * sdx[i]) / dd
+        b[i] = (s1[i] * sdx[i] - sd[i] * sx[i]) / dd
+        x0 = buf[half + i]
+        raw = (not ok) | (abs(x0 - a[i]) > max_res) | ((x0 - x0) != 0.0)
+        state[i] = 2.0 if raw else 0.0
+    for d in range(-half, half + 1):
+        fd = np.float64(d)
+        wd = wt[half + d : half + d + n]
+        bd = buf[half + d : half + d + n]
+        for i in range(n):
+            off = (wd[i] != 0.0) & (abs(bd[i] - (a[i] + b[i] * fd)) > max_res)
+            state[i] = max(state[i], 1.0 if off else 0.0)
+    for i in range(n):
+        c = i + half
+        if state[i] == 0.0:
+            out[i] = a[i]
+        elif state[i] == 2.0:
+            out[i] = buf[c]
+        else:
+            aa = a[i]
+            bb = b[i]
+            t1 = 0.0
+            td = 0.0
+            tdd = 0.0
+            tx = 0.0
+            tdx = 0.0
+            for d in range(-half, half + 1):
+                x = buf[c + d]
+                if not math.isfinite(x) or abs(x - (aa + bb * d)) > max_res:
+                    continue
+                t1 += 1.0
+                td += d
+                tdd += d * d
+                tx += x
+                tdx += d * x
+            det = t1 * tdd - td * td
+            out[i] = buf[c] if (t1 < 3.0 or det < 1e-9) else (tx * tdd - td * tdx) / det
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -201,15 +229,32 @@ def smooth_crossings(tab, half, along_rows, max_res, out):  # type: ignore[no-un
     level and row to row where stripes and pixel grid are not aligned: the fit averages that out (run once
     along levels, once along rows: a separable plane fit). Entries more than ``max_res`` px off a first fit
     are left out of a second; a centre that is itself such an outlier stays raw. Ambiguous (inf) and
-    missing (NaN) entries are copied.
+    missing (NaN) entries are copied (see :func:`_line_fits`).
     """
     hr, nk = tab.shape[0], tab.shape[1]
-    sy = 1 if along_rows else 0
-    sk = 1 - sy
-    for y in prange(hr):
-        for k in range(nk):
-            x0 = tab[y, k]
-            out[y, k] = _fit_line(tab, y, k, sy, sk, half, max_res) if math.isfinite(x0) else x0
+    n = hr if along_rows else nk
+    m = nk if along_rows else hr
+    nch = min(m, 64)
+    for ch in prange(nch):
+        buf = np.full(n + 2 * half, np.nan)
+        wt = np.empty(n + 2 * half)
+        xf = np.empty(n + 2 * half)
+        s = np.empty((8, n))
+        res = np.empty(n)
+        for j in range(ch * m // nch, (ch + 1) * m // nch):
+            if along_rows:
+                for i in range(n):
+                    buf[half + i] = tab[i, j]
+            else:
+                for i in range(n):
+                    buf[half + i] = tab[j, i]
+            _line_fits(buf, half, max_res, wt, xf, s, res)
+            if along_rows:
+                for i in range(n):
+                    out[i, j] = res[i]
+            else:
+                for i in range(n):
+                    out[j, i] = res[i]
     return out
 
 
