@@ -508,24 +508,36 @@ def emit_points(  # type: ignore[no-untyped-def]
                 c0, c1 = (spans[r, 0], spans[r, 1]) if has_sp else (0, w)
                 ray_span(tx, ty, r, step, mx, my, c0, c1)
                 _emit_row(r, c0, c1, depth[r], sigma[r] if has_s else sigma[0], has_s, mx, my, quality[r],
-                          intensity[r] if has_i else intensity[0], has_i, rwc, cwc, to_world, starts[r], o_xyz,
-                          o_row, o_col, o_q, o_i, o_s)  # fmt: skip
+                          intensity[r] if has_i else intensity[0], has_i, rwc, cwc, to_world, starts[r], starts[r + 1],
+                          o_xyz, o_row, o_col, o_q, o_i, o_s)  # fmt: skip
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _emit_row(  # type: ignore[no-untyped-def]
-    r, c0, c1, dr, sr, has_s, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, o_xyz, o_row, o_col, o_q, o_i, o_s
-):
+    r, c0, c1, dr, sr, has_s, mx, my, qr, ir, has_i, rwc, cwc, to_world, k, kend, o_xyz, o_row, o_col, o_q, o_i,
+    o_s,
+):  # fmt: skip
+    """Points of columns c0 .. c1 - 1 of row r into indices k .. kend - 1, without a branch per pixel.
+
+    Every pixel is written at ``k`` and ``k`` advances only past a point, so a pixel without one is
+    overwritten by the next point; the loop ends with the row's last point (``kend``), so nothing is
+    written past the row's range.
+    """
+    r00, r01, r02 = rwc[0, 0], rwc[0, 1], rwc[0, 2]
+    r10, r11, r12 = rwc[1, 0], rwc[1, 1], rwc[1, 2]
+    r20, r21, r22 = rwc[2, 0], rwc[2, 1], rwc[2, 2]
+    t0, t1, t2 = cwc[0], cwc[1], cwc[2]
+    nan = np.float32(np.nan)
     for c in range(c0, c1):
+        if k >= kend:
+            break
         z = np.float64(dr[c])
-        if z != z:
-            continue
         px = z * mx[c]
         py = z * my[c]
         if to_world:
-            o_xyz[k, 0] = rwc[0, 0] * px + rwc[0, 1] * py + rwc[0, 2] * z + cwc[0]
-            o_xyz[k, 1] = rwc[1, 0] * px + rwc[1, 1] * py + rwc[1, 2] * z + cwc[1]
-            o_xyz[k, 2] = rwc[2, 0] * px + rwc[2, 1] * py + rwc[2, 2] * z + cwc[2]
+            o_xyz[k, 0] = r00 * px + r01 * py + r02 * z + t0
+            o_xyz[k, 1] = r10 * px + r11 * py + r12 * z + t1
+            o_xyz[k, 2] = r20 * px + r21 * py + r22 * z + t2
         else:
             o_xyz[k, 0] = px
             o_xyz[k, 1] = py
@@ -534,8 +546,8 @@ def _emit_row(  # type: ignore[no-untyped-def]
         o_col[k] = c
         o_q[k] = qr[c]
         o_i[k] = ir[c] if has_i else 0
-        o_s[k] = sr[c] if has_s else np.float32(np.nan)
-        k += 1
+        o_s[k] = sr[c] if has_s else nan
+        k += np.int64(z == z)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
