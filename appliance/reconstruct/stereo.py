@@ -112,7 +112,7 @@ class CodeGrid:
         return self.step / max(self.per_px, 1e-6)
 
 
-def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5) -> CodeGrid | None:
+def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: int = 1) -> CodeGrid | None:
     """Measure the quantisation and gradient of a code map (a subsample of every ``stride``-th row/column).
 
     Parameters
@@ -123,19 +123,22 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5) -> CodeGr
         Decoded pixels.
     stride : int
         Subsampling of rows and columns.
+    along : {1, 0}
+        The image axis the gradient is measured along: 1 along rows (x), 0 along columns (y: the v code of
+        a camera pair whose baseline runs along x). Reading whole rows either way keeps it cache friendly.
 
     Returns
     -------
     CodeGrid or None
         None when fewer than 100 pixels are decoded.
     """
-    rows = code[::stride]
-    vals32 = rows[:, ::stride][mask[::stride, ::stride]]
+    vals32 = code[::stride, ::stride][mask[::stride, ::stride]]
     vals32 = vals32[np.isfinite(vals32)]
     vals = vals32.astype(np.float64)
     if vals.size < 100:
         return None
-    d = np.abs(np.diff(rows, axis=1))
+    lines = code[::stride] if along == 1 else code[:, ::stride]
+    d = np.abs(np.diff(lines, axis=along))
     d = d[np.isfinite(d)]
     d = d[d < 64.0]  # not across an occlusion
     per_px = float(d.mean()) if d.size else 1.0
@@ -406,7 +409,7 @@ class StereoTriangulator:
         nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
         vgrid: CodeGrid | None = None
         if use_v:
-            vgrid = code_grid(v0.T, mask0.T)  # views: code_grid reads a subsample only
+            vgrid = code_grid(v0, mask0, along=0)
             vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
             vper = vgrid.per_px if vgrid is not None else 1.0
         C.remap_codes(u0, mask0, self._map0, spread, self._u0r)
