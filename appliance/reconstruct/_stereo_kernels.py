@@ -385,16 +385,23 @@ def _level_at(tab, y, w, x, k, code_offset, max_gap, max_row_jump):  # type: ign
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _bilinear(img, x, y):  # type: ignore[no-untyped-def]
+def _value_slope(img, x, y):  # type: ignore[no-untyped-def]
+    """Bilinear value at (x, y) and its slope per row, half the difference of the bilinear values at y - 1
+    and y + 1, from the 4 x 2 pixels the three share; NaN where any of the three falls off the image."""
     ix = math.floor(x)
     iy = math.floor(y)
-    if ix < 0 or iy < 0 or ix + 1 >= img.shape[1] or iy + 1 >= img.shape[0]:
-        return np.nan
+    if ix < 0 or iy < 1 or ix + 1 >= img.shape[1] or iy + 2 >= img.shape[0]:
+        return np.nan, np.nan
     tx = x - ix
     ty = y - iy
-    a = img[iy, ix] + tx * (img[iy, ix + 1] - img[iy, ix])
-    b = img[iy + 1, ix] + tx * (img[iy + 1, ix + 1] - img[iy + 1, ix])
-    return a + ty * (b - a)
+    r0 = img[iy - 1, ix] + tx * (img[iy - 1, ix + 1] - img[iy - 1, ix])
+    r1 = img[iy, ix] + tx * (img[iy, ix + 1] - img[iy, ix])
+    r2 = img[iy + 1, ix] + tx * (img[iy + 1, ix + 1] - img[iy + 1, ix])
+    r3 = img[iy + 2, ix] + tx * (img[iy + 2, ix + 1] - img[iy + 2, ix])
+    va = r0 + ty * (r1 - r0)
+    vc = r1 + ty * (r2 - r1)
+    vb = r2 + ty * (r3 - r2)
+    return vc, 0.5 * (vb - va)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -478,10 +485,7 @@ def cc_match(  # type: ignore[no-untyped-def]
                 continue
             if use_v:
                 fv = np.float64(v0[r, col])
-                va = _bilinear(v1rect, x1, y1 - 1.0)
-                vb = _bilinear(v1rect, x1, y1 + 1.0)
-                vc = _bilinear(v1rect, x1, y1)
-                dvdy = 0.5 * (vb - va)
+                vc, dvdy = _value_slope(v1rect, x1, y1)
                 if abs(dvdy) > 1e-6 and fv == fv:
                     epi[r, col] = (fv - vc) / dvdy
             a0 = a0min + xr0 * step
