@@ -359,6 +359,17 @@ def _gate_init(weak, qg, m1, m2):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _round_robin(ch, nch, nthreads):  # type: ignore[no-untyped-def]
+    """Block of rows that prange iteration ``ch`` of ``nch`` takes: prange hands each thread a contiguous run
+    of iterations, and this spreads each thread's blocks over the whole image (lit rows cluster) while rows
+    within a block stay contiguous (the frames' rows stream in order)."""
+    per = nch // nthreads
+    if per * nthreads != nch:
+        return ch
+    return (ch % per) * nthreads + ch // per
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _copy(dst, src):  # type: ignore[no-untyped-def]
     """dst = src, elementwise (a loop: numba's slice assignment of one array to another is ~8x slower)."""
     for x in range(dst.shape[0]):
@@ -759,7 +770,8 @@ def decode_stack(  # type: ignore[no-untyped-def]
         q16 = np.empty((2, w), np.int16)
         a16 = np.empty((2, w), np.uint16)
         b16 = np.empty((2, w), np.uint16)
-        for y in range(ch, h, nch):  # rows interleaved: lit rows cluster, every chunk gets its share
+        b = _round_robin(ch, nch, nthreads)
+        for y in range(b * h // nch, (b + 1) * h // nch):
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
             # only the lit span of the row is decoded: unlit pixels decode to nothing whatever their frames
@@ -902,7 +914,8 @@ def stream_finish(  # type: ignore[no-untyped-def]
         vnone = np.empty(w, np.float32)
         ss64 = np.empty((ssum.shape[0], w), np.float64)
         cs64 = np.empty((ssum.shape[0], w), np.float64)
-        for y in range(ch, h, nch):  # rows interleaved, as in decode_stack
+        b = _round_robin(ch, nch, nthreads)
+        for y in range(b * h // nch, (b + 1) * h // nch):
             hr = hi[y]
             lr = lo[y]
             for x in range(w):
