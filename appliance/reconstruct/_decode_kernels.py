@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit, prange
 
 import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+from appliance.reconstruct._geom_kernels import true_span
 
 BIG = np.uint32(0x7FFFFFFF)  # "no contrast seen yet"
 #: A Gray bit whose contrast is below this fraction of the next weakest bit marks a stripe edge.
@@ -377,21 +378,6 @@ def _copy(dst, src):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _lit_span(lit):  # type: ignore[no-untyped-def]
-    """(first, last + 1) of the lit pixels of a row; (0, 0) when none is lit."""
-    w = lit.shape[0]
-    c0 = 0
-    while c0 < w and not lit[c0]:
-        c0 += 1
-    if c0 == w:
-        return 0, 0
-    c1 = w
-    while not lit[c1 - 1]:
-        c1 -= 1
-    return c0, c1
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
 def _unlit(u, v, mask, quality, lev0, lev1, lo, hi):  # type: ignore[no-untyped-def]
     """Outputs of unlit pixels lo .. hi - 1 (what the final step gives them: no code, no quality)."""
     for x in range(lo, hi):
@@ -410,7 +396,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
 ):  # fmt: skip
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
-    Runs over columns ``c0 .. c1 - 1`` (the row's lit span, see :func:`_lit_span`); the caller gives the
+    Runs over columns ``c0 .. c1 - 1`` (the row's lit span, see ``true_span``); the caller gives the
     pixels outside it their unlit outputs (:func:`_unlit`). ``lit`` bool (W,) and ``scratch[0]`` (phase
     floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`; ``code``, ``weak``, ``m1``, ``m2`` uint32
     (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits; ``ssum``/``csum`` float64 (S, W);
@@ -775,7 +761,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
             # only the lit span of the row is decoded: unlit pixels decode to nothing whatever their frames
-            c0, c1 = _lit_span(lit)
+            c0, c1 = true_span(lit)
             vrow = v[y] if v.shape[0] == h else vnone
             _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], 0, c0)
             _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], max(c0, c1), w)
@@ -921,7 +907,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
             for x in range(w):
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
-            c0, c1 = _lit_span(lit)  # as in decode_stack: the same outputs
+            c0, c1 = true_span(lit)  # as in decode_stack: the same outputs
             vrow = v[y] if v.shape[0] == h else vnone
             _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], 0, c0)
             _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], max(c0, c1), w)

@@ -1,5 +1,5 @@
-"""numba kernels shared by the triangulation modules (private): point store, coarse ray rows (the distortion
-and its Jacobian: ``geometry/_distortion_kernels.distort_jac``).
+"""numba kernels shared by the reconstruction modules (private): point store, coarse ray rows (the distortion
+and its Jacobian: ``geometry/_distortion_kernels.distort_jac``), the span of a row's valid pixels.
 
 Distortion vectors here are always 12 long: ``k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4`` (OpenCV order, zeros
 padded). Camera tables hold normalised undistorted coordinates ``(x/z, y/z)`` in the device frame.
@@ -66,3 +66,18 @@ def _cubic_row(p0, p1, p2, p3, t, out):  # type: ignore[no-untyped-def]
     w3 = 0.5 * t * t * (t - 1.0)
     for c in range(out.shape[0]):
         out[c] = w0 * np.float64(p0[c]) + w1 * np.float64(p1[c]) + w2 * np.float64(p2[c]) + w3 * np.float64(p3[c])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def true_span(m):  # type: ignore[no-untyped-def]
+    """(first, last + 1) of the True entries of a bool row; (0, 0) when none (decoded or lit pixels)."""
+    w = m.shape[0]
+    c0 = 0
+    while c0 < w and not m[c0]:
+        c0 += 1
+    if c0 == w:
+        return 0, 0
+    c1 = w
+    while not m[c1 - 1]:
+        c1 -= 1
+    return c0, c1

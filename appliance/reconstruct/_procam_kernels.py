@@ -15,7 +15,7 @@ import appliance._numba_cache  # noqa: F401  (the cache folder, before any kerne
 from appliance.geometry._distortion_kernels import distort_jac
 from appliance.reconstruct._filter_kernels import keep_row, pairs_between_spans, pairs_in_span
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
-from appliance.reconstruct._geom_kernels import ray_row, ray_span, store_point
+from appliance.reconstruct._geom_kernels import ray_row, ray_span, store_point, true_span
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -325,21 +325,6 @@ def _count_true(m):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _mask_span(m):  # type: ignore[no-untyped-def]
-    """(first, last + 1) of the True entries of a row; (0, 0) when none."""
-    w = m.shape[0]
-    c0 = 0
-    while c0 < w and not m[c0]:
-        c0 += 1
-    if c0 == w:
-        return 0, 0
-    c1 = w
-    while not m[c1 - 1]:
-        c1 -= 1
-    return c0, c1
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
 def _clear(p, lo, hi):  # type: ignore[no-untyped-def]
     """NaN padded columns lo .. hi - 1 of every channel of ring row p."""
     for k in range(p.shape[0]):
@@ -448,7 +433,7 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
     for r in range(r0 - 1, r1 + 1):
         s = (r - r0 + 1) % 2
         p = ring[s]
-        c0, c1 = (0, 0) if (r < 0 or r >= h) else _mask_span(mask[r])
+        c0, c1 = (0, 0) if (r < 0 or r >= h) else true_span(mask[r])
         lo, hi = c0 + 1, c1 + 1
         # clear what the slot held two rows ago outside the new span (the span itself is overwritten)
         o0, o1 = held[s, 0], held[s, 1]
