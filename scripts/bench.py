@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import json
 import os
 import statistics
@@ -40,6 +41,7 @@ def median_ms(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> tuple[flo
 # --------------------------------------------------------------------------------------------------
 
 
+@functools.cache
 def parallel_read_floor() -> Callable[[np.ndarray], int]:
     """A numba kernel that reads every byte of an (F, H, W) uint8 stack once with every core (a sum)."""
     from numba import njit, prange

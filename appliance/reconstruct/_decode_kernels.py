@@ -378,15 +378,18 @@ def _copy(dst, src):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _unlit(u, v, mask, quality, lev0, lev1, lo, hi):  # type: ignore[no-untyped-def]
-    """Outputs of unlit pixels lo .. hi - 1 (what the final step gives them: no code, no quality)."""
-    for x in range(lo, hi):
-        u[x] = _FNAN
-        v[x] = _FNAN
-        mask[x] = False
-        quality[x] = _F0
-        lev0[x] = np.uint8(0)
-        lev1[x] = np.uint8(0)
+def _unlit_outside(u, v, mask, quality, lev0, lev1, c0, c1):  # type: ignore[no-untyped-def]
+    """Outputs of the pixels of a row outside its lit span c0 .. c1 - 1 (all of it when the span is empty):
+    what the final step gives an unlit pixel, no code and no quality."""
+    w = u.shape[0]
+    for lo, hi in ((0, c0), (max(c0, c1), w)):
+        for x in range(lo, hi):
+            u[x] = _FNAN
+            v[x] = _FNAN
+            mask[x] = False
+            quality[x] = _F0
+            lev0[x] = np.uint8(0)
+            lev1[x] = np.uint8(0)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -397,11 +400,11 @@ def _finish_row(  # type: ignore[no-untyped-def]
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
     Runs over columns ``c0 .. c1 - 1`` (the row's lit span, see ``true_span``); the caller gives the
-    pixels outside it their unlit outputs (:func:`_unlit`). ``lit`` bool (W,) and ``scratch[0]`` (phase
+    pixels outside it their unlit outputs (:func:`_unlit_outside`). ``lit_row`` bool (W,) and ``scratch[0]`` (phase
     floor), ``scratch[8]`` (Gray floor) come from :func:`_lit_row`; ``code``, ``weak``, ``m1``, ``m2`` uint32
     (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits; ``ssum``/``csum`` float64 (S, W);
-    ``lev0``/``lev1`` uint8 (W,) out: Gray bits dropped on x / y; ``scratch`` float32 (10, W), ``fl`` uint32
-    (W,), ``ok`` bool (W,) are scratch.
+    ``u_row``, ``v_row``, ``mask_row``, ``quality_row`` (W,) out; ``lev0_row``/``lev1_row`` uint8 (W,) out: Gray
+    bits dropped on x / y; ``scratch`` float32 (10, W), ``fl_row`` uint32 (W,), ``ok_row`` bool (W,) are scratch.
     """
     lit = lit_row[c0:c1]
     fl = fl_row[c0:c1]
@@ -763,8 +766,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
             # only the lit span of the row is decoded: unlit pixels decode to nothing whatever their frames
             c0, c1 = true_span(lit)
             vrow = v[y] if v.shape[0] == h else vnone
-            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], 0, c0)
-            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], max(c0, c1), w)
+            _unlit_outside(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], c0, c1)
             if c1 <= c0:
                 continue
             if narrow:
@@ -909,8 +911,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
             _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
             c0, c1 = true_span(lit)  # as in decode_stack: the same outputs
             vrow = v[y] if v.shape[0] == h else vnone
-            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], 0, c0)
-            _unlit(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], max(c0, c1), w)
+            _unlit_outside(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], c0, c1)
             if c1 <= c0:
                 continue
             for s in range(ssum.shape[0]):
