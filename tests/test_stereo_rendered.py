@@ -26,7 +26,7 @@ from appliance.geometry.camera import CameraModel
 from appliance.patterns.sequence import Sequence, gray_code_sequence, gray_phase_sequence
 from appliance.reconstruct.decode import decode
 from appliance.reconstruct.pipeline import Reconstructor
-from appliance.reconstruct.stereo import StereoTriangulator, code_grid
+from appliance.reconstruct.stereo import CELL_MAX_PX, StereoTriangulator, code_grid
 from appliance.reconstruct.types import DecodedMaps, PointCloud
 from appliance.sim.rig import VirtualRig
 
@@ -132,6 +132,10 @@ def test_gray_only_stereo_at_3m_with_a_perturbed_calibration(case: str, axes: st
     assert 0.4 <= ratio <= 1.5, ratio
     assert tri.report.points == ok.sum()
     assert tri.report.candidates == m0.mask.sum()
+    # Gray codes on both axes with narrow stripes are matched by code cells; wide stripes (and one axis) by rows
+    cells = axes == "xy" and grid.stripe_px <= CELL_MAX_PX and "rows quantised" in tri.report.code
+    assert ("matched by code cells" in tri.report.code) == cells
+    assert cells == (axes == "xy" and case == "stripe1")
 
 
 @pytest.mark.slow

@@ -28,6 +28,14 @@ that every epipolar plane is one rectified row ``b`` shared by both cameras. Per
    its code (three-view check), with a tolerance from the code step and the residuals.
 6. The two rays are coplanar by construction: depth = baseline / disparity.
 
+Gray codes on both axes with stripes of at most ``CELL_MAX_PX`` camera pixels are matched by *code cells*
+instead (``_cell_kernels``): a (u, v) pair names one projector cell, whose pixel centroids in the two cameras
+are images of one surface region. The cell disparities get a plane fit over a window of neighbouring cells
+(separable, so its cost does not grow with the window; a window holding a disparity jump falls back to a
+robust 3 x 3 fit of the cells on the cell's own surface), and every cam0 pixel takes its cell's plane at its
+own position. Steps 2-4 are not needed, nor a search; the epipolar residual is the cells' row difference and
+a drift correction only moves the residuals. The checks of step 5 are the same.
+
 Every stage counts what it rejects (:class:`StereoReport`), and a stage that rejects most candidates is
 said in words, with what to do.
 """
@@ -44,6 +52,7 @@ import numpy.typing as npt
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 from appliance.geometry.rays import RayTable
+from appliance.reconstruct import _cell_kernels as K
 from appliance.reconstruct import _stereo_kernels as C
 from appliance.reconstruct.residuals import Residual, summarise
 from appliance.reconstruct.triangulate import check_maps, check_out, distortion12
@@ -73,6 +82,21 @@ MIN_SAMPLES = 200
 """Fewest residuals a statistic is taken from."""
 MOST = 0.5
 """A stage that rejects more than this share of the candidates is reported in words."""
+CELL_MIN_PX = 1.2
+"""Both axes quantised: a matching cell spans at least this many camera pixels along each axis (stripes finer
+than that are grouped ``ku x kv`` codes to a cell)."""
+CELL_SPAN_PX = 3.0
+"""Both axes quantised: a cell's disparity plane is fitted over the neighbouring cells within about this many
+pixels (at least one cell) either side."""
+CELL_MAX_PX = 4.0
+"""Both axes quantised with stripes up to this wide (camera px): matched by code cells. Wider stripes are
+matched by their boundaries on rectified rows, which then carry more of the information than the centroids
+(and a wide cell across an occluding edge would mix two surfaces)."""
+CELL_EDGE_PX = 3.0
+"""Both axes quantised: cells larger than this (camera px) next to a cell that one camera misses are left out
+(partly hidden from one camera, their centroids are off by up to half a cell)."""
+CELL_VAR_FLOOR = 1.0 / 12.0
+"""Both axes quantised: least variance of a centroid (px^2) times its pixel count (pixel sampling)."""
 
 STAGES = {
     C.ST_OUTSIDE: "outside the rows both cameras see",
@@ -318,6 +342,9 @@ class StereoTriangulator:
         rect0[..., 0] = ((a0 - a0min) / step).reshape(h, w)
         rect0[..., 1] = ((b0 - bmin) / step).reshape(h, w)
         self._rect0 = rect0
+        self._rot1 = rot1
+        self._rect1: F32 | None = None  # cam1's pixels on the rectified grid: built when cells are matched
+        self._cells: dict[str, npt.NDArray[Any]] = {}
         self._r0z = np.ascontiguousarray(cam0.R[2])
         self._t0z = float(cam0.T[2])
         self._c0 = c0
@@ -405,13 +432,30 @@ class StereoTriangulator:
             if grid.quantised
             else f"continuous, {grid.per_px:.2f} projector px per camera px"
         )
-        hi = max(float(np.nanmax(u0, initial=0.0)), float(np.nanmax(u1, initial=0.0)))
-        nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
         vgrid: CodeGrid | None = None
         if use_v:
             vgrid = code_grid(v0, mask0, along=0)
             vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
             vper = vgrid.per_px if vgrid is not None else 1.0
+        zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
+        cells = (
+            use_v
+            and grid.quantised
+            and vgrid is not None
+            and vgrid.quantised
+            and max(grid.stripe_px, vgrid.stripe_px) <= CELL_MAX_PX
+        )
+        if cells:
+            assert vgrid is not None
+            rep.code += (
+                f"; rows quantised, step {vgrid.step:g} projector px, {vgrid.stripe_px:.2f} camera px per step; "
+                "matched by code cells"
+            )
+            self._match_cells(u0, v0, mask0, u1, v1, mask1, grid, vgrid, xyz, zmin, zmax)
+            self._check(rep, grid, vgrid, xyz, u0, v0, use_v, True, None)
+            return xyz
+        hi = max(float(np.nanmax(u0, initial=0.0)), float(np.nanmax(u1, initial=0.0)))
+        nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
         C.remap_codes(u0, mask0, self._map0, spread, self._u0r)
         if use_v:  # cam1's u and v in one pass
             C.remap_pair(u1, v1, mask1, self._map1, spread, 1.5 * vstep + 3.0 * vper, self._u1r, self._v1r)
@@ -441,13 +485,120 @@ class StereoTriangulator:
                 v0m, v1m = self._v0s, self._v1s
         tol = np.array([max_gap, MAX_ROW_JUMP_PX, MAX_OWN_PX, margin])
         noise_p = self._noise_params(grid, noise, levels if grid.quantised else 0)
-        zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
         shift = np.zeros(3)
         q0 = np.ascontiguousarray(maps0.quality, dtype=np.float32)
         args = (self._rr_t, self._c0, self._r0z, self._t0z, tol, zmin, zmax, q0, noise_p, xyz, self._epi,
                 self.sigma, self._status)  # fmt: skip
         C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v, CODE_OFFSET,
                    self._geom, shift, *args)  # fmt: skip
+
+        def rematch(shift: F64) -> None:
+            C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v,
+                       CODE_OFFSET, self._geom, shift, *args)  # fmt: skip
+
+        self._check(rep, grid, vgrid, xyz, u0, v0, use_v, False, rematch)
+        return xyz
+
+    def _rect_cam1(self) -> F32:
+        """cam1's pixels on the rectified grid (H1, W1, 2), in grid units; built once, on first use."""
+        if self._rect1 is None:
+            cam1 = self.cam1
+            ys, xs = np.mgrid[0 : cam1.height, 0 : cam1.width]
+            px = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+            a, b = _rect_coords(self._rot1, cam1.undistort_pixels(px))
+            a1min, bmin, step = self._geom[1], self._geom[2], self._geom[3]
+            rect = np.empty((cam1.height, cam1.width, 2), np.float32)
+            rect[..., 0] = ((a - a1min) / step).reshape(cam1.height, cam1.width)
+            rect[..., 1] = ((b - bmin) / step).reshape(cam1.height, cam1.width)
+            self._rect1 = rect
+        return self._rect1
+
+    def _cell_buffers(self, n: int) -> tuple[npt.NDArray[np.int32], F32, npt.NDArray[np.int32], F32, F32]:
+        got = self._cells.get("cnt0")
+        if got is None or got.shape[0] < n:
+            self._cells |= {"cnt0": np.empty(n, np.int32), "acc0": np.empty((n, 2), np.float32),
+                           "cnt1": np.empty(n, np.int32), "acc1": np.empty((n, 2), np.float32),
+                           "fits": np.empty((n, K.FIT_COLS), np.float32)}  # fmt: skip
+        c = self._cells
+        return c["cnt0"][:n], c["acc0"][:n], c["cnt1"][:n], c["acc1"][:n], c["fits"][:n]
+
+    def _match_cells(
+        self,
+        u0: F32,
+        v0: F32,
+        mask0: npt.NDArray[np.bool_],
+        u1: F32,
+        v1: F32,
+        mask1: npt.NDArray[np.bool_],
+        grid: CodeGrid,
+        vgrid: CodeGrid,
+        xyz: F32,
+        zmin: float,
+        zmax: float,
+    ) -> None:
+        """Both axes quantised: match by code cells (``_cell_kernels``), into xyz, epi, sigma and status."""
+        ku = max(1, math.ceil(CELL_MIN_PX / grid.stripe_px))
+        kv = max(1, math.ceil(CELL_MIN_PX / vgrid.stripe_px))
+        cell_u, cell_v = ku * grid.stripe_px, kv * vgrid.stripe_px
+        hu0, hv0 = K.code_max(u0, v0, mask0)
+        hu1, hv1 = K.code_max(u1, v1, mask1)
+        hi_u, hi_v = max(hu0, hu1), max(hv0, hv1)
+        ou = grid.origin - grid.step * math.ceil(grid.origin / grid.step)  # at or below 0: no code below it
+        ov = vgrid.origin - vgrid.step * math.ceil(vgrid.origin / vgrid.step)
+        ncu = math.floor((hi_u - ou) / grid.step + 0.5) // ku + 1
+        ncv = math.floor((hi_v - ov) / vgrid.step + 0.5) // kv + 1
+        cgrid = np.array([ou, 1.0 / grid.step, ov, 1.0 / vgrid.step, ku, kv], np.float64)
+        cnt0, acc0, cnt1, acc1, fits = self._cell_buffers(ncu * ncv)
+        K.cell_sums(u0, v0, mask0, self._rect0, u1, v1, mask1, self._rect_cam1(), cgrid, ncu, ncv, cnt0, acc0,
+                    cnt1, acc1)  # fmt: skip
+        radius = int(min(4, max(1, math.ceil(CELL_SPAN_PX / min(cell_u, cell_v)))))
+        jump = 1.0 + 0.15 * max(cell_u, cell_v)
+        raw, mom = self._cell_planes(ncu, ncv)
+        K.cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, max(cell_u, cell_v) > CELL_EDGE_PX, raw)
+        K.cell_rows(raw, radius, mom)
+        K.cell_cols(raw, mom, radius, 1.0 + 0.15 * (2 * radius + 1) * max(cell_u, cell_v), fits)
+        K.cell_fits_robust(raw, ncu, ncv, jump, fits)
+        own = 0.5 * math.hypot(cell_u, cell_v) + 1.0
+        var_unit = self._cell_variance(raw, fits, ncu)
+        cen_x, cen_y = raw[K.RAW_X].reshape(-1), raw[K.RAW_Y].reshape(-1)
+        K.cell_match(u0, v0, mask0, self._rect0, cgrid, ncu, ncv, cen_x, cen_y, fits, own, var_unit,
+                     self._geom, self._rr_t, self._c0, self._r0z, self._t0z, zmin, zmax, xyz, self._epi, self.sigma,
+                     self._status)  # fmt: skip
+
+    @staticmethod
+    def _cell_variance(raw: F32, fits: F32, ncu: int, stride: int = 3) -> float:
+        """Variance of a cell's disparity at unit weight (px^2), from this scan: the robust spread of the cells'
+        disparities about their fitted planes (every ``stride``-th cell row), at least ``CELL_VAR_FLOOR``."""
+        w = raw[K.RAW_W, ::stride].ravel()
+        d = raw[K.RAW_D, ::stride].ravel()
+        f = fits.reshape(-1, ncu, K.FIT_COLS)[::stride, :, 0].ravel()
+        ok = (w > 0) & np.isfinite(f)
+        if ok.sum() < MIN_SAMPLES:
+            return CELL_VAR_FLOOR
+        z = w[ok].astype(np.float64) * (d[ok].astype(np.float64) - f[ok]) ** 2
+        return max(CELL_VAR_FLOOR, float(np.median(z)) / 0.4549)  # the median of chi-square with 1 dof
+
+    def _cell_planes(self, ncu: int, ncv: int) -> tuple[F32, F32]:
+        got = self._cells.get("raw")
+        if got is None or got.shape[1:] != (ncv, ncu):
+            self._cells["raw"] = np.empty((K.N_RAW, ncv, ncu), np.float32)
+            self._cells["mom"] = np.empty((K.N_MOM, ncv, ncu), np.float32)
+        return self._cells["raw"], self._cells["mom"]
+
+    def _check(
+        self,
+        rep: StereoReport,
+        grid: CodeGrid,
+        vgrid: CodeGrid | None,
+        xyz: F32,
+        u0: F32,
+        v0: F32,
+        use_v: bool,
+        cells: bool,
+        rematch: Any,
+    ) -> None:
+        """The checks after matching: epipolar residuals (measured, corrected, limited), three-view, report."""
+        dl = grid.step
         stated = _stated_rms(self.cam0, self.cam1)
         self.residuals = []
         zs = xyz[::16, ::16, 2]
@@ -462,8 +613,10 @@ class StereoTriangulator:
             rep.epipolar = {"median_px": med, "spread_px": sig, "samples": float(n), "offset_px": 0.0}
             if self.correct_epipolar and n >= MIN_SAMPLES and abs(med) > max(EPIPOLAR_OFFSET_MIN_PX, 0.5 * sig):
                 shift = self._fit_offset(med, sig)
-                C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v,
-                           CODE_OFFSET, self._geom, shift, *args)  # fmt: skip
+                if cells:  # the match itself does not depend on the row: only the residuals move
+                    K.sub_plane(self._epi, self._rect0, shift)
+                else:
+                    rematch(shift)
                 ok = self._status[::3, ::3] == C.ST_OK
                 med2, sig2, _ = _robust(self._epi[::3, ::3][ok])
                 rep.epipolar.update(
@@ -496,7 +649,6 @@ class StereoTriangulator:
                 self.residuals.append(res)
             C.reject(xyz, self._err3, limit3, C.ST_THREE_VIEW, self._status)
         self._summarise(rep)
-        return xyz
 
     def filter_neighbours(
         self,

@@ -1,0 +1,492 @@
+"""numba kernels of camera-camera matching by code cells (private; see ``stereo.py``).
+
+With both axes coded and quantised (Gray only), a pair of codes ``(u, v)`` names one cell of the projector
+(``ku x kv`` codes when the stripes are finer than a camera pixel). Each camera sees a cell as a small patch
+of pixels, and the centroids of the two patches are images of one and the same surface region (centroids are
+preserved by the locally affine map between the views). The matching is then a lookup, not a search:
+
+1. ``cell_sums`` adds up, per cell and per camera, the pixels and their rectified coordinates.
+2. ``cell_fits`` takes each cell's disparity (cam0 centroid minus cam1 centroid, along the rectified rows)
+   and its epipolar residual (cam1 row minus cam0 row), and fits a plane ``d = d0 + gx dx + gy dy`` to the
+   disparities of the cell and its neighbours (weighted by their pixel counts, neighbours across a disparity
+   jump left out), about the cell's own cam0 centroid.
+3. ``cell_match`` gives every cam0 pixel the disparity of its cell's plane at its own position, and
+   triangulates.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
+from appliance.reconstruct._geom_kernels import NAN32 as _NAN
+from appliance.reconstruct._stereo_kernels import ST_DEPTH, ST_NONE, ST_OK, ST_OTHER, ST_OUTSIDE, ST_OWN
+
+FIT_COLS = 6
+"""Columns of a cell's fit: d0, gx, gy (disparity plane about the cell's cam0 centroid, rectified px), the
+variance of d0 per unit variance (px^2 per px^2 at unit weight), mean epipolar residual (px), total weight."""
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _cell_of(fu, fv, grid, ncu, ncv):  # type: ignore[no-untyped-def]
+    """Cell index of codes (fu, fv) under ``grid`` = (origin_u, 1/step_u, origin_v, 1/step_v, ku, kv); -1 if none."""
+    fi = (fu - grid[0]) * grid[1] + 0.5
+    fj = (fv - grid[2]) * grid[3] + 0.5
+    if not (fi >= 0.0 and fj >= 0.0):  # NaN too
+        return -1
+    cu = int(fi)
+    cv = int(fj)
+    ku = int(grid[4])
+    kv = int(grid[5])
+    if ku != 1:
+        cu //= ku
+    if kv != 1:
+        cv //= kv
+    if cu >= ncu or cv >= ncv:
+        return -1
+    return cv * ncu + cu
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _sums_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
+    for k in range(cnt.shape[0]):
+        cnt[k] = 0
+    h, w = u.shape[0], u.shape[1]
+    for r in range(h):
+        for c in range(w):
+            if not mask[r, c]:
+                continue
+            k = _cell_of(np.float64(u[r, c]), np.float64(v[r, c]), grid, ncu, ncv)
+            a = rect[r, c, 0]
+            if k < 0 or a != a:
+                continue
+            b = rect[r, c, 1]
+            n = cnt[k]
+            if n == 0:
+                acc[k, 0] = a
+                acc[k, 1] = b
+            else:
+                acc[k, 0] += a
+                acc[k, 1] += b
+            cnt[k] = n + 1
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_sums(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
+    """Per cell: pixel count (``cnt``, int32, (N,)) and sums of rectified (x, y) (``acc``, float32, (N, 2)) of
+    both cameras, one camera per thread. ``acc`` is only written where ``cnt`` > 0."""
+    for t in prange(2):
+        if t == 0:
+            _sums_one(u0, v0, mask0, rect0, grid, ncu, ncv, cnt0, acc0)
+        else:
+            _sums_one(u1, v1, mask1, rect1, grid, ncu, ncv, cnt1, acc1)
+
+
+RAW_W, RAW_D, RAW_E, RAW_HI, RAW_LO, RAW_X, RAW_Y = 0, 1, 2, 3, 4, 5, 6
+N_RAW = 7
+"""Planes of ``cell_raw``'s output: weight, disparity, epipolar residual, disparity or -inf, or +inf, cam0's
+centroid x and y (NaN where cam0 misses the cell)."""
+N_MOM = 8
+"""Planes of a moment pass: sum w, w du, w du^2, w d, w du d, w e (du: lattice offset), max d, min d."""
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _one_sided(cnt0, cnt1, k):  # type: ignore[no-untyped-def]
+    return (cnt0[k] == 0) != (cnt1[k] == 0)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, raw):  # type: ignore[no-untyped-def]
+    """Per cell seen by both cameras: weight ``n0 n1 / (n0 + n1)`` (inverse variance of the disparity, up to a
+    constant), disparity (cam0 centroid x - cam1 centroid x), epipolar residual (cam1 centroid y - cam0
+    centroid y), in rectified grid px; weight 0 elsewhere. ``raw`` is (N_RAW, ncv, ncu) float32 (``RAW_*``)."""
+    for cv in prange(ncv):
+        for cu in range(ncu):
+            k = cv * ncu + cu
+            n0 = cnt0[k]
+            n1 = cnt1[k]
+            if n0 == 0:
+                raw[RAW_X, cv, cu] = _NAN
+                raw[RAW_Y, cv, cu] = _NAN
+            else:
+                f0 = 1.0 / np.float64(n0)
+                raw[RAW_X, cv, cu] = np.float64(acc0[k, 0]) * f0
+                raw[RAW_Y, cv, cu] = np.float64(acc0[k, 1]) * f0
+            if n0 == 0 or n1 == 0:
+                raw[RAW_W, cv, cu] = 0.0
+                raw[RAW_D, cv, cu] = 0.0
+                raw[RAW_E, cv, cu] = 0.0
+                raw[RAW_HI, cv, cu] = -np.inf
+                raw[RAW_LO, cv, cu] = np.inf
+                continue
+            if edge and (
+                (cu > 0 and _one_sided(cnt0, cnt1, k - 1))
+                or (cu + 1 < ncu and _one_sided(cnt0, cnt1, k + 1))
+                or (cv > 0 and _one_sided(cnt0, cnt1, k - ncu))
+                or (cv + 1 < ncv and _one_sided(cnt0, cnt1, k + ncu))
+            ):  # partly hidden from one camera: its two centroids are not images of one region
+                raw[RAW_W, cv, cu] = 0.0
+                raw[RAW_D, cv, cu] = 0.0
+                raw[RAW_E, cv, cu] = 0.0
+                raw[RAW_HI, cv, cu] = -np.inf
+                raw[RAW_LO, cv, cu] = np.inf
+                continue
+            f0 = 1.0 / np.float64(n0)
+            f1 = 1.0 / np.float64(n1)
+            d = np.float64(acc0[k, 0]) * f0 - np.float64(acc1[k, 0]) * f1
+            raw[RAW_W, cv, cu] = np.float64(n0) * np.float64(n1) / np.float64(n0 + n1)
+            raw[RAW_D, cv, cu] = d
+            raw[RAW_E, cv, cu] = np.float64(acc1[k, 1]) * f1 - np.float64(acc0[k, 1]) * f0
+            raw[RAW_HI, cv, cu] = d
+            raw[RAW_LO, cv, cu] = d
+    return raw
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _tap(dst, src, f, off, lo, hi):  # type: ignore[no-untyped-def]
+    """dst[x] += f * src[x + off] for x in lo .. hi - 1 (one vectorised loop: views, no index arithmetic)."""
+    dv = dst[lo:hi]
+    sv = src[lo + off : hi + off]
+    for x in range(dv.shape[0]):
+        dv[x] += f * sv[x]
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _tap2(dst, a, b, f, off, lo, hi):  # type: ignore[no-untyped-def]
+    """dst[x] += f * a[x + off] * b[x + off]."""
+    dv = dst[lo:hi]
+    av = a[lo + off : hi + off]
+    bv = b[lo + off : hi + off]
+    for x in range(dv.shape[0]):
+        dv[x] += f * av[x] * bv[x]
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _tap_max(dst, src, off, lo, hi):  # type: ignore[no-untyped-def]
+    dv = dst[lo:hi]
+    sv = src[lo + off : hi + off]
+    for x in range(dv.shape[0]):
+        dv[x] = max(dv[x], sv[x])
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _tap_min(dst, src, off, lo, hi):  # type: ignore[no-untyped-def]
+    dv = dst[lo:hi]
+    sv = src[lo + off : hi + off]
+    for x in range(dv.shape[0]):
+        dv[x] = min(dv[x], sv[x])
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_rows(raw, radius, mom):  # type: ignore[no-untyped-def]
+    """First (along u) pass of the separable window moments of ``raw`` (``N_MOM`` planes, see there)."""
+    ncv, ncu = raw.shape[1], raw.shape[2]
+    for cv in prange(ncv):
+        for p in range(N_MOM):
+            v = np.float32(-np.inf if p == 6 else (np.inf if p == 7 else 0.0))
+            row = mom[p, cv]
+            for x in range(ncu):
+                row[x] = v
+        w = raw[RAW_W, cv]
+        d = raw[RAW_D, cv]
+        for du in range(-radius, radius + 1):
+            lo = max(0, -du)
+            hi = min(ncu, ncu - du)
+            fd = np.float32(du)
+            _tap(mom[0, cv], w, np.float32(1.0), du, lo, hi)
+            _tap(mom[1, cv], w, fd, du, lo, hi)
+            _tap(mom[2, cv], w, fd * fd, du, lo, hi)
+            _tap2(mom[3, cv], w, d, np.float32(1.0), du, lo, hi)
+            _tap2(mom[4, cv], w, d, fd, du, lo, hi)
+            _tap2(mom[5, cv], w, raw[RAW_E, cv], np.float32(1.0), du, lo, hi)
+            _tap_max(mom[6, cv], raw[RAW_HI, cv], du, lo, hi)
+            _tap_min(mom[7, cv], raw[RAW_LO, cv], du, lo, hi)
+    return mom
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _lattice_step(raw, ncu, ncv, cu, cv, along_u):  # type: ignore[no-untyped-def]
+    """cam0's centroid step per lattice step at cell (cu, cv), along u or v: central, else one-sided."""
+    xc = np.float64(raw[RAW_X, cv, cu])
+    yc = np.float64(raw[RAW_Y, cv, cu])
+    xp = yp = xm = ym = np.nan
+    if along_u:
+        if cu + 1 < ncu:
+            xp, yp = np.float64(raw[RAW_X, cv, cu + 1]), np.float64(raw[RAW_Y, cv, cu + 1])
+        if cu > 0:
+            xm, ym = np.float64(raw[RAW_X, cv, cu - 1]), np.float64(raw[RAW_Y, cv, cu - 1])
+    else:
+        if cv + 1 < ncv:
+            xp, yp = np.float64(raw[RAW_X, cv + 1, cu]), np.float64(raw[RAW_Y, cv + 1, cu])
+        if cv > 0:
+            xm, ym = np.float64(raw[RAW_X, cv - 1, cu]), np.float64(raw[RAW_Y, cv - 1, cu])
+    if xp == xp and xm == xm:
+        return 0.5 * (xp - xm), 0.5 * (yp - ym)
+    if xp == xp:
+        return xp - xc, yp - yc
+    if xm == xm:
+        return xc - xm, yc - ym
+    return np.nan, np.nan
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _store_plane(fits, k, d0, gu, gv, inv00, e, m, raw, ncu, ncv, cu, cv):  # type: ignore[no-untyped-def]
+    """Store a fitted plane in lattice coordinates as a plane in cam0's rectified pixels about the centroid."""
+    jxu, jyu = _lattice_step(raw, ncu, ncv, cu, cv, True)
+    jxv, jyv = _lattice_step(raw, ncu, ncv, cu, cv, False)
+    det = jxu * jyv - jxv * jyu
+    gx = 0.0
+    gy = 0.0
+    if det == det and abs(det) > 1e-6:
+        # d = d0 + (gu, gv) . dq with dp = J dq: (gx, gy) = J^-T (gu, gv)
+        gx = (jyv * gu - jyu * gv) / det
+        gy = (-jxv * gu + jxu * gv) / det
+    fits[k, 0] = d0
+    fits[k, 1] = gx
+    fits[k, 2] = gy
+    fits[k, 3] = inv00
+    fits[k, 4] = e
+    fits[k, 5] = m
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_cols(raw, mom, radius, span, fits):  # type: ignore[no-untyped-def]
+    """Second (along v) pass of the window moments and the plane of every cell whose window holds no jump
+    (disparities within ``span`` px); ``fits[k, 5]`` = -1 marks a cell that needs the robust fit, NaN
+    ``fits[k, 0]`` one seen by a single camera. ``fits`` is (N, FIT_COLS) float32, see there."""
+    ncv, ncu = raw.shape[1], raw.shape[2]
+    for cv in prange(ncv):
+        s = np.zeros((12, ncu), np.float32)
+        s[10] = -np.inf
+        s[11] = np.inf
+        for dv in range(-radius, radius + 1):
+            jv = cv + dv
+            if jv < 0 or jv >= ncv:
+                continue
+            fd = np.float32(dv)
+            one = np.float32(1.0)
+            _tap(s[0], mom[0, jv], one, 0, 0, ncu)
+            _tap(s[1], mom[1, jv], one, 0, 0, ncu)
+            _tap(s[2], mom[2, jv], one, 0, 0, ncu)
+            _tap(s[3], mom[0, jv], fd, 0, 0, ncu)
+            _tap(s[4], mom[1, jv], fd, 0, 0, ncu)
+            _tap(s[5], mom[0, jv], fd * fd, 0, 0, ncu)
+            _tap(s[6], mom[3, jv], one, 0, 0, ncu)
+            _tap(s[7], mom[4, jv], one, 0, 0, ncu)
+            _tap(s[8], mom[3, jv], fd, 0, 0, ncu)
+            _tap(s[9], mom[5, jv], one, 0, 0, ncu)
+            _tap_max(s[10], mom[6, jv], 0, 0, ncu)
+            _tap_min(s[11], mom[7, jv], 0, 0, ncu)
+        for cu in range(ncu):
+            k = cv * ncu + cu
+            if raw[RAW_W, cv, cu] == 0.0:
+                fits[k, 0] = _NAN
+                fits[k, 5] = 0.0
+                continue
+            if not s[10, cu] - s[11, cu] <= span:
+                fits[k, 0] = _NAN
+                fits[k, 5] = -1.0
+                continue
+            # weighted least squares of d on (1, du, dv): [[w, u, v], [u, uu, uv], [v, uv, vv]]
+            sw, su, suu = np.float64(s[0, cu]), np.float64(s[1, cu]), np.float64(s[2, cu])
+            sv, suv, svv = np.float64(s[3, cu]), np.float64(s[4, cu]), np.float64(s[5, cu])
+            c00 = suu * svv - suv * suv
+            c01 = sv * suv - su * svv
+            c02 = su * suv - sv * suu
+            c11 = sw * svv - sv * sv
+            c12 = su * sv - sw * suv
+            c22 = sw * suu - su * su
+            det = sw * c00 + su * c01 + sv * c02
+            if not det > 1e-6 * sw * sw * sw:
+                fits[k, 0] = _NAN
+                fits[k, 5] = -1.0
+                continue
+            sd, sdu, sdv = np.float64(s[6, cu]), np.float64(s[7, cu]), np.float64(s[8, cu])
+            idet = 1.0 / det
+            d0 = (c00 * sd + c01 * sdu + c02 * sdv) * idet
+            gu = (c01 * sd + c11 * sdu + c12 * sdv) * idet
+            gv = (c02 * sd + c12 * sdu + c22 * sdv) * idet
+            _store_plane(fits, k, d0, gu, gv, c00 * idet, np.float64(s[9, cu]) / sw, sw, raw, ncu, ncv, cu, cv)
+    return fits
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_fits_robust(raw, ncu, ncv, jump, fits):  # type: ignore[no-untyped-def]
+    """The plane of every cell marked by ``cell_cols`` (a jump in its window), over its 3 x 3 neighbours whose
+    disparity lies within ``jump`` px of its own (the same surface); their weighted mean with 3; none (NaN)
+    with fewer."""
+    for cv in prange(ncv):
+        for cu in range(ncu):
+            k = cv * ncu + cu
+            if fits[k, 5] != -1.0:
+                continue
+            d0 = np.float64(raw[RAW_D, cv, cu])
+            sw = su = sv = suu = suv = svv = sd = sud = svd = se = 0.0
+            m = 0
+            for dv in range(-1, 2):
+                jv = cv + dv
+                if jv < 0 or jv >= ncv:
+                    continue
+                for du in range(-1, 2):
+                    ju = cu + du
+                    if ju < 0 or ju >= ncu:
+                        continue
+                    wk = np.float64(raw[RAW_W, jv, ju])
+                    dd = np.float64(raw[RAW_D, jv, ju]) - d0
+                    if wk == 0.0 or not abs(dd) <= jump:
+                        continue
+                    m += 1
+                    sw += wk
+                    su += wk * du
+                    sv += wk * dv
+                    suu += wk * du * du
+                    suv += wk * du * dv
+                    svv += wk * dv * dv
+                    sd += wk * dd
+                    sud += wk * du * dd
+                    svd += wk * dv * dd
+                    se += wk * np.float64(raw[RAW_E, jv, ju])
+            c00 = suu * svv - suv * suv
+            c01 = sv * suv - su * svv
+            c02 = su * suv - sv * suu
+            c11 = sw * svv - sv * sv
+            c12 = su * sv - sw * suv
+            c22 = sw * suu - su * su
+            det = sw * c00 + su * c01 + sv * c02
+            if m >= 4 and det > 1e-6 * sw * sw * sw:
+                a0 = (c00 * sd + c01 * sud + c02 * svd) / det
+                gu = (c01 * sd + c11 * sud + c12 * svd) / det
+                gv = (c02 * sd + c12 * sud + c22 * svd) / det
+                inv00 = c00 / det
+            elif m >= 3:
+                a0 = sd / sw
+                gu = 0.0
+                gv = 0.0
+                inv00 = 1.0 / sw
+            else:  # not on one surface with any two neighbours: on an edge (its patches mix two surfaces)
+                fits[k, 0] = _NAN
+                fits[k, 5] = 0.0
+                continue
+            _store_plane(fits, k, d0 + a0, gu, gv, inv00, se / sw, sw, raw, ncu, ncv, cu, cv)
+    return fits
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_match(  # type: ignore[no-untyped-def]
+    u0,
+    v0,
+    mask0,
+    rect0,
+    grid,
+    ncu,
+    ncv,
+    cen_x,
+    cen_y,
+    fits,
+    own_px,
+    var_unit,
+    geom,
+    rr_t,
+    c0,
+    r0z,
+    t0z,
+    zmin,
+    zmax,
+    out,
+    epi,
+    sigma,
+    status,
+):
+    """Every cam0 pixel: the disparity of its cell's plane at the pixel, triangulated (world frame, mm).
+
+    ``cen_x``, ``cen_y`` (N,): cam0's centroid of each cell (the ``RAW_X``/``RAW_Y`` planes, flat).
+    ``own_px``: a pixel further than this from its cell's cam0 centroid is not where its code says (a code
+    seen twice, or an edge) and is rejected. ``geom`` = (a0min, a1min, bmin, step, baseline_mm). ``epi``
+    receives the cell's epipolar residual (rectified px), ``sigma`` each point's 1-sigma error along cam0's
+    ray (mm) and ``status`` the outcome (the codes of ``_stereo_kernels``).
+    """
+    h, w = u0.shape[0], u0.shape[1]
+    a0min, a1min, bmin, step, base = geom[0], geom[1], geom[2], geom[3], geom[4]
+    own2 = own_px * own_px
+    for r in prange(h):
+        for col in range(w):
+            out[r, col, 0] = _NAN
+            out[r, col, 1] = _NAN
+            out[r, col, 2] = _NAN
+            epi[r, col] = _NAN
+            sigma[r, col] = _NAN
+            if not mask0[r, col]:
+                status[r, col] = ST_NONE
+                continue
+            k = _cell_of(np.float64(u0[r, col]), np.float64(v0[r, col]), grid, ncu, ncv)
+            if k < 0:
+                status[r, col] = ST_NONE
+                continue
+            xr0 = np.float64(rect0[r, col, 0])
+            yr = np.float64(rect0[r, col, 1])
+            cx = np.float64(cen_x[k])
+            if xr0 != xr0 or cx != cx:
+                status[r, col] = ST_OUTSIDE
+                continue
+            dx = xr0 - cx
+            dy = yr - np.float64(cen_y[k])
+            if dx * dx + dy * dy > own2:
+                status[r, col] = ST_OWN
+                continue
+            d = np.float64(fits[k, 0])
+            if d != d:
+                status[r, col] = ST_OTHER
+                continue
+            disp = a0min - a1min + (d + np.float64(fits[k, 1]) * dx + np.float64(fits[k, 2]) * dy) * step
+            epi[r, col] = fits[k, 4]
+            if not disp > 0.0:
+                status[r, col] = ST_DEPTH
+                continue
+            a0 = a0min + xr0 * step
+            b = bmin + yr * step
+            zr = base / disp
+            px = c0[0] + zr * (rr_t[0, 0] * a0 + rr_t[0, 1] * b + rr_t[0, 2])
+            py = c0[1] + zr * (rr_t[1, 0] * a0 + rr_t[1, 1] * b + rr_t[1, 2])
+            pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
+            depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
+            if not (depth >= zmin and depth <= zmax):
+                status[r, col] = ST_DEPTH
+                continue
+            out[r, col, 0] = px
+            out[r, col, 1] = py
+            out[r, col, 2] = pz
+            status[r, col] = ST_OK
+            rng = math.sqrt((px - c0[0]) ** 2 + (py - c0[1]) ** 2 + (pz - c0[2]) ** 2)
+            sigma[r, col] = zr * rng / base * math.sqrt(var_unit * np.float64(fits[k, 3])) * step
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def sub_plane(epi, rect0, shift):  # type: ignore[no-untyped-def]
+    """epi -= s0 + sx x + sy y (a fitted epipolar offset, rectified px) in place; NaN stays NaN."""
+    h, w = epi.shape[0], epi.shape[1]
+    for r in prange(h):
+        for c in range(w):
+            epi[r, c] -= shift[0] + shift[1] * rect0[r, c, 0] + shift[2] * rect0[r, c, 1]
+    return epi
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def code_max(u, v, mask):  # type: ignore[no-untyped-def]
+    """Largest decoded u and v (0 where none), in one pass."""
+    h, w = u.shape[0], u.shape[1]
+    mu = np.zeros(h, np.float64)
+    mv = np.zeros(h, np.float64)
+    for r in prange(h):
+        a = 0.0
+        b = 0.0
+        for c in range(w):
+            if mask[r, c]:
+                a = max(a, np.float64(u[r, c]))
+                b = max(b, np.float64(v[r, c]))
+        mu[r] = a
+        mv[r] = b
+    return mu.max(), mv.max()
