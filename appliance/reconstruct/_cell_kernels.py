@@ -23,7 +23,15 @@ from numba import njit, prange
 
 import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
-from appliance.reconstruct._stereo_kernels import ST_DEPTH, ST_NONE, ST_OK, ST_OTHER, ST_OUTSIDE, ST_OWN
+from appliance.reconstruct._stereo_kernels import (
+    ST_DEPTH,
+    ST_NONE,
+    ST_OK,
+    ST_OTHER,
+    ST_OUTSIDE,
+    ST_OWN,
+    rect_point,
+)
 
 FIT_COLS = 6
 """Columns of a cell's fit: d0, gx, gy (disparity plane about the cell's cam0 centroid, rectified px), the
@@ -98,6 +106,16 @@ def _one_sided(cnt0, cnt1, k):  # type: ignore[no-untyped-def]
     return (cnt0[k] == 0) != (cnt1[k] == 0)
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _unmatched(raw, cv, cu):  # type: ignore[no-untyped-def]
+    """A cell that is not matched: no weight, and out of the window's disparity span."""
+    raw[RAW_W, cv, cu] = 0.0
+    raw[RAW_D, cv, cu] = 0.0
+    raw[RAW_E, cv, cu] = 0.0
+    raw[RAW_HI, cv, cu] = -np.inf
+    raw[RAW_LO, cv, cu] = np.inf
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, raw):  # type: ignore[no-untyped-def]
     """Per cell seen by both cameras: weight ``n0 n1 / (n0 + n1)`` (inverse variance of the disparity, up to a
@@ -116,11 +134,7 @@ def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, raw):  # type: ignore[no-un
                 raw[RAW_X, cv, cu] = np.float64(acc0[k, 0]) * f0
                 raw[RAW_Y, cv, cu] = np.float64(acc0[k, 1]) * f0
             if n0 == 0 or n1 == 0:
-                raw[RAW_W, cv, cu] = 0.0
-                raw[RAW_D, cv, cu] = 0.0
-                raw[RAW_E, cv, cu] = 0.0
-                raw[RAW_HI, cv, cu] = -np.inf
-                raw[RAW_LO, cv, cu] = np.inf
+                _unmatched(raw, cv, cu)
                 continue
             if edge and (
                 (cu > 0 and _one_sided(cnt0, cnt1, k - 1))
@@ -128,11 +142,7 @@ def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, raw):  # type: ignore[no-un
                 or (cv > 0 and _one_sided(cnt0, cnt1, k - ncu))
                 or (cv + 1 < ncv and _one_sided(cnt0, cnt1, k + ncu))
             ):  # partly hidden from one camera: its two centroids are not images of one region
-                raw[RAW_W, cv, cu] = 0.0
-                raw[RAW_D, cv, cu] = 0.0
-                raw[RAW_E, cv, cu] = 0.0
-                raw[RAW_HI, cv, cu] = -np.inf
-                raw[RAW_LO, cv, cu] = np.inf
+                _unmatched(raw, cv, cu)
                 continue
             f0 = 1.0 / np.float64(n0)
             f1 = 1.0 / np.float64(n1)
@@ -252,6 +262,26 @@ def _store_plane(fits, k, d0, gu, gv, inv00, e, m, raw, ncu, ncv, cu, cv):  # ty
     fits[k, 5] = m
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _plane_solve(sw, su, sv, suu, suv, svv, sd, sdu, sdv):  # type: ignore[no-untyped-def]
+    """Weighted least squares of d on (1, du, dv) from its sums: (ok, d0, gu, gv, [inverse normal matrix]_00);
+    ``ok`` False when the normal matrix is (near) singular (the cells lie on a line)."""
+    c00 = suu * svv - suv * suv
+    c01 = sv * suv - su * svv
+    c02 = su * suv - sv * suu
+    det = sw * c00 + su * c01 + sv * c02
+    if not det > 1e-6 * sw * sw * sw:
+        return False, 0.0, 0.0, 0.0, 0.0
+    c11 = sw * svv - sv * sv
+    c12 = su * sv - sw * suv
+    c22 = sw * suu - su * su
+    idet = 1.0 / det
+    d0 = (c00 * sd + c01 * sdu + c02 * sdv) * idet
+    gu = (c01 * sd + c11 * sdu + c12 * sdv) * idet
+    gv = (c02 * sd + c12 * sdu + c22 * sdv) * idet
+    return True, d0, gu, gv, c00 * idet
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def cell_cols(raw, mom, radius, span, fits):  # type: ignore[no-untyped-def]
     """Second (along v) pass of the window moments and the plane of every cell whose window holds no jump
@@ -290,26 +320,15 @@ def cell_cols(raw, mom, radius, span, fits):  # type: ignore[no-untyped-def]
                 fits[k, 0] = _NAN
                 fits[k, 5] = -1.0
                 continue
-            # weighted least squares of d on (1, du, dv): [[w, u, v], [u, uu, uv], [v, uv, vv]]
-            sw, su, suu = np.float64(s[0, cu]), np.float64(s[1, cu]), np.float64(s[2, cu])
-            sv, suv, svv = np.float64(s[3, cu]), np.float64(s[4, cu]), np.float64(s[5, cu])
-            c00 = suu * svv - suv * suv
-            c01 = sv * suv - su * svv
-            c02 = su * suv - sv * suu
-            c11 = sw * svv - sv * sv
-            c12 = su * sv - sw * suv
-            c22 = sw * suu - su * su
-            det = sw * c00 + su * c01 + sv * c02
-            if not det > 1e-6 * sw * sw * sw:
+            sw = np.float64(s[0, cu])
+            ok, d0, gu, gv, inv00 = _plane_solve(sw, np.float64(s[1, cu]), np.float64(s[3, cu]), np.float64(s[2, cu]),
+                                                 np.float64(s[4, cu]), np.float64(s[5, cu]), np.float64(s[6, cu]),
+                                                 np.float64(s[7, cu]), np.float64(s[8, cu]))  # fmt: skip
+            if not ok:
                 fits[k, 0] = _NAN
                 fits[k, 5] = -1.0
                 continue
-            sd, sdu, sdv = np.float64(s[6, cu]), np.float64(s[7, cu]), np.float64(s[8, cu])
-            idet = 1.0 / det
-            d0 = (c00 * sd + c01 * sdu + c02 * sdv) * idet
-            gu = (c01 * sd + c11 * sdu + c12 * sdv) * idet
-            gv = (c02 * sd + c12 * sdu + c22 * sdv) * idet
-            _store_plane(fits, k, d0, gu, gv, c00 * idet, np.float64(s[9, cu]) / sw, sw, raw, ncu, ncv, cu, cv)
+            _store_plane(fits, k, d0, gu, gv, inv00, np.float64(s[9, cu]) / sw, sw, raw, ncu, ncv, cu, cv)
     return fits
 
 
@@ -349,27 +368,18 @@ def cell_fits_robust(raw, ncu, ncv, jump, fits):  # type: ignore[no-untyped-def]
                     sud += wk * du * dd
                     svd += wk * dv * dd
                     se += wk * np.float64(raw[RAW_E, jv, ju])
-            c00 = suu * svv - suv * suv
-            c01 = sv * suv - su * svv
-            c02 = su * suv - sv * suu
-            c11 = sw * svv - sv * sv
-            c12 = su * sv - sw * suv
-            c22 = sw * suu - su * su
-            det = sw * c00 + su * c01 + sv * c02
-            if m >= 4 and det > 1e-6 * sw * sw * sw:
-                a0 = (c00 * sd + c01 * sud + c02 * svd) / det
-                gu = (c01 * sd + c11 * sud + c12 * svd) / det
-                gv = (c02 * sd + c12 * sud + c22 * svd) / det
-                inv00 = c00 / det
-            elif m >= 3:
+            ok = False
+            a0 = gu = gv = inv00 = 0.0
+            if m >= 4:
+                ok, a0, gu, gv, inv00 = _plane_solve(sw, su, sv, suu, suv, svv, sd, sud, svd)
+            if not ok:
+                if m < 3:  # not on one surface with any two neighbours: on an edge (its patches mix two surfaces)
+                    fits[k, 0] = _NAN
+                    fits[k, 5] = 0.0
+                    continue
                 a0 = sd / sw
-                gu = 0.0
-                gv = 0.0
+                gu = gv = 0.0
                 inv00 = 1.0 / sw
-            else:  # not on one surface with any two neighbours: on an edge (its patches mix two surfaces)
-                fits[k, 0] = _NAN
-                fits[k, 5] = 0.0
-                continue
             _store_plane(fits, k, d0 + a0, gu, gv, inv00, se / sw, sw, raw, ncu, ncv, cu, cv)
     return fits
 
@@ -442,24 +452,15 @@ def cell_match(  # type: ignore[no-untyped-def]
                 continue
             disp = a0min - a1min + (d + np.float64(fits[k, 1]) * dx + np.float64(fits[k, 2]) * dy) * step
             epi[r, col] = fits[k, 4]
-            if not disp > 0.0:
-                status[r, col] = ST_DEPTH
-                continue
-            a0 = a0min + xr0 * step
-            b = bmin + yr * step
-            zr = base / disp
-            px = c0[0] + zr * (rr_t[0, 0] * a0 + rr_t[0, 1] * b + rr_t[0, 2])
-            py = c0[1] + zr * (rr_t[1, 0] * a0 + rr_t[1, 1] * b + rr_t[1, 2])
-            pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
-            depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
-            if not (depth >= zmin and depth <= zmax):
+            ok, px, py, pz, zr, rng = rect_point(a0min + xr0 * step, bmin + yr * step, disp, base, rr_t, c0, r0z,
+                                                 t0z, zmin, zmax)  # fmt: skip
+            if not ok:
                 status[r, col] = ST_DEPTH
                 continue
             out[r, col, 0] = px
             out[r, col, 1] = py
             out[r, col, 2] = pz
             status[r, col] = ST_OK
-            rng = math.sqrt((px - c0[0]) ** 2 + (py - c0[1]) ** 2 + (pz - c0[2]) ** 2)
             sigma[r, col] = zr * rng / base * math.sqrt(var_unit * np.float64(fits[k, 3])) * step
     return out
 

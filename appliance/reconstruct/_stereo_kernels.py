@@ -404,6 +404,22 @@ def _value_slope(img, x, y):  # type: ignore[no-untyped-def]
     return vc, 0.5 * (vb - va)
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def rect_point(a0, b, disp, base, rr_t, c0, r0z, t0z, zmin, zmax):  # type: ignore[no-untyped-def]
+    """World point (mm) of the rectified cam0 direction (a0, b) at disparity ``disp`` (rectified units, baseline
+    ``base`` mm): (ok, x, y, z, zr, range) with ``zr`` = base / disp and the range from cam0 (mm); ``ok`` is
+    False behind the cameras or outside the depth range ``zmin .. zmax`` (z in cam0's frame)."""
+    if not disp > 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    zr = base / disp
+    px = c0[0] + zr * (rr_t[0, 0] * a0 + rr_t[0, 1] * b + rr_t[0, 2])
+    py = c0[1] + zr * (rr_t[1, 0] * a0 + rr_t[1, 1] * b + rr_t[1, 2])
+    pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
+    depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
+    rng = math.sqrt((px - c0[0]) ** 2 + (py - c0[1]) ** 2 + (pz - c0[2]) ** 2)
+    return depth >= zmin and depth <= zmax, px, py, pz, zr, rng
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def cc_match(  # type: ignore[no-untyped-def]
     lev0,
@@ -489,18 +505,9 @@ def cc_match(  # type: ignore[no-untyped-def]
                 if abs(dvdy) > 1e-6 and fv == fv:
                     epi[r, col] = (fv - vc) / dvdy
             a0 = a0min + xr0 * step
-            a1 = a1min + x1 * step
-            b = bmin + yr * step
-            disp = a0 - a1
-            if not disp > 0.0:
-                status[r, col] = ST_DEPTH
-                continue
-            zr = base / disp
-            px = c0[0] + zr * (rr_t[0, 0] * a0 + rr_t[0, 1] * b + rr_t[0, 2])
-            py = c0[1] + zr * (rr_t[1, 0] * a0 + rr_t[1, 1] * b + rr_t[1, 2])
-            pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
-            depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
-            if not (depth >= zmin and depth <= zmax):
+            ok, px, py, pz, zr, rng = rect_point(a0, bmin + yr * step, a0 - (a1min + x1 * step), base, rr_t, c0,
+                                                 r0z, t0z, zmin, zmax)  # fmt: skip
+            if not ok:
                 status[r, col] = ST_DEPTH
                 continue
             out[r, col, 0] = px
@@ -518,7 +525,6 @@ def cc_match(  # type: ignore[no-untyped-def]
                 xb = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu) + 1.0, code_offset, max_gap, max_row_jump)
                 per_level = abs(xb - xa) if xa == xa and xb == xb else 1.0
                 sx = math.sqrt(2.0) * su * per_level
-            rng = math.sqrt((px - c0[0]) ** 2 + (py - c0[1]) ** 2 + (pz - c0[2]) ** 2)
             sigma[r, col] = zr * rng / base * sx * step  # d(range)/d(disparity) = range * zr / base
     return out
 
