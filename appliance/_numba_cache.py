@@ -20,9 +20,10 @@ from numba.core import config as _numba_config
 config: Any = _numba_config  # numba's settings module (its attributes are made at run time)
 
 KERNEL_FILES = (
-    "reconstruct/_decode_kernels.py", "reconstruct/_filter_kernels.py", "reconstruct/_geom_kernels.py",
-    "reconstruct/_normal_kernels.py", "reconstruct/_procam_kernels.py", "reconstruct/_stereo_kernels.py",
-    "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py", "geometry/_distortion_kernels.py",
+    "reconstruct/_cell_kernels.py", "reconstruct/_decode_kernels.py", "reconstruct/_filter_kernels.py",
+    "reconstruct/_geom_kernels.py", "reconstruct/_normal_kernels.py", "reconstruct/_procam_kernels.py",
+    "reconstruct/_stereo_kernels.py", "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py",
+    "geometry/_distortion_kernels.py",
 )  # fmt: skip
 """Every module of ``appliance`` with numba kernels (a test keeps the list complete)."""
 
