@@ -33,6 +33,10 @@ from appliance.reconstruct._stereo_kernels import (
     rect_point,
 )
 
+FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
+"""fastmath flags of the per-pixel triangulation: fused multiply-adds, reciprocals and reassociation, but no
+'nnan' / 'ninf' (the kernels test for NaN)."""
+
 FIT_COLS = 6
 """Columns of a cell's fit: d0, gx, gy (disparity plane about the cell's cam0 centroid, rectified px), the
 variance of d0 per unit variance (px^2 per px^2 at unit weight), mean epipolar residual (px), total weight."""
@@ -62,6 +66,8 @@ def _cell_of(fu, fv, grid, ncu, ncv):  # type: ignore[no-untyped-def]
 def _sums_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
     for k in range(cnt.shape[0]):
         cnt[k] = 0
+        acc[k, 0] = 0.0
+        acc[k, 1] = 0.0
     h, w = u.shape[0], u.shape[1]
     for r in range(h):
         for c in range(w):
@@ -71,21 +77,16 @@ def _sums_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-un
             a = rect[r, c, 0]
             if k < 0 or a != a:
                 continue
-            b = rect[r, c, 1]
-            n = cnt[k]
-            if n == 0:
-                acc[k, 0] = a
-                acc[k, 1] = b
-            else:
-                acc[k, 0] += a
-                acc[k, 1] += b
-            cnt[k] = n + 1
+            # no branch on the cell's first pixel: the cell changes every pixel or two, unpredictably
+            acc[k, 0] += a
+            acc[k, 1] += rect[r, c, 1]
+            cnt[k] += 1
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def cell_sums(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
     """Per cell: pixel count (``cnt``, int32, (N,)) and sums of rectified (x, y) (``acc``, float32, (N, 2)) of
-    both cameras, one camera per thread. ``acc`` is only written where ``cnt`` > 0."""
+    both cameras, one camera per thread."""
     for t in prange(2):
         if t == 0:
             _sums_one(u0, v0, mask0, rect0, grid, ncu, ncv, cnt0, acc0)
@@ -384,7 +385,7 @@ def cell_fits_robust(raw, ncu, ncv, jump, fits):  # type: ignore[no-untyped-def]
     return fits
 
 
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def cell_match(  # type: ignore[no-untyped-def]
     u0,
     v0,
@@ -421,6 +422,7 @@ def cell_match(  # type: ignore[no-untyped-def]
     h, w = u0.shape[0], u0.shape[1]
     a0min, a1min, bmin, step, base = geom[0], geom[1], geom[2], geom[3], geom[4]
     own2 = own_px * own_px
+    sfac = math.sqrt(var_unit) * step / base  # d(range)/d(disparity) = range zr / base = zr^2 sqrt(n2) / base
     for r in prange(h):
         for col in range(w):
             out[r, col, 0] = _NAN
@@ -452,8 +454,8 @@ def cell_match(  # type: ignore[no-untyped-def]
                 continue
             disp = a0min - a1min + (d + np.float64(fits[k, 1]) * dx + np.float64(fits[k, 2]) * dy) * step
             epi[r, col] = fits[k, 4]
-            ok, px, py, pz, zr, rng = rect_point(a0min + xr0 * step, bmin + yr * step, disp, base, rr_t, c0, r0z,
-                                                 t0z, zmin, zmax)  # fmt: skip
+            ok, px, py, pz, zr, n2 = rect_point(a0min + xr0 * step, bmin + yr * step, disp, base, rr_t, c0, r0z,
+                                                t0z, zmin, zmax)  # fmt: skip
             if not ok:
                 status[r, col] = ST_DEPTH
                 continue
@@ -461,7 +463,7 @@ def cell_match(  # type: ignore[no-untyped-def]
             out[r, col, 1] = py
             out[r, col, 2] = pz
             status[r, col] = ST_OK
-            sigma[r, col] = zr * rng / base * math.sqrt(var_unit * np.float64(fits[k, 3])) * step
+            sigma[r, col] = np.float32(zr * zr * sfac) * math.sqrt(np.float32(n2) * fits[k, 3])  # float32 sqrt
     return out
 
 

@@ -407,8 +407,9 @@ def _value_slope(img, x, y):  # type: ignore[no-untyped-def]
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def rect_point(a0, b, disp, base, rr_t, c0, r0z, t0z, zmin, zmax):  # type: ignore[no-untyped-def]
     """World point (mm) of the rectified cam0 direction (a0, b) at disparity ``disp`` (rectified units, baseline
-    ``base`` mm): (ok, x, y, z, zr, range) with ``zr`` = base / disp and the range from cam0 (mm); ``ok`` is
-    False behind the cameras or outside the depth range ``zmin .. zmax`` (z in cam0's frame)."""
+    ``base`` mm): (ok, x, y, z, zr, n2) with ``zr`` = base / disp and ``n2`` = a0^2 + b^2 + 1, so that the range
+    from cam0 is ``zr * sqrt(n2)`` mm (``rr_t`` is a rotation); ``ok`` is False behind the cameras or outside
+    the depth range ``zmin .. zmax`` (z in cam0's frame)."""
     if not disp > 0.0:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
     zr = base / disp
@@ -416,8 +417,7 @@ def rect_point(a0, b, disp, base, rr_t, c0, r0z, t0z, zmin, zmax):  # type: igno
     py = c0[1] + zr * (rr_t[1, 0] * a0 + rr_t[1, 1] * b + rr_t[1, 2])
     pz = c0[2] + zr * (rr_t[2, 0] * a0 + rr_t[2, 1] * b + rr_t[2, 2])
     depth = r0z[0] * px + r0z[1] * py + r0z[2] * pz + t0z
-    rng = math.sqrt((px - c0[0]) ** 2 + (py - c0[1]) ** 2 + (pz - c0[2]) ** 2)
-    return depth >= zmin and depth <= zmax, px, py, pz, zr, rng
+    return depth >= zmin and depth <= zmax, px, py, pz, zr, a0 * a0 + b * b + 1.0
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -505,8 +505,8 @@ def cc_match(  # type: ignore[no-untyped-def]
                 if abs(dvdy) > 1e-6 and fv == fv:
                     epi[r, col] = (fv - vc) / dvdy
             a0 = a0min + xr0 * step
-            ok, px, py, pz, zr, rng = rect_point(a0, bmin + yr * step, a0 - (a1min + x1 * step), base, rr_t, c0,
-                                                 r0z, t0z, zmin, zmax)  # fmt: skip
+            ok, px, py, pz, zr, n2 = rect_point(a0, bmin + yr * step, a0 - (a1min + x1 * step), base, rr_t, c0,
+                                                r0z, t0z, zmin, zmax)  # fmt: skip
             if not ok:
                 status[r, col] = ST_DEPTH
                 continue
@@ -525,7 +525,7 @@ def cc_match(  # type: ignore[no-untyped-def]
                 xb = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu) + 1.0, code_offset, max_gap, max_row_jump)
                 per_level = abs(xb - xa) if xa == xa and xb == xb else 1.0
                 sx = math.sqrt(2.0) * su * per_level
-            sigma[r, col] = zr * rng / base * sx * step  # d(range)/d(disparity) = range * zr / base
+            sigma[r, col] = zr * zr * math.sqrt(n2) / base * sx * step  # d(range)/d(disparity) = range zr / base
     return out
 
 
@@ -570,6 +570,38 @@ def reject(xyz, err, limit, code, status):  # type: ignore[no-untyped-def]
                 xyz[r, col, 2] = _NAN
                 status[r, col] = code
     return xyz
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def mean_step(code, along, every, limit):  # type: ignore[no-untyped-def]
+    """Mean |change| of ``code`` between neighbouring pixels along rows (``along`` 1, every ``every``-th row)
+    or columns (0, every ``every``-th column), over finite changes below ``limit``; NaN when there are none."""
+    h, w = code.shape[0], code.shape[1]
+    nr = (h + every - 1) // every if along == 1 else h - 1
+    sums = np.zeros(nr, np.float64)
+    counts = np.zeros(nr, np.int64)
+    for i in prange(nr):
+        s = 0.0
+        n = 0
+        if along == 1:
+            row = code[i * every]
+            for c in range(w - 1):
+                d = abs(np.float64(row[c + 1]) - np.float64(row[c]))
+                if d < limit:  # False for NaN
+                    s += d
+                    n += 1
+        else:
+            a = code[i]
+            b = code[i + 1]
+            for c in range(0, w, every):
+                d = abs(np.float64(b[c]) - np.float64(a[c]))
+                if d < limit:
+                    s += d
+                    n += 1
+        sums[i] = s
+        counts[i] = n
+    n_all = counts.sum()
+    return sums.sum() / n_all if n_all > 0 else np.nan
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
