@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -81,14 +82,16 @@ class Residual:
                 "rms_mm": self.rms_mm, "samples": self.samples}  # fmt: skip
 
 
-def summarise(kind: str, devices: str, residual_px: F64, mm_per_px: float) -> Residual | None:
+def summarise(
+    kind: str, devices: str, residual_px: npt.NDArray[np.floating[Any]], mm_per_px: float
+) -> Residual | None:
     """Robust summary of signed residuals (px); None when fewer than :data:`MIN_SAMPLES` are finite.
 
     Parameters
     ----------
     kind, devices : str
         See :class:`Residual`.
-    residual_px : ndarray, shape (N,)
+    residual_px : ndarray, shape (N,), float32 or float64
         Signed residuals (px); NaN entries are ignored.
     mm_per_px : float
         Pixel footprint at the scene (mm per px) for ``rms_mm``.
