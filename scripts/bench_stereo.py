@@ -170,8 +170,9 @@ def report_lines(res: dict[str, Any]) -> list[str]:
         lines.append(
             f"`scan3d decode` of a batch of {len(res['batch_ms'])} such captures: decode + triangulate "
             f"{res['batch_decode_triangulate_ms']} "
-            f"ms per capture (total {res['batch_ms']} ms); after the first, **{res['batch_ratio_to_warm']:.2f}×** "
-            "the warm figure."
+            f"ms per capture (the command's `decode_ms` + `triangulate_ms`; total {res['batch_ms']} ms, with "
+            "loading, the filters, the point cloud and the PLY); after the first, "
+            f"**{res['batch_ratio_to_warm']:.2f}×** the warm figure."
         )
     lines.append("")
     return lines
