@@ -191,31 +191,55 @@ def _tap_min(dst, src, off, lo, hi):  # type: ignore[no-untyped-def]
         dv[x] = min(dv[x], sv[x])
 
 
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def cell_rows(raw, radius, mom):  # type: ignore[no-untyped-def]
-    """First (along u) pass of the separable window moments of ``raw`` (``N_MOM`` planes, see there)."""
-    ncv, ncu = raw.shape[1], raw.shape[2]
-    for cv in prange(ncv):
-        for p in range(N_MOM):
-            v = np.float32(-np.inf if p == 6 else (np.inf if p == 7 else 0.0))
-            row = mom[p, cv]
-            for x in range(ncu):
-                row[x] = v
-        w = raw[RAW_W, cv]
-        d = raw[RAW_D, cv]
-        for du in range(-radius, radius + 1):
-            lo = max(0, -du)
-            hi = min(ncu, ncu - du)
-            fd = np.float32(du)
-            _tap(mom[0, cv], w, np.float32(1.0), du, lo, hi)
-            _tap(mom[1, cv], w, fd, du, lo, hi)
-            _tap(mom[2, cv], w, fd * fd, du, lo, hi)
-            _tap2(mom[3, cv], w, d, np.float32(1.0), du, lo, hi)
-            _tap2(mom[4, cv], w, d, fd, du, lo, hi)
-            _tap2(mom[5, cv], w, raw[RAW_E, cv], np.float32(1.0), du, lo, hi)
-            _tap_max(mom[6, cv], raw[RAW_HI, cv], du, lo, hi)
-            _tap_min(mom[7, cv], raw[RAW_LO, cv], du, lo, hi)
-    return mom
+@njit(nogil=True, cache=True, error_model="numpy")
+def _row_moments(raw, cv, radius, mom):  # type: ignore[no-untyped-def]
+    """The along-u window moments of cell row ``cv`` of ``raw`` into ``mom`` (N_MOM, ncu), see ``N_MOM``."""
+    ncu = raw.shape[2]
+    for p in range(N_MOM):
+        v = np.float32(-np.inf if p == 6 else (np.inf if p == 7 else 0.0))
+        row = mom[p]
+        for x in range(ncu):
+            row[x] = v
+    w = raw[RAW_W, cv]
+    d = raw[RAW_D, cv]
+    for du in range(-radius, radius + 1):
+        lo = max(0, -du)
+        hi = min(ncu, ncu - du)
+        fd = np.float32(du)
+        _tap(mom[0], w, np.float32(1.0), du, lo, hi)
+        _tap(mom[1], w, fd, du, lo, hi)
+        _tap(mom[2], w, fd * fd, du, lo, hi)
+        _tap2(mom[3], w, d, np.float32(1.0), du, lo, hi)
+        _tap2(mom[4], w, d, fd, du, lo, hi)
+        _tap2(mom[5], w, raw[RAW_E, cv], np.float32(1.0), du, lo, hi)
+        _tap_max(mom[6], raw[RAW_HI, cv], du, lo, hi)
+        _tap_min(mom[7], raw[RAW_LO, cv], du, lo, hi)
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _slide(acc, mom, jv, sign):  # type: ignore[no-untyped-def]
+    """Add (``sign`` 1) or remove (-1) row ``jv``'s moments to the running column sums ``acc`` (N_ACC, ncu):
+    m0, m1, m2, m3, m4, m5 and j m0, j m1, j m3, j^2 m0 (j: the absolute cell row, float64 keeps them exact
+    enough to subtract)."""
+    fj = np.float64(jv)
+    for x in range(acc.shape[1]):
+        m0 = sign * np.float64(mom[0, x])
+        m1 = sign * np.float64(mom[1, x])
+        m3 = sign * np.float64(mom[3, x])
+        acc[0, x] += m0
+        acc[1, x] += m1
+        acc[2, x] += sign * np.float64(mom[2, x])
+        acc[3, x] += m3
+        acc[4, x] += sign * np.float64(mom[4, x])
+        acc[5, x] += sign * np.float64(mom[5, x])
+        acc[6, x] += fj * m0
+        acc[7, x] += fj * m1
+        acc[8, x] += fj * m3
+        acc[9, x] += fj * fj * m0
+
+
+N_ACC = 10
+"""Running column sums of :func:`_slide`."""
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
@@ -284,58 +308,69 @@ def _plane_solve(sw, su, sv, suu, suv, svv, sd, sdu, sdv):  # type: ignore[no-un
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def cell_cols(raw, mom, radius, span, fits):  # type: ignore[no-untyped-def]
-    """Second (along v) pass of the window moments and the plane of every cell whose window holds no jump
-    (disparities within ``span`` px); ``fits[k, 5]`` = -1 marks a cell that needs the robust fit, NaN
-    ``fits[k, 0]`` one seen by a single camera. ``fits`` is (N, FIT_COLS) float32, see there."""
+def cell_window(raw, radius, span, nch, fits):  # type: ignore[no-untyped-def]
+    """The plane of every cell whose (2 radius + 1)^2 window holds no jump (disparities within ``span`` px),
+    from the window's weighted moments: along u per cell row (:func:`_row_moments`), then along v as running
+    sums over the window's rows (each row added once and removed once). ``fits[k, 5]`` = -1 marks a cell that
+    needs the robust fit, NaN ``fits[k, 0]`` one seen by a single camera. ``fits`` is (N, FIT_COLS) float32,
+    see there; the cell rows are taken in ``nch`` contiguous chunks."""
     ncv, ncu = raw.shape[1], raw.shape[2]
-    for cv in prange(ncv):
-        s = np.zeros((12, ncu), np.float32)
-        s[10] = -np.inf
-        s[11] = np.inf
-        for dv in range(-radius, radius + 1):
-            jv = cv + dv
-            if jv < 0 or jv >= ncv:
-                continue
-            fd = np.float32(dv)
-            one = np.float32(1.0)
-            _tap(s[0], mom[0, jv], one, 0, 0, ncu)
-            _tap(s[1], mom[1, jv], one, 0, 0, ncu)
-            _tap(s[2], mom[2, jv], one, 0, 0, ncu)
-            _tap(s[3], mom[0, jv], fd, 0, 0, ncu)
-            _tap(s[4], mom[1, jv], fd, 0, 0, ncu)
-            _tap(s[5], mom[0, jv], fd * fd, 0, 0, ncu)
-            _tap(s[6], mom[3, jv], one, 0, 0, ncu)
-            _tap(s[7], mom[4, jv], one, 0, 0, ncu)
-            _tap(s[8], mom[3, jv], fd, 0, 0, ncu)
-            _tap(s[9], mom[5, jv], one, 0, 0, ncu)
-            _tap_max(s[10], mom[6, jv], 0, 0, ncu)
-            _tap_min(s[11], mom[7, jv], 0, 0, ncu)
-        for cu in range(ncu):
-            k = cv * ncu + cu
-            if raw[RAW_W, cv, cu] == 0.0:
-                fits[k, 0] = _NAN
-                fits[k, 5] = 0.0
-                continue
-            if not s[10, cu] - s[11, cu] <= span:
-                fits[k, 0] = _NAN
-                fits[k, 5] = -1.0
-                continue
-            sw = np.float64(s[0, cu])
-            ok, d0, gu, gv, inv00 = _plane_solve(sw, np.float64(s[1, cu]), np.float64(s[3, cu]), np.float64(s[2, cu]),
-                                                 np.float64(s[4, cu]), np.float64(s[5, cu]), np.float64(s[6, cu]),
-                                                 np.float64(s[7, cu]), np.float64(s[8, cu]))  # fmt: skip
-            if not ok:
-                fits[k, 0] = _NAN
-                fits[k, 5] = -1.0
-                continue
-            _store_plane(fits, k, d0, gu, gv, inv00, np.float64(s[9, cu]) / sw, sw, raw, ncu, ncv, cu, cv)
+    nw = 2 * radius + 1
+    for ch in prange(nch):
+        a = ch * ncv // nch
+        b = (ch + 1) * ncv // nch
+        if a >= b:
+            continue
+        ring = np.empty((nw, N_MOM, ncu), np.float32)  # row moments, row j in slot j % nw
+        acc = np.zeros((N_ACC, ncu), np.float64)
+        hi = np.empty(ncu, np.float32)
+        lo = np.empty(ncu, np.float32)
+        for jv in range(max(0, a - radius), min(ncv, a + radius)):
+            _row_moments(raw, jv, radius, ring[jv % nw])
+            _slide(acc, ring[jv % nw], jv, 1.0)
+        for cv in range(a, b):
+            jn = cv + radius
+            if jn < ncv:
+                _row_moments(raw, jn, radius, ring[jn % nw])
+                _slide(acc, ring[jn % nw], jn, 1.0)
+            hi[:] = -np.inf
+            lo[:] = np.inf
+            for jv in range(max(0, cv - radius), min(ncv, cv + radius + 1)):
+                _tap_max(hi, ring[jv % nw, 6], 0, 0, ncu)
+                _tap_min(lo, ring[jv % nw, 7], 0, 0, ncu)
+            c = np.float64(cv)
+            for cu in range(ncu):
+                k = cv * ncu + cu
+                if raw[RAW_W, cv, cu] == 0.0:
+                    fits[k, 0] = _NAN
+                    fits[k, 5] = 0.0
+                    continue
+                if not hi[cu] - lo[cu] <= span:
+                    fits[k, 0] = _NAN
+                    fits[k, 5] = -1.0
+                    continue
+                sw = acc[0, cu]
+                sjw = acc[6, cu]
+                sv = sjw - c * sw  # sum of w dv about this row
+                suv = acc[7, cu] - c * acc[1, cu]
+                svv = acc[9, cu] - 2.0 * c * sjw + c * c * sw
+                sdv = acc[8, cu] - c * acc[3, cu]
+                ok, d0, gu, gv, inv00 = _plane_solve(sw, acc[1, cu], sv, acc[2, cu], suv, svv, acc[3, cu],
+                                                     acc[4, cu], sdv)  # fmt: skip
+                if not ok:
+                    fits[k, 0] = _NAN
+                    fits[k, 5] = -1.0
+                    continue
+                _store_plane(fits, k, d0, gu, gv, inv00, acc[5, cu] / sw, sw, raw, ncu, ncv, cu, cv)
+            jo = cv - radius
+            if jo >= 0:
+                _slide(acc, ring[jo % nw], jo, -1.0)
     return fits
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def cell_fits_robust(raw, ncu, ncv, jump, fits):  # type: ignore[no-untyped-def]
-    """The plane of every cell marked by ``cell_cols`` (a jump in its window), over its 3 x 3 neighbours whose
+    """The plane of every cell marked by ``cell_window`` (a jump in its window), over its 3 x 3 neighbours whose
     disparity lies within ``jump`` px of its own (the same surface); their weighted mean with 3; none (NaN)
     with fewer."""
     for cv in prange(ncv):

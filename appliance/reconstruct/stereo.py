@@ -46,6 +46,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -575,10 +576,10 @@ class StereoTriangulator:
                     cnt1, acc1)  # fmt: skip
         radius = int(min(4, max(1, math.ceil(CELL_SPAN_PX / min(cell_u, cell_v)))))
         jump = 1.0 + 0.15 * max(cell_u, cell_v)
-        raw, mom = self._cell_planes(ncu, ncv)
+        raw = self._cell_planes(ncu, ncv)
         K.cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, max(cell_u, cell_v) > CELL_EDGE_PX, raw)
-        K.cell_rows(raw, radius, mom)
-        K.cell_cols(raw, mom, radius, 1.0 + 0.15 * (2 * radius + 1) * max(cell_u, cell_v), fits)
+        K.cell_window(raw, radius, 1.0 + 0.15 * (2 * radius + 1) * max(cell_u, cell_v),
+                      2 * numba.get_num_threads(), fits)  # fmt: skip
         K.cell_fits_robust(raw, ncu, ncv, jump, fits)
         own = 0.5 * math.hypot(cell_u, cell_v) + 1.0
         var_unit = self._cell_variance(raw, fits, ncu)
@@ -602,12 +603,11 @@ class StereoTriangulator:
         z = w[ok].astype(np.float64) * (d[ok].astype(np.float64) - f[ok]) ** 2
         return max(CELL_VAR_FLOOR, float(np.median(z)) / 0.4549)  # the median of chi-square with 1 dof
 
-    def _cell_planes(self, ncu: int, ncv: int) -> tuple[F32, F32]:
+    def _cell_planes(self, ncu: int, ncv: int) -> F32:
         got = self._cells.get("raw")
         if got is None or got.shape[1:] != (ncv, ncu):
             self._cells["raw"] = np.empty((K.N_RAW, ncv, ncu), np.float32)
-            self._cells["mom"] = np.empty((K.N_MOM, ncv, ncu), np.float32)
-        return self._cells["raw"], self._cells["mom"]
+        return self._cells["raw"]
 
     def _check(
         self,
