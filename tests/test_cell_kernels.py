@@ -1,0 +1,76 @@
+"""The cell matcher's window fit (``cell_window``) against a direct weighted least-squares fit per cell."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from appliance.reconstruct import _cell_kernels as K
+
+
+def _raw(ncv: int, ncu: int, seed: int = 3) -> np.ndarray:
+    """Cells on a regular lattice (cam0 centroid = 1.7 px per step), a tilted disparity plane with noise,
+    some cells unseen, one disparity step (a second surface) in the lower right."""
+    rng = np.random.default_rng(seed)
+    raw = np.zeros((K.N_RAW, ncv, ncu), np.float32)
+    jj, ii = np.mgrid[0:ncv, 0:ncu]
+    w = rng.uniform(0.5, 2.0, (ncv, ncu))
+    w[rng.random((ncv, ncu)) < 0.1] = 0.0
+    d = 40.0 + 0.03 * ii - 0.02 * jj + rng.normal(0.0, 0.05, (ncv, ncu))
+    d[(ii > 0.6 * ncu) & (jj > 0.6 * ncv)] += 25.0
+    raw[K.RAW_W] = w
+    raw[K.RAW_D] = np.where(w > 0, d, 0.0)
+    raw[K.RAW_E] = np.where(w > 0, rng.normal(0.2, 0.1, (ncv, ncu)), 0.0)
+    raw[K.RAW_HI] = np.where(w > 0, d, -np.inf)
+    raw[K.RAW_LO] = np.where(w > 0, d, np.inf)
+    raw[K.RAW_X] = 1.7 * ii
+    raw[K.RAW_Y] = 1.7 * jj
+    return raw
+
+
+def test_window_fit_is_the_weighted_least_squares_plane_of_its_window() -> None:
+    ncv, ncu, radius, span = 37, 53, 2, 3.0
+    raw = _raw(ncv, ncu)
+    fits = np.empty((ncv * ncu, K.FIT_COLS), np.float32)
+    K.cell_window(raw, radius, span, 4, fits)
+    w, d, e = (raw[p].astype(np.float64) for p in (K.RAW_W, K.RAW_D, K.RAW_E))
+    checked = marked = 0
+    for cv in range(ncv):
+        for cu in range(ncu):
+            f = fits[cv * ncu + cu]
+            sl = (slice(max(0, cv - radius), min(ncv, cv + radius + 1)),
+                  slice(max(0, cu - radius), min(ncu, cu + radius + 1)))
+            ww, dd = w[sl], d[sl]
+            if w[cv, cu] == 0.0:
+                assert np.isnan(f[0]) and f[5] == 0.0
+                continue
+            seen = ww > 0
+            if dd[seen].max() - dd[seen].min() > span:  # a jump in the window: left to the robust fit
+                assert np.isnan(f[0]) and f[5] == -1.0
+                marked += 1
+                continue
+            dv, du = np.mgrid[sl[0], sl[1]]
+            a = np.stack([np.ones(seen.sum()), (du - cu)[seen], (dv - cv)[seen]], 1)
+            sw = np.sqrt(ww[seen])
+            coef, *_ = np.linalg.lstsq(a * sw[:, None], dd[seen] * sw, rcond=None)
+            inv = np.linalg.inv(a.T @ (a * ww[seen][:, None]))
+            assert abs(f[0] - coef[0]) < 2e-4 * abs(coef[0])
+            # lattice gradient -> rectified px: the lattice step is 1.7 px on both axes here
+            assert abs(f[1] - coef[1] / 1.7) < 1e-3 and abs(f[2] - coef[2] / 1.7) < 1e-3
+            assert abs(f[3] - inv[0, 0]) < 1e-4 * inv[0, 0]
+            assert abs(f[4] - (ww[seen] * e[sl][seen]).sum() / ww[seen].sum()) < 1e-4
+            assert abs(f[5] - ww[seen].sum()) < 1e-4 * ww[seen].sum()
+            checked += 1
+    assert checked > 1000 and marked > 20
+
+
+def test_window_fit_does_not_depend_on_the_chunking() -> None:
+    raw = _raw(61, 47, seed=5)
+    ref = np.empty((61 * 47, K.FIT_COLS), np.float32)
+    K.cell_window(raw, 3, 3.0, 1, ref)
+    for nch in (2, 7, 61, 100):
+        got = np.empty_like(ref)
+        K.cell_window(raw, 3, 3.0, nch, got)
+        fitted = np.isfinite(ref[:, 0])  # the other columns of an unfitted cell are not written
+        assert np.array_equal(np.isfinite(got[:, 0]), fitted) and fitted.mean() > 0.5
+        np.testing.assert_allclose(got[fitted], ref[fitted], rtol=1e-5, atol=1e-5)
+        assert np.array_equal(got[~fitted, 5], ref[~fitted, 5])
