@@ -456,7 +456,8 @@ def cell_match(  # type: ignore[no-untyped-def]
     """
     h, w = u0.shape[0], u0.shape[1]
     a0min, a1min, bmin, step, base = geom[0], geom[1], geom[2], geom[3], geom[4]
-    own2 = own_px * own_px
+    own2 = np.float32(own_px * own_px)
+    da = a0min - a1min
     sfac = math.sqrt(var_unit) * step / base  # d(range)/d(disparity) = range zr / base = zr^2 sqrt(n2) / base
     for r in prange(h):
         for col in range(w):
@@ -472,22 +473,22 @@ def cell_match(  # type: ignore[no-untyped-def]
             if k < 0:
                 status[r, col] = ST_NONE
                 continue
-            xr0 = np.float64(rect0[r, col, 0])
-            yr = np.float64(rect0[r, col, 1])
-            cx = np.float64(cen_x[k])
+            xr0 = rect0[r, col, 0]  # the pixel's offset from its cell in float32: fewer conversions
+            yr = rect0[r, col, 1]
+            cx = cen_x[k]
             if xr0 != xr0 or cx != cx:
                 status[r, col] = ST_OUTSIDE
                 continue
             dx = xr0 - cx
-            dy = yr - np.float64(cen_y[k])
+            dy = yr - cen_y[k]
             if dx * dx + dy * dy > own2:
                 status[r, col] = ST_OWN
                 continue
-            d = np.float64(fits[k, 0])
+            d = fits[k, 0]
             if d != d:
                 status[r, col] = ST_OTHER
                 continue
-            disp = a0min - a1min + (d + np.float64(fits[k, 1]) * dx + np.float64(fits[k, 2]) * dy) * step
+            disp = da + np.float64(d + fits[k, 1] * dx + fits[k, 2] * dy) * step
             epi[r, col] = fits[k, 4]
             ok, px, py, pz, zr, n2 = rect_point(a0min + xr0 * step, bmin + yr * step, disp, base, rr_t, c0, r0z,
                                                 t0z, zmin, zmax)  # fmt: skip
