@@ -6,10 +6,11 @@ of pixels, and the centroids of the two patches are images of one and the same s
 preserved by the locally affine map between the views). The matching is then a lookup, not a search:
 
 1. ``cell_sums`` adds up, per cell and per camera, the pixels and their rectified coordinates.
-2. ``cell_fits`` takes each cell's disparity (cam0 centroid minus cam1 centroid, along the rectified rows)
-   and its epipolar residual (cam1 row minus cam0 row), and fits a plane ``d = d0 + gx dx + gy dy`` to the
-   disparities of the cell and its neighbours (weighted by their pixel counts, neighbours across a disparity
-   jump left out), about the cell's own cam0 centroid.
+2. ``cell_raw`` takes each cell's disparity (cam0 centroid minus cam1 centroid, along the rectified rows)
+   and its epipolar residual (cam1 row minus cam0 row); ``cell_window`` fits a plane ``d = d0 + gx dx + gy dy``
+   to the disparities of the cell and its neighbours in a square window (weighted by their pixel counts),
+   about the cell's own cam0 centroid, and ``cell_fits_robust`` refits the cells whose window holds a
+   disparity jump from their neighbours on the same surface.
 3. ``cell_match`` gives every cam0 pixel the disparity of its cell's plane at its own position, and
    triangulates.
 """
