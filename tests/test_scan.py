@@ -174,7 +174,8 @@ def test_decode_command_on_a_recorded_capture(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     lines = [json.loads(x) for x in out.stdout.strip().splitlines() if x.startswith("{")]
     timings, summary = lines[0], lines[-1]
-    assert set(timings) == {"capture", "load_ms", "setup_ms", "decode_ms", "triangulate_ms", "write_ms", "total_ms"}
+    assert set(timings) == {"capture", "load_ms", "setup_ms", "decode_ms", "triangulate_ms", "filter_ms", "cloud_ms",
+                            "write_ms", "total_ms"}  # fmt: skip
     assert summary["summary"] and summary["captures"] == 1
     maps = np.load(tmp_path / "m.npz")
     assert set(maps.files) == {"cam0_u", "cam0_v", "cam0_mask", "cam0_quality", "cam0_levels"}
