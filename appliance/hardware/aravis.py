@@ -143,6 +143,11 @@ FOREIGN_STREAM_RETRIES = 3
 ``AravisCamera._took_foreign_packets``)."""
 
 
+FOREIGN_SETTLE_S = 0.05
+"""A new stream that has received nothing is looked at once more after this long (s) before its first
+acquisition (once per stream: it costs this much on opening a camera, never per scan)."""
+
+
 @dataclass
 class AcquisitionStats:
     """Counters of one camera since it was created."""
@@ -450,6 +455,9 @@ class AravisCamera:
             return False
         try:
             received = int(self._stream.get_info_uint64_by_name("n_received_packets"))
+            if received == 0:  # another camera's packets may still be on their way: look once more
+                time.sleep(FOREIGN_SETTLE_S)
+                received = int(self._stream.get_info_uint64_by_name("n_received_packets"))
         except (AttributeError, TypeError, self._glib.Error):  # Aravis before 0.8.23: no stream info
             return False
         if received == 0:
