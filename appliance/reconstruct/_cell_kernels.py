@@ -181,7 +181,7 @@ def _tap_max(dst, src, off, lo, hi):  # type: ignore[no-untyped-def]
     dv = dst[lo:hi]
     sv = src[lo + off : hi + off]
     for x in range(dv.shape[0]):
-        dv[x] = max(dv[x], sv[x])
+        dv[x] = np.fmax(dv[x], sv[x])
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
@@ -189,7 +189,7 @@ def _tap_min(dst, src, off, lo, hi):  # type: ignore[no-untyped-def]
     dv = dst[lo:hi]
     sv = src[lo + off : hi + off]
     for x in range(dv.shape[0]):
-        dv[x] = min(dv[x], sv[x])
+        dv[x] = np.fmin(dv[x], sv[x])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

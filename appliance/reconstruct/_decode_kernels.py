@@ -162,7 +162,7 @@ def _fold_weak(c, bit, relg, weak, qa):  # type: ignore[no-untyped-def]
     for x in range(c.shape[0]):
         strong = c[x] >= relg[x]
         weak[x] |= zero if strong else on
-        qa[x] = min(qa[x], c[x] if strong else _FINF)
+        qa[x] = np.fmin(qa[x], c[x] if strong else _FINF)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -284,7 +284,7 @@ def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
     for x in range(mod.shape[0]):
         ok[x] = ok[x] & (mod[x] >= relv[x])
     for x in range(mod.shape[0]):
-        qa[x] = min(qa[x], mod[x])
+        qa[x] = np.fmin(qa[x], mod[x])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -298,7 +298,7 @@ def _phase_fallback(mod, mprev, relv, prev, cc, ok, qa):  # type: ignore[no-unty
         blurred = mod[x] < ratio * mprev[x]
         cc[x] = cc[x] if good else prev[x]
         ok[x] = ok[x] & (good | blurred)
-        qa[x] = min(qa[x], mod[x] if good else _FINF)
+        qa[x] = np.fmin(qa[x], mod[x] if good else _FINF)
         mprev[x] = mod[x] if good else mprev[x]
 
 
@@ -335,7 +335,7 @@ def _lit_row(r, rel, thr, relv, relg, lit):  # type: ignore[no-untyped-def]
 @njit(nogil=True, cache=True, error_model="numpy")
 def _min_into(a, b):  # type: ignore[no-untyped-def]
     for x in range(a.shape[0]):
-        a[x] = min(a[x], b[x])
+        a[x] = np.fmin(a[x], b[x])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
