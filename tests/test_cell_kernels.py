@@ -74,3 +74,44 @@ def test_window_fit_does_not_depend_on_the_chunking() -> None:
         assert np.array_equal(np.isfinite(got[:, 0]), fitted) and fitted.mean() > 0.5
         np.testing.assert_allclose(got[fitted], ref[fitted], rtol=1e-5, atol=1e-5)
         assert np.array_equal(got[~fitted, 5], ref[~fitted, 5])
+
+
+def test_cell_lookup_matches_integer_arithmetic_and_counts_every_pixel_once() -> None:
+    """``_row_cells`` (float32 codes, a vectorised floor division for ku, kv > 1) against plain integer
+    arithmetic on the same float32 values; ``cell_sums`` against ``np.add.at`` with those cells."""
+    rng = np.random.default_rng(11)
+    h, w = 23, 97
+    for ku, kv in ((1, 1), (3, 2), (7, 5)):
+        origin_u, step_u, origin_v, step_v = -0.25, 1.5, -0.5, 2.0
+        ncu, ncv = 700 // ku + 1, 400 // kv + 1
+        # stripe centres, coarser stripe centres (on cell boundaries) and a few codes outside the grid
+        iu = rng.integers(-3, 703, (h, w))
+        u = (origin_u + step_u * (iu + rng.choice([0.0, 0.5], (h, w)))).astype(np.float32)
+        v = (origin_v + step_v * rng.integers(-2, 403, (h, w))).astype(np.float32)
+        u[rng.random((h, w)) < 0.05] = np.nan
+        mask = rng.random((h, w)) < 0.9
+        grid = np.array([origin_u, 1.0 / step_u, origin_v, 1.0 / step_v, ku, kv])
+        fi = (u - np.float32(origin_u)) * np.float32(1.0 / step_u) + np.float32(0.5)
+        fj = (v - np.float32(origin_v)) * np.float32(1.0 / step_v) + np.float32(0.5)
+        with np.errstate(invalid="ignore"):
+            good = mask & (fi >= 0) & (fj >= 0) & (fi < ncu * ku) & (fj < ncv * kv)
+        cu = np.where(good, np.nan_to_num(fi), 0).astype(np.int64) // ku
+        cv = np.where(good, np.nan_to_num(fj), 0).astype(np.int64) // kv
+        expect = np.where(good, cv * ncu + cu, -1)
+        kr = np.empty(w, np.int32)
+        for r in range(h):
+            K._row_cells(u[r], v[r], mask[r], grid, ncu, ncv, kr)
+            assert np.array_equal(kr, expect[r]), (ku, kv, r)
+        rect = rng.uniform(0, 100, (h, w, 2)).astype(np.float32)
+        n = ncu * ncv
+        cnt0, cnt1 = np.empty(n, np.int32), np.empty(n, np.int32)
+        acc0, acc1 = np.empty((n, 2), np.float32), np.empty((n, 2), np.float32)
+        K.cell_sums(u, v, mask, rect, u, v, mask, rect, grid, ncu, ncv, cnt0, acc0, cnt1, acc1)
+        ref_n = np.zeros(n, np.int64)
+        ref_a = np.zeros((n, 2))
+        sel = expect >= 0
+        np.add.at(ref_n, expect[sel], 1)
+        np.add.at(ref_a, expect[sel], rect[sel].astype(np.float64))
+        assert np.array_equal(cnt0, ref_n) and np.array_equal(cnt1, ref_n)
+        assert np.allclose(acc0, ref_a, rtol=1e-5, atol=1e-3) and np.array_equal(acc0, acc1)
+        assert int(ref_n.sum()) == int(sel.sum()) > 0.5 * h * w

@@ -25,12 +25,12 @@ from numba import njit, prange
 import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 from appliance.reconstruct._stereo_kernels import (
-    ST_DEPTH,
     ST_NONE,
-    ST_OK,
     ST_OTHER,
     ST_OUTSIDE,
     ST_OWN,
+    clear_point,
+    put_point,
     rect_point,
 )
 
@@ -44,23 +44,42 @@ variance of d0 per unit variance (px^2 per px^2 at unit weight), mean epipolar r
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _cell_of(fu, fv, grid, ncu, ncv):  # type: ignore[no-untyped-def]
-    """Cell index of codes (fu, fv) under ``grid`` = (origin_u, 1/step_u, origin_v, 1/step_v, ku, kv); -1 if none."""
-    fi = (fu - grid[0]) * grid[1] + 0.5
-    fj = (fv - grid[2]) * grid[3] + 0.5
-    if not (fi >= 0.0 and fj >= 0.0):  # NaN too
-        return -1
-    cu = int(fi)
-    cv = int(fj)
-    ku = int(grid[4])
-    kv = int(grid[5])
-    if ku != 1:
-        cu //= ku
-    if kv != 1:
-        cv //= kv
-    if cu >= ncu or cv >= ncv:
-        return -1
-    return cv * ncu + cu
+def _floor_div(i, k, inv_k):  # type: ignore[no-untyped-def]
+    """i // k for int32 0 <= i < 2**24 and k >= 1 (``inv_k`` = 1 / k in float32): a float32 quotient, then an
+    exact integer correction (selects only, so a loop over pixels vectorises; an integer division does not)."""
+    q = np.int32(np.float32(i) * inv_k)
+    q = q + np.int32(1) if (q + np.int32(1)) * k <= i else q
+    return q - np.int32(1) if q * k > i else q
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _row_cells(ur, vr, mr, grid, ncu, ncv, kr):  # type: ignore[no-untyped-def]
+    """Cell index of every pixel of a row (int32, -1: none) from its float32 codes ``ur``, ``vr`` and mask
+    ``mr`` under ``grid`` = (origin_u, 1/step_u, origin_v, 1/step_v, ku, kv), in one vectorised pass. Every
+    kernel looks cells up here, in float32 (the codes' own precision), so that a code on a cell boundary (a
+    coarser stripe's centre) falls in one and the same cell everywhere."""
+    ou, iu = np.float32(grid[0]), np.float32(grid[1])
+    ov, iv = np.float32(grid[2]), np.float32(grid[3])
+    ku, kv = np.int32(grid[4]), np.int32(grid[5])
+    hu, hv = np.float32(ncu * ku), np.float32(ncv * kv)
+    half = np.float32(0.5)
+    nu = np.int32(ncu)
+    none = np.int32(-1)
+    if ku == 1 and kv == 1:
+        for c in range(kr.shape[0]):
+            fi = (ur[c] - ou) * iu + half
+            fj = (vr[c] - ov) * iv + half
+            good = mr[c] & (fi >= 0.0) & (fj >= 0.0) & (fi < hu) & (fj < hv)  # NaN codes fail too
+            kr[c] = np.int32(fj if good else 0.0) * nu + np.int32(fi if good else 0.0) if good else none
+        return
+    iku, ikv = np.float32(1.0) / np.float32(ku), np.float32(1.0) / np.float32(kv)
+    for c in range(kr.shape[0]):
+        fi = (ur[c] - ou) * iu + half
+        fj = (vr[c] - ov) * iv + half
+        good = mr[c] & (fi >= 0.0) & (fj >= 0.0) & (fi < hu) & (fj < hv)
+        cu = _floor_div(np.int32(fi if good else 0.0), ku, iku)
+        cv = _floor_div(np.int32(fj if good else 0.0), kv, ikv)
+        kr[c] = cv * nu + cu if good else none
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -70,17 +89,18 @@ def _sums_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-un
         acc[k, 0] = 0.0
         acc[k, 1] = 0.0
     h, w = u.shape[0], u.shape[1]
+    kr = np.empty(w, np.int32)
     for r in range(h):
+        _row_cells(u[r], v[r], mask[r], grid, ncu, ncv, kr)  # first the cells (vectorised), then a tight scatter
+        rr = rect[r]
         for c in range(w):
-            if not mask[r, c]:
-                continue
-            k = _cell_of(np.float64(u[r, c]), np.float64(v[r, c]), grid, ncu, ncv)
-            a = rect[r, c, 0]
+            k = kr[c]
+            a = rr[c, 0]
             if k < 0 or a != a:
                 continue
             # no branch on the cell's first pixel: the cell changes every pixel or two, unpredictably
             acc[k, 0] += a
-            acc[k, 1] += rect[r, c, 1]
+            acc[k, 1] += rr[c, 1]
             cnt[k] += 1
 
 
@@ -460,47 +480,39 @@ def cell_match(  # type: ignore[no-untyped-def]
     own2 = np.float32(own_px * own_px)
     da = a0min - a1min
     sfac = math.sqrt(var_unit) * step / base  # d(range)/d(disparity) = range zr / base = zr^2 sqrt(n2) / base
-    for r in prange(h):
-        for col in range(w):
-            out[r, col, 0] = _NAN
-            out[r, col, 1] = _NAN
-            out[r, col, 2] = _NAN
-            epi[r, col] = _NAN
-            sigma[r, col] = _NAN
-            if not mask0[r, col]:
-                status[r, col] = ST_NONE
-                continue
-            k = _cell_of(np.float64(u0[r, col]), np.float64(v0[r, col]), grid, ncu, ncv)
-            if k < 0:
-                status[r, col] = ST_NONE
-                continue
-            xr0 = rect0[r, col, 0]  # the pixel's offset from its cell in float32: fewer conversions
-            yr = rect0[r, col, 1]
-            cx = cen_x[k]
-            if xr0 != xr0 or cx != cx:
-                status[r, col] = ST_OUTSIDE
-                continue
-            dx = xr0 - cx
-            dy = yr - cen_y[k]
-            if dx * dx + dy * dy > own2:
-                status[r, col] = ST_OWN
-                continue
-            d = fits[k, 0]
-            if d != d:
-                status[r, col] = ST_OTHER
-                continue
-            disp = da + np.float64(d + fits[k, 1] * dx + fits[k, 2] * dy) * step
-            epi[r, col] = fits[k, 4]
-            ok, px, py, pz, zr, n2 = rect_point(a0min + xr0 * step, bmin + yr * step, disp, base, rr_t, c0, r0z,
-                                                t0z, zmin, zmax)  # fmt: skip
-            if not ok:
-                status[r, col] = ST_DEPTH
-                continue
-            out[r, col, 0] = px
-            out[r, col, 1] = py
-            out[r, col, 2] = pz
-            status[r, col] = ST_OK
-            sigma[r, col] = np.float32(zr * zr * sfac) * math.sqrt(np.float32(n2) * fits[k, 3])  # float32 sqrt
+    nch = min(h, 32)
+    for ch in prange(nch):
+        kr = np.empty(w, np.int32)
+        for r in range(ch * h // nch, (ch + 1) * h // nch):
+            _row_cells(u0[r], v0[r], mask0[r], grid, ncu, ncv, kr)
+            for col in range(w):
+                clear_point(out, epi, sigma, r, col)
+                k = kr[col]
+                if k < 0:
+                    status[r, col] = ST_NONE
+                    continue
+                xr0 = rect0[r, col, 0]  # the pixel's offset from its cell in float32: fewer conversions
+                yr = rect0[r, col, 1]
+                cx = cen_x[k]
+                if xr0 != xr0 or cx != cx:
+                    status[r, col] = ST_OUTSIDE
+                    continue
+                dx = xr0 - cx
+                dy = yr - cen_y[k]
+                if dx * dx + dy * dy > own2:
+                    status[r, col] = ST_OWN
+                    continue
+                d = fits[k, 0]
+                if d != d:
+                    status[r, col] = ST_OTHER
+                    continue
+                disp = da + np.float64(d + fits[k, 1] * dx + fits[k, 2] * dy) * step
+                epi[r, col] = fits[k, 4]
+                ok, px, py, pz, zr, n2 = rect_point(a0min + xr0 * step, bmin + yr * step, disp, base, rr_t, c0, r0z,
+                                                    t0z, zmin, zmax)  # fmt: skip
+                if not put_point(out, status, r, col, ok, px, py, pz):
+                    continue
+                sigma[r, col] = np.float32(zr * zr * sfac) * math.sqrt(np.float32(n2) * fits[k, 3])  # float32 sqrt
     return out
 
 

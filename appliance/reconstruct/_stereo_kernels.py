@@ -420,6 +420,29 @@ def rect_point(a0, b, disp, base, rr_t, c0, r0z, t0z, zmin, zmax):  # type: igno
     return depth >= zmin and depth <= zmax, px, py, pz, zr, a0 * a0 + b * b + 1.0
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def put_point(out, status, r, col, ok, px, py, pz):  # type: ignore[no-untyped-def]
+    """Write a matched point at (r, col), status ``ST_OK``; or only status ``ST_DEPTH`` when not ``ok``."""
+    if not ok:
+        status[r, col] = ST_DEPTH
+        return False
+    out[r, col, 0] = px
+    out[r, col, 1] = py
+    out[r, col, 2] = pz
+    status[r, col] = ST_OK
+    return True
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def clear_point(out, epi, sigma, r, col):  # type: ignore[no-untyped-def]
+    """No point (yet) at (r, col): NaN xyz, epipolar residual and sigma."""
+    out[r, col, 0] = _NAN
+    out[r, col, 1] = _NAN
+    out[r, col, 2] = _NAN
+    epi[r, col] = _NAN
+    sigma[r, col] = _NAN
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def cc_match(  # type: ignore[no-untyped-def]
     lev0,
@@ -464,11 +487,7 @@ def cc_match(  # type: ignore[no-untyped-def]
     max_gap, max_row_jump, max_own, margin = tol[0], tol[1], tol[2], tol[3]
     for r in prange(h):
         for col in range(w):
-            out[r, col, 0] = _NAN
-            out[r, col, 1] = _NAN
-            out[r, col, 2] = _NAN
-            epi[r, col] = _NAN
-            sigma[r, col] = _NAN
+            clear_point(out, epi, sigma, r, col)
             fu = np.float64(lev0[r, col])
             if not (mask0[r, col] and fu == fu):
                 status[r, col] = ST_NONE
@@ -507,13 +526,8 @@ def cc_match(  # type: ignore[no-untyped-def]
             a0 = a0min + xr0 * step
             ok, px, py, pz, zr, n2 = rect_point(a0, bmin + yr * step, a0 - (a1min + x1 * step), base, rr_t, c0,
                                                 r0z, t0z, zmin, zmax)  # fmt: skip
-            if not ok:
-                status[r, col] = ST_DEPTH
+            if not put_point(out, status, r, col, ok, px, py, pz):
                 continue
-            out[r, col, 0] = px
-            out[r, col, 1] = py
-            out[r, col, 2] = pz
-            status[r, col] = ST_OK
             # 1-sigma of cam1's match position (rect px), from the code noise and cam1's code gradient there
             if quantised:
                 sx = math.sqrt(noise[1])
