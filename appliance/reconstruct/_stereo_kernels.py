@@ -586,12 +586,65 @@ def reject(xyz, err, limit, code, status):  # type: ignore[no-untyped-def]
     return xyz
 
 
+@njit(nogil=True, cache=True, error_model="numpy")
+def sample_codes(code, mask, stride, out):  # type: ignore[no-untyped-def]
+    """The finite codes of the decoded pixels of every ``stride``-th row and column, in row order, into
+    ``out`` (float32, at least ceil(H / stride) * ceil(W / stride) long); returns how many."""
+    h, w = code.shape[0], code.shape[1]
+    n = 0
+    for r in range(0, h, stride):
+        cr = code[r]
+        mr = mask[r]
+        for c in range(0, w, stride):
+            x = cr[c]
+            if mr[c] and x - x == 0.0:  # finite
+                out[n] = x
+                n += 1
+    return n
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def half_pixel_counts(vals):  # type: ignore[no-untyped-def]
+    """Counts of the half-pixel values ``k / 2`` among float32 ``vals`` (index k), with the share of values
+    that lie within 1e-3 of a half pixel; an empty count array when any value is below 0 or at 2**23 px and
+    above (the caller then sorts)."""
+    n = vals.shape[0]
+    hi = 0.0
+    on = 0
+    for i in range(n):
+        h2 = np.float64(vals[i]) * 2.0
+        k = np.rint(h2)
+        if not (k >= 0.0 and k < 16777216.0):
+            return 0.0, np.zeros(0, np.int64)
+        hi = max(hi, k)
+        on += abs(h2 - k) < 2e-3
+    cnt = np.zeros(int(hi) + 1, np.int64)
+    for i in range(n):
+        h2 = np.float64(vals[i]) * 2.0
+        k = np.rint(h2)
+        if abs(h2 - k) < 2e-3:
+            cnt[int(k)] += 1
+    return on / max(n, 1), cnt
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def on_grid_share(vals, origin, step):  # type: ignore[no-untyped-def]
+    """Share of float32 ``vals`` within 1e-3 steps of ``origin + k * step`` (k integer)."""
+    n = vals.shape[0]
+    on = 0
+    for i in range(n):
+        k = (np.float64(vals[i]) - origin) / step
+        on += abs(k - np.rint(k)) < 1e-3
+    return on / max(n, 1)
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def mean_step(code, along, every, limit):  # type: ignore[no-untyped-def]
     """Mean |change| of ``code`` between neighbouring pixels along rows (``along`` 1, every ``every``-th row)
-    or columns (0, every ``every``-th column), over finite changes below ``limit``; NaN when there are none."""
+    or columns (0, between rows ``i * every`` and ``i * every + 1``, every column: the rows are read whole),
+    over finite changes below ``limit``; NaN when there are none."""
     h, w = code.shape[0], code.shape[1]
-    nr = (h + every - 1) // every if along == 1 else h - 1
+    nr = (h + every - 1) // every if along == 1 else (h - 2) // every + 1
     sums = np.zeros(nr, np.float64)
     counts = np.zeros(nr, np.int64)
     for i in prange(nr):
@@ -605,9 +658,9 @@ def mean_step(code, along, every, limit):  # type: ignore[no-untyped-def]
                     s += d
                     n += 1
         else:
-            a = code[i]
-            b = code[i + 1]
-            for c in range(0, w, every):
+            a = code[i * every]
+            b = code[i * every + 1]
+            for c in range(w):
                 d = abs(np.float64(b[c]) - np.float64(a[c]))
                 if d < limit:
                     s += d
@@ -623,12 +676,13 @@ def status_counts(status, n, out):  # type: ignore[no-untyped-def]
     """Counts of each status value 0..n-1, per row (the caller sums); ``out`` is (H, n) int64."""
     h, w = status.shape[0], status.shape[1]
     for r in prange(h):
-        for s in range(n):
-            out[r, s] = 0
-        for col in range(w):
-            s = status[r, col]
-            if s < n:
-                out[r, s] += 1
+        row = status[r]
+        for s in range(n):  # one compare-and-add pass per value: vectorised, no store-to-load chain per pixel
+            t = np.uint8(s)
+            acc = np.int32(0)
+            for col in range(w):
+                acc += np.int32(row[col] == t)
+            out[r, s] = acc
     return out
 
 

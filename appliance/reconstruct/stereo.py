@@ -140,15 +140,12 @@ class CodeGrid:
         return self.step / max(self.per_px, 1e-6)
 
 
-def _value_counts(vals: F64, vals32: F32) -> tuple[F64, npt.NDArray[np.intp]]:
+def _value_counts(vals32: F32) -> tuple[F64, npt.NDArray[np.intp]]:
     """The distinct values and their counts. Stripe centres of whole-pixel stripes lie on half pixels: when
     99 % of the values do, they are counted in one pass (the few others are rare by that, and the grid rule
     leaves rare values out anyway); otherwise sorted."""
-    h2 = vals * 2.0
-    idx = np.rint(h2)
-    on = np.abs(h2 - idx) < 2e-3
-    if on.mean() >= 0.99 and idx.min() >= 0.0 and idx.max() < 2.0**24:
-        cnt = np.bincount(idx[on].astype(np.intp))
+    share, cnt = C.half_pixel_counts(vals32)
+    if cnt.size and share >= 0.99:
         nz = np.flatnonzero(cnt)
         return nz.astype(np.float64) * 0.5, cnt[nz]
     uniq32, counts = np.unique(vals32, return_counts=True)  # float32 sorts faster; the same values
@@ -175,14 +172,14 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: in
     CodeGrid or None
         None when fewer than 100 pixels are decoded.
     """
-    vals32 = code[::stride, ::stride][mask[::stride, ::stride]]
-    vals32 = vals32[np.isfinite(vals32)]  # all of them: the rule for common values below assumes this density
-    vals = vals32.astype(np.float64)
-    if vals.size < 100:
+    buf = np.empty(-(-code.shape[0] // stride) * -(-code.shape[1] // stride), np.float32)
+    # all of them: the rule for common values below assumes this density
+    vals32 = buf[: C.sample_codes(code, mask, stride, buf)]
+    if vals32.size < 100:
         return None
     step_mean = float(C.mean_step(code, along, stride, 64.0))  # changes of 64 and more: across an occlusion
     per_px = step_mean if math.isfinite(step_mean) else 1.0
-    uniq, counts = _value_counts(vals, vals32)
+    uniq, counts = _value_counts(vals32)
     if uniq.size < 2:
         return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
     # stripe centres repeat; a rare value in between (a pixel on an edge) must not set the step
@@ -192,8 +189,7 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: in
     if gaps.size and counts.max() >= 3:
         step = float(np.min(gaps))
         origin = float(np.median(np.mod(common, step)))
-        k = (vals - origin) / step
-        if step >= 1.0 - 1e-6 and np.mean(np.abs(k - np.round(k)) < 1e-3) >= 0.99:
+        if step >= 1.0 - 1e-6 and C.on_grid_share(vals32, origin, step) >= 0.99:
             return CodeGrid(True, step, origin, max(per_px, 1e-3))
     return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
 
