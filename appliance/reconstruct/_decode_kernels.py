@@ -428,10 +428,18 @@ def _finish_row(  # type: ignore[no-untyped-def]
             continue
         stripe = np.float64(axis_tab[a, 2])
         ca = code[a, c0:c1]
+        phased = False
+        for s in range(ph_tab.shape[0]):
+            phased |= ph_tab[s, 0] == a
         if axis_tab[a, 1] != 0:
             tol = 1 if axis_tab[a, 4] != 0 else 0
             _gray_level(weak[a, c0:c1], tol, axis_tab[a, 7], finest, fl, ok)
             _gray_index(ca, fl, stripe, axis_tab[a, 3], cg, ok)
+            if not phased:  # Gray only: its stripe centre and contrast are the axis' own, no copies
+                _emit_axis(cg, ok, lit, out)
+                _emit_level(fl, lit, lev)
+                _min_into(qmin, qg[a, c0:c1])
+                continue
             _copy(qa, qg[a, c0:c1])
         else:
             ok[:] = True
@@ -667,6 +675,21 @@ def _fold16(d, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-unty
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _fold_pair16(p, n, bit, rg16, code, weak, qa):  # type: ignore[no-untyped-def]
+    """:func:`_fold16` of the pair (pattern ``p``, inverse ``n``) without edge keys, the difference formed in the
+    same loop (no row of differences stored and read back): the same values."""
+    on = np.uint16(1 << bit)
+    zero = np.uint16(0)
+    for x in range(p.shape[0]):
+        d = np.int16(np.int16(p[x]) - np.int16(n[x]))
+        c = np.int16(abs(d))
+        strong = c >= rg16[x]
+        code[x] |= on if d > 0 else zero
+        weak[x] |= zero if strong else on
+        qa[x] = min(qa[x], c if strong else _NINF)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2):  # type: ignore[no-untyped-def]
     for x in range(code.shape[0]):
         code[x] = np.uint32(c16[x])
@@ -689,14 +712,18 @@ def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d_row, c16, w16
         bit = gray_tab[g, 1]
         ip = gray_tab[g, 2]
         ineg = gray_tab[g, 3]
+        keys = axis_tab[a, 6] != 0
+        if ip >= 0 and ineg >= 0 and not keys:
+            _fold_pair16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], bit, rg, c16[a, c0:c1], w16[a, c0:c1],
+                         q16[a, c0:c1])  # fmt: skip
+            continue
         if ip >= 0 and ineg >= 0:
             _diff16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], d)
         else:
             sign = np.int16(1) if ip >= 0 else np.int16(-1)
             _single16(frames[ip if ip >= 0 else ineg, y, c0:c1], frames[wb[0], y, c0:c1], frames[wb[1], y, c0:c1],
                       sign, d)  # fmt: skip
-        _fold16(d, bit, rg, axis_tab[a, 6] != 0, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1],
-                b16[a, c0:c1])  # fmt: skip
+        _fold16(d, bit, rg, keys, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1])
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -775,8 +802,9 @@ def decode_stack(  # type: ignore[no-untyped-def]
                     c16[a, c0:c1] = np.uint16(0)
                     w16[a, c0:c1] = np.uint16(0)
                     q16[a, c0:c1] = _NINF
-                    a16[a, c0:c1] = _NBIG
-                    b16[a, c0:c1] = _NBIG
+                    if axis_tab[a, 6] != 0:  # edge keys only for a phase unwrapped at the Gray edge
+                        a16[a, c0:c1] = _NBIG
+                        b16[a, c0:c1] = _NBIG
                 _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d16, c16, w16, q16, a16, b16)
                 for a in range(2):
                     if axis_tab[a, 1] != 0:
