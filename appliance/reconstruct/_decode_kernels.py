@@ -643,12 +643,6 @@ def _relg16(relg, rg16):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _diff16(p, n, d):  # type: ignore[no-untyped-def]
-    for x in range(d.shape[0]):
-        d[x] = np.int16(np.int16(p[x]) - np.int16(n[x]))
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
 def _single16(one, wr, br, sign, d):  # type: ignore[no-untyped-def]
     for x in range(d.shape[0]):
         d[x] = np.int16(sign * (2 * np.int16(one[x]) - np.int16(wr[x]) - np.int16(br[x])))
@@ -675,9 +669,9 @@ def _fold16(d, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-unty
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_pair16(p, n, bit, rg16, code, weak, qa):  # type: ignore[no-untyped-def]
-    """:func:`_fold16` of the pair (pattern ``p``, inverse ``n``) without edge keys, the difference formed in the
-    same loop (no row of differences stored and read back): the same values."""
+def _fold_pair16(p, n, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+    """:func:`_fold16` of the pair (pattern ``p``, inverse ``n``), the difference formed in each loop instead of
+    a row of differences stored and read back: the same values."""
     on = np.uint16(1 << bit)
     zero = np.uint16(0)
     for x in range(p.shape[0]):
@@ -687,6 +681,12 @@ def _fold_pair16(p, n, bit, rg16, code, weak, qa):  # type: ignore[no-untyped-de
         code[x] |= on if d > 0 else zero
         weak[x] |= zero if strong else on
         qa[x] = min(qa[x], c if strong else _NINF)
+    if keys:
+        b = np.uint16(bit)
+        for x in range(p.shape[0]):
+            key = np.uint16((np.uint16(abs(np.int16(np.int16(p[x]) - np.int16(n[x])))) << _N5) | b)
+            m2[x] = min(m2[x], max(m1[x], key))
+            m1[x] = min(m1[x], key)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -713,16 +713,13 @@ def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d_row, c16, w16
         ip = gray_tab[g, 2]
         ineg = gray_tab[g, 3]
         keys = axis_tab[a, 6] != 0
-        if ip >= 0 and ineg >= 0 and not keys:
-            _fold_pair16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], bit, rg, c16[a, c0:c1], w16[a, c0:c1],
-                         q16[a, c0:c1])  # fmt: skip
-            continue
         if ip >= 0 and ineg >= 0:
-            _diff16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], d)
-        else:
-            sign = np.int16(1) if ip >= 0 else np.int16(-1)
-            _single16(frames[ip if ip >= 0 else ineg, y, c0:c1], frames[wb[0], y, c0:c1], frames[wb[1], y, c0:c1],
-                      sign, d)  # fmt: skip
+            _fold_pair16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], bit, rg, keys, c16[a, c0:c1], w16[a, c0:c1],
+                         q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1])  # fmt: skip
+            continue
+        sign = np.int16(1) if ip >= 0 else np.int16(-1)
+        _single16(frames[ip if ip >= 0 else ineg, y, c0:c1], frames[wb[0], y, c0:c1], frames[wb[1], y, c0:c1], sign,
+                  d)  # fmt: skip
         _fold16(d, bit, rg, keys, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1])
 
 
