@@ -96,13 +96,24 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
     t_dec = _median_ms(decode_both, repeats)
     t_tri = _median_ms(lambda: tri.triangulate(maps["cam0"], maps["cam1"]), repeats)
     t_all = _median_ms(lambda: tri.triangulate(*decode_both().values()), repeats)
+    # the same on one core: how the work scales (compute-bound work halves with the second core, a pass
+    # limited by memory bandwidth does not)
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        t_all_1 = _median_ms(lambda: tri.triangulate(*decode_both().values()), max(3, repeats // 3))
+    finally:
+        numba.set_num_threads(threads)
     xyz = tri.triangulate(maps["cam0"], maps["cam1"])
     truth = rig.ground_truth("cam0").xyz
     err = np.linalg.norm(xyz - truth, axis=2)
     ok = np.isfinite(err)
     res: dict[str, Any] = {
         "shape": list(stacks["cam0"].shape), "render_s": render_s, "decode_ms": t_dec, "triangulate_ms": t_tri,
-        "decode_triangulate_ms": t_all, "points": int(ok.sum()), "candidates": int(maps["cam0"].mask.sum()),
+        "decode_triangulate_ms": t_all, "decode_triangulate_1thread_ms": t_all_1, "threads": threads,
+        "points": int(ok.sum()), "candidates": int(maps["cam0"].mask.sum()),
         "median_error_mm": float(np.median(err[ok])) if ok.any() else float("nan"),
         "floor_read_ms": t_read, "floor_read_parallel_ms": t_read_par, "floor_write_ms": t_write,
     }  # fmt: skip
@@ -153,6 +164,12 @@ def report_lines(res: dict[str, Any]) -> list[str]:
         f"**{res['decode_triangulate_ms']:.0f} ms** median warm; {res['points']} points of {res['candidates']} "
         f"decoded pixels, median error {res['median_error_mm']:.3f} mm against the rig's truth.",
     ]
+    if "decode_triangulate_1thread_ms" in res:
+        lines.append(
+            f"On one core (numba threads 1 instead of {res['threads']}): "
+            f"{res['decode_triangulate_1thread_ms']:.0f} ms, "
+            f"{res['decode_triangulate_1thread_ms'] / res['decode_triangulate_ms']:.2f}× the figure above."
+        )
     if "floor_read_ms" in res:
         lines.append(
             f"Memory floor on this machine: one pass reading the two stacks with both cores (numba) "
