@@ -428,18 +428,10 @@ def _finish_row(  # type: ignore[no-untyped-def]
             continue
         stripe = np.float64(axis_tab[a, 2])
         ca = code[a, c0:c1]
-        phased = False
-        for s in range(ph_tab.shape[0]):
-            phased |= ph_tab[s, 0] == a
         if axis_tab[a, 1] != 0:
             tol = 1 if axis_tab[a, 4] != 0 else 0
             _gray_level(weak[a, c0:c1], tol, axis_tab[a, 7], finest, fl, ok)
             _gray_index(ca, fl, stripe, axis_tab[a, 3], cg, ok)
-            if not phased:  # Gray only: its stripe centre and contrast are the axis' own, no copies
-                _emit_axis(cg, ok, lit, out)
-                _emit_level(fl, lit, lev)
-                _min_into(qmin, qg[a, c0:c1])
-                continue
             _copy(qa, qg[a, c0:c1])
         else:
             ok[:] = True
@@ -642,40 +634,23 @@ def _relg16(relg, rg16):  # type: ignore[no-untyped-def]
         rg16[x] = np.int16(min(relg[x], np.float32(32767.0)))
 
 
-@njit(nogil=True, cache=True, error_model="numpy")
-def _single16(one, wr, br, sign, d):  # type: ignore[no-untyped-def]
-    for x in range(d.shape[0]):
-        d[x] = np.int16(sign * (2 * np.int16(one[x]) - np.int16(wr[x]) - np.int16(br[x])))
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _diff16(p, n, wr, br, sign, pair, x):  # type: ignore[no-untyped-def]
+    """Signed contrast of pixel ``x`` in 16-bit lanes: pattern - inverse for a pair, else
+    sign (2 pattern - white - black)."""
+    if pair:
+        return np.int16(np.int16(p[x]) - np.int16(n[x]))
+    return np.int16(sign * (2 * np.int16(p[x]) - np.int16(wr[x]) - np.int16(br[x])))
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold16(d, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
-    """:func:`_fold_d` in 16-bit lanes (8-bit frames: |contrast| <= 510, Gray bits <= 15): the same values."""
-    on = np.uint16(1 << bit)
-    zero = np.uint16(0)
-    for x in range(d.shape[0]):
-        code[x] |= on if d[x] > 0 else zero
-    for x in range(d.shape[0]):
-        c = np.int16(abs(d[x]))
-        strong = c >= rg16[x]
-        weak[x] |= zero if strong else on
-        qa[x] = min(qa[x], c if strong else _NINF)
-    if keys:
-        b = np.uint16(bit)
-        for x in range(d.shape[0]):
-            key = np.uint16((np.uint16(abs(d[x])) << _N5) | b)
-            m2[x] = min(m2[x], max(m1[x], key))
-            m1[x] = min(m1[x], key)
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _fold_pair16(p, n, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
-    """:func:`_fold16` of the pair (pattern ``p``, inverse ``n``), the difference formed in each loop instead of
-    a row of differences stored and read back: the same values."""
+def _fold_row16(p, n, wr, br, sign, pair, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+    """:func:`_fold_d` in 16-bit lanes (8-bit frames: |contrast| <= 510, Gray bits <= 15), the same values, with
+    each pixel's contrast formed in the loop (see :func:`_diff16`; no row of contrasts stored and read back)."""
     on = np.uint16(1 << bit)
     zero = np.uint16(0)
     for x in range(p.shape[0]):
-        d = np.int16(np.int16(p[x]) - np.int16(n[x]))
+        d = _diff16(p, n, wr, br, sign, pair, x)
         c = np.int16(abs(d))
         strong = c >= rg16[x]
         code[x] |= on if d > 0 else zero
@@ -684,7 +659,7 @@ def _fold_pair16(p, n, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore
     if keys:
         b = np.uint16(bit)
         for x in range(p.shape[0]):
-            key = np.uint16((np.uint16(abs(np.int16(np.int16(p[x]) - np.int16(n[x])))) << _N5) | b)
+            key = np.uint16((np.uint16(abs(_diff16(p, n, wr, br, sign, pair, x))) << _N5) | b)
             m2[x] = min(m2[x], max(m1[x], key))
             m1[x] = min(m1[x], key)
 
@@ -703,24 +678,23 @@ def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2):  # type: ig
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d_row, c16, w16, q16, a16, b16):  # type: ignore[no-untyped-def]
+def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, a16, b16):  # type: ignore[no-untyped-def]
     """:func:`_gray_row` for 8-bit frames with white/black or inverses, in 16-bit lanes."""
-    d = d_row[c0:c1]
     rg = rg16[c0:c1]
     for g in range(gray_tab.shape[0]):
         a = gray_tab[g, 0]
         bit = gray_tab[g, 1]
         ip = gray_tab[g, 2]
         ineg = gray_tab[g, 3]
-        keys = axis_tab[a, 6] != 0
-        if ip >= 0 and ineg >= 0:
-            _fold_pair16(frames[ip, y, c0:c1], frames[ineg, y, c0:c1], bit, rg, keys, c16[a, c0:c1], w16[a, c0:c1],
-                         q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1])  # fmt: skip
-            continue
-        sign = np.int16(1) if ip >= 0 else np.int16(-1)
-        _single16(frames[ip if ip >= 0 else ineg, y, c0:c1], frames[wb[0], y, c0:c1], frames[wb[1], y, c0:c1], sign,
-                  d)  # fmt: skip
-        _fold16(d, bit, rg, keys, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1])
+        pair = ip >= 0 and ineg >= 0
+        one = frames[ip if ip >= 0 else ineg, y, c0:c1]
+        # a pair's inverse, or the white and black rows that a single frame is thresholded against
+        other = frames[ineg, y, c0:c1] if pair else one
+        white = one if pair else frames[wb[0], y, c0:c1]
+        black = one if pair else frames[wb[1], y, c0:c1]
+        _fold_row16(one, other, white, black, np.int16(1) if ip >= 0 else np.int16(-1), pair, bit, rg,
+                    axis_tab[a, 6] != 0, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1],
+                    b16[a, c0:c1])  # fmt: skip
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -776,7 +750,6 @@ def decode_stack(  # type: ignore[no-untyped-def]
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
-        d16 = np.empty(w, np.int16)
         rg16 = np.empty(w, np.int16)
         c16 = np.empty((2, w), np.uint16)
         w16 = np.empty((2, w), np.uint16)
@@ -799,10 +772,9 @@ def decode_stack(  # type: ignore[no-untyped-def]
                     c16[a, c0:c1] = np.uint16(0)
                     w16[a, c0:c1] = np.uint16(0)
                     q16[a, c0:c1] = _NINF
-                    if axis_tab[a, 6] != 0:  # edge keys only for a phase unwrapped at the Gray edge
-                        a16[a, c0:c1] = _NBIG
-                        b16[a, c0:c1] = _NBIG
-                _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, d16, c16, w16, q16, a16, b16)
+                    a16[a, c0:c1] = _NBIG
+                    b16[a, c0:c1] = _NBIG
+                _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, a16, b16)
                 for a in range(2):
                     if axis_tab[a, 1] != 0:
                         _widen16(c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1],
