@@ -115,3 +115,23 @@ def test_cell_lookup_matches_integer_arithmetic_and_counts_every_pixel_once() ->
         assert np.array_equal(cnt0, ref_n) and np.array_equal(cnt1, ref_n)
         assert np.allclose(acc0, ref_a, rtol=1e-5, atol=1e-3) and np.array_equal(acc0, acc1)
         assert int(ref_n.sum()) == int(sel.sum()) > 0.5 * h * w
+
+
+def test_code_max_is_the_largest_decoded_code_at_least_zero() -> None:
+    """code_max orders the codes' float32 bits as integers: the same maxima as numpy on decoded pixels, with
+    NaN on undecoded ones, codes below 0, an all-negative or empty mask, and odd shapes."""
+    rng = np.random.default_rng(7)
+    for h, w in ((37, 53), (1, 1), (64, 1920)):
+        u = rng.uniform(-5.0, 1300.0, (h, w)).astype(np.float32)
+        v = rng.uniform(-5.0, 800.0, (h, w)).astype(np.float32)
+        mask = rng.random((h, w)) < 0.6
+        top_u, top_v = float(u.max()), float(v.max())
+        u[~mask] = np.nan
+        v[~mask] = np.nan
+        if h > 1:  # the largest values on undecoded pixels do not count
+            u[0, 0], v[0, 0], mask[0, 0] = top_u + 50.0, top_v + 50.0, False
+        want = (max(0.0, float(np.max(u[mask], initial=0.0))), max(0.0, float(np.max(v[mask], initial=0.0))))
+        assert K.code_max(u, v, mask) == want
+        assert K.code_max(u, v, np.zeros_like(mask)) == (0.0, 0.0)
+        neg = np.full((h, w), -2.5, np.float32)
+        assert K.code_max(neg, neg, np.ones_like(mask)) == (0.0, 0.0)
