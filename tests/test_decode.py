@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 
 import numpy as np
@@ -343,6 +344,27 @@ def test_streaming_equals_batch_bit_for_bit(name: str, seq: Sequence, dtype: typ
         assert _same(_stream(seq, frames, seed, params), batch), (name, seed)
         # frames kept by reference (a scan's buffer) instead of copied: the same maps
         assert _same(_stream(seq, frames, seed, params, borrow=True), batch), (name, seed, "borrowed")
+
+
+@pytest.mark.parametrize(("name", "seq"), _sequences()[1:])
+def test_integer_phase_sums_equal_float_sums_bit_for_bit(
+    name: str, seq: Sequence, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """8-bit frames sum their phase steps in int32 (units of the coefficient quantum); the maps must be those of
+    the float64 sums, bit for bit (three- and four-step sets, offsets, two periods, with and without white)."""
+    dec = importlib.import_module("appliance.reconstruct.decode")  # the package's name 'decode' is the function
+
+    t = plan_decode(seq).tables
+    assert dec._int_sums(t, 255), name  # 8-bit: the integer path is the one taken
+    assert not dec._int_sums(t, 65535), name  # 16-bit sums could leave int32: float64
+    frames = render(seq, amp=180, ambient=20, noise=3.0, shadow=(slice(0, 12), slice(0, 12)), seed=3)
+    ints = decode(frames, seq)
+    monkeypatch.setattr(dec, "_int_sums", lambda tables, maxval: False)
+    floats = decode(frames, seq)
+    assert floats.mask.mean() > 0.8, name
+    assert _same(ints, floats), name
+    assert ints.levels is not None and floats.levels is not None
+    assert np.array_equal(ints.levels, floats.levels), name
 
 
 def test_streaming_reset_and_errors() -> None:

@@ -441,9 +441,26 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
         # the same coefficients in units of the quantum (exact integers)
         "ph_sin_q": np.rint(np.array(ph_sin, np.float64) / COEFFICIENT_QUANTUM).astype(np.int64),
         "ph_cos_q": np.rint(np.array(ph_cos, np.float64) / COEFFICIENT_QUANTUM).astype(np.int64),
+        "ph_sin_i": np.rint(np.array(ph_sin, np.float64) / COEFFICIENT_QUANTUM).astype(np.int32),
+        "ph_cos_i": np.rint(np.array(ph_cos, np.float64) / COEFFICIENT_QUANTUM).astype(np.int32),
         "used": np.array(used, np.int64),
         "mean_idx": np.array(plan.mean_frames, np.int64),
     }
+
+
+def _int_sums(tables: dict[str, Any], maxval: int) -> bool:
+    """Whether the phase sums of frames up to ``maxval`` fit int32 in units of the coefficient quantum.
+
+    The bound is the container's maximum (255 for 8-bit frames, 65535 for 16-bit, whatever the significant
+    bits), so no frame can make a sum leave int32. Batch and streaming decodes take the same decision; either
+    way the sums are exact, and the outputs identical.
+    """
+    bound = 0
+    for _, steps, _, first in tables["ph_tab"].tolist():
+        rows = slice(first, first + steps)
+        coef = max(int(np.abs(tables["ph_sin_q"][rows]).sum()), int(np.abs(tables["ph_cos_q"][rows]).sum()))
+        bound = max(bound, maxval * coef)
+    return bound <= 2**31 - 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -621,9 +638,13 @@ def decode(
         hist = _k.range_hist_stack(stack, t["wb"], t["used"], maxval, shift, nbins)
     thr = lit_threshold(hist, stack.dtype, params)
     assert out.levels is not None
+    # exact phase sums: int32 in units of the quantum where they fit (8-bit frames), else float64
+    ints = _int_sums(t, maxval)
+    sin, cos = (t["ph_sin_i"], t["ph_cos_i"]) if ints else (t["ph_sin"], t["ph_cos"])
     _k.decode_stack(
         stack, t["wb"], t["used"], maxval, t["gray_tab"], t["mean_idx"], t["axis_tab"], t["ph_tab"],
-        t["ph_period"], t["ph_idx"], t["ph_sin"], t["ph_cos"], float(params.relative_contrast), float(thr),
+        t["ph_period"], t["ph_idx"], sin, cos, COEFFICIENT_QUANTUM if ints else 1.0,
+        float(params.relative_contrast), float(thr),
         bool(params.finest_bit), numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask,
         out.quality, out.levels,
     )  # fmt: skip
@@ -726,17 +747,9 @@ class StreamingDecoder:
         cst_dtype = np.uint8 if self.dtype == np.uint8 and pairs_only else np.uint16
         self._cst = np.zeros((max(len(t["gray_tab"]), 1), h, w), cst_dtype)
         nset = len(self.plan.phase)
-        # phase sums: int32 in units of the coefficient quantum where no sum can leave int32 (8-bit frames:
-        # the container's maximum, not the stated significant bits, bounds what a frame can hold), else float64;
+        # phase sums: int32 in units of the coefficient quantum where no sum can leave int32, else float64;
         # both exact, so the order of the pushes does not matter
-        top = float(self._maxval)
-        ph_set = np.repeat(np.arange(nset), [p.steps for p in self.plan.phase]).astype(np.int64)
-        bound = 0.0
-        for k in range(nset):
-            rows = ph_set == k
-            bound = max(bound, top * float(np.abs(t["ph_sin_q"][rows]).sum()),
-                        top * float(np.abs(t["ph_cos_q"][rows]).sum()))  # fmt: skip
-        self._int_sums = bound < 2.0**31 - 1
+        self._int_sums = _int_sums(t, self._maxval)
         sum_dtype = np.int32 if self._int_sums else np.float64
         self._quantum = COEFFICIENT_QUANTUM if self._int_sums else 1.0
         self._ssum = np.empty((max(nset, 1), h, w), sum_dtype)
@@ -765,7 +778,7 @@ class StreamingDecoder:
             self._role[idx] = ("phase", k)
         for idx in self._mean:
             self._role.setdefault(idx, ("mean", 0))
-        self._ph_set = ph_set
+        self._ph_set = np.repeat(np.arange(nset), [p.steps for p in self.plan.phase]).astype(np.int64)
         self._pushed: set[int] = set()
         self._waiting: set[int] = set()  # gray rows with one frame stored in _pending
         self._levels_shape = (2, h, w)
