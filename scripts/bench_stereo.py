@@ -174,7 +174,9 @@ def report_lines(res: dict[str, Any]) -> list[str]:
         lines.append(
             f"Memory floor on this machine: one pass reading the two stacks with both cores (numba) "
             f"{res.get('floor_read_parallel_ms', float('nan')):.0f} ms (single-threaded numpy `np.add.reduce`: "
-            f"{res['floor_read_ms']:.0f} ms), one writing the organised cloud (`fill`) {res['floor_write_ms']:.0f} ms."
+            f"{res['floor_read_ms']:.0f} ms), one writing the organised cloud (`fill`) {res['floor_write_ms']:.0f} ms; "
+            f"ratio decode + triangulate : two-core read floor "
+            f"**{res['decode_triangulate_ms'] / res['floor_read_parallel_ms']:.1f}×**."
         )
     if "opencv_decode_ms" in res:
         lines.append(
