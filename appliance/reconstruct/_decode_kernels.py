@@ -416,7 +416,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
     relv = scratch[0, c0:c1]
     cg = scratch[1, c0:c1]
     cc = scratch[2, c0:c1]
-    qa = scratch[3, c0:c1]
+    qs = scratch[3, c0:c1]
     qmin = scratch[4, c0:c1]
     mod = scratch[5, c0:c1]
     cph = scratch[6, c0:c1]
@@ -436,13 +436,14 @@ def _finish_row(  # type: ignore[no-untyped-def]
             tol = 1 if axis_tab[a, 4] != 0 else 0
             _gray_level(weak[a, c0:c1], tol, axis_tab[a, 7], finest, fl, ok)
             _gray_index(ca, fl, stripe, axis_tab[a, 3], cg, ok)
-            _copy(qa, qg[a, c0:c1])
+            qa = qg[a, c0:c1]  # the weakest contrasts, lowered in place by the phase gates (qg is per-row state)
         else:
             ok[:] = True
+            qa = qs
             qa[:] = _FINF
             fl[:] = np.uint32(0)
             cg[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
-        _copy(cc, cg)
+        res = cg  # the axis' coordinates: the Gray code's until a phase set writes cc (no copy)
         pprev = np.inf
         for s in range(ph_tab.shape[0]):
             if ph_tab[s, 0] != a:
@@ -459,8 +460,9 @@ def _finish_row(  # type: ignore[no-untyped-def]
                 _unwrap(cph, cb, period, cc)
                 _unwrap_gate(fl, stripe, period, ok)
             elif src > 0:
-                _copy(cb, cc)
+                _copy(cb, res)
                 _unwrap(cph, cb, period, cc)
+                res = cc
                 if finest and pprev >= FALLBACK_PERIOD_RATIO * period:
                     # a finer period the optics blur away leaves the pixel on the coarser one
                     _phase_fallback(mod, mprev, relv, cb, cc, ok, qa)
@@ -469,10 +471,11 @@ def _finish_row(  # type: ignore[no-untyped-def]
             else:
                 _unwrap(cph, cg, period, cc)
                 _unwrap_gate(fl, stripe, period, ok)
+            res = cc
             _phase_gate(mod, relv, ok, qa)
             _copy(mprev, mod)
             pprev = period
-        _emit_axis(cc, ok, lit, out)
+        _emit_axis(res, ok, lit, out)
         _emit_level(fl, lit, lev)
         _min_into(qmin, qa)
     _mask_quality(lit, qmin, mask_row[c0:c1], quality_row[c0:c1])
