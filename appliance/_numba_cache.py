@@ -41,6 +41,17 @@ def source_key() -> str:
     return h.hexdigest()[:12]
 
 
+def kernels_on_disk(kernel: Any) -> tuple[bool, str] | None:
+    """Whether numba holds compiled code of the jitted ``kernel`` on disk for its current source, and the folder
+    it uses (numba's own choice: ``NUMBA_CACHE_DIR``, ``__pycache__`` beside the source, or a per-user folder);
+    None when numba's cache cannot tell (its internals differ). False means the next use compiles."""
+    try:
+        cache = kernel._cache
+        return bool(cache._cache_file._load_index()), str(cache._cache_path)
+    except Exception:  # numba internals of another version, or an unreadable folder: nothing to report
+        return None
+
+
 def _configure() -> None:
     base = os.environ.get("NUMBA_CACHE_DIR") or config.CACHE_DIR  # the env may be set after numba's import
     if base and not Path(base).name.startswith("src-"):

@@ -448,6 +448,18 @@ def _write_report(
         print(f"calibration health: {health['status']}: {health['reason']}")
 
 
+def _note_compiling(command: str) -> None:
+    """One line on stderr before a run that must compile the numba kernels first (after an install or an
+    upgrade), so that a person knows why it is slow this once and where the compiled kernels go."""
+    from appliance._numba_cache import kernels_on_disk
+    from appliance.reconstruct._decode_kernels import decode_stack
+
+    state = kernels_on_disk(decode_stack)
+    if state is not None and not state[0]:
+        print(f"scan3d {command}: compiling the numba kernels for this version (once, 30-60 s on a small PC; later "
+              f"runs load them from {state[1]})", file=sys.stderr, flush=True)
+
+
 def decode_manifests(
     manifests: list[Path],
     calibration: Path | None,
@@ -478,6 +490,7 @@ def decode_manifests(
         raise ConfigError("decode: --report writes the sidecar of one capture; give one manifest (or no --report)")
     if is_batch and out is not None and out.suffix.lower() == ".ply":
         raise ConfigError(f"decode: --out {out}: several manifests need a folder (one <stem>.ply each)")
+    _note_compiling("decode")
     batch = _DecodeBatch(calibration, config, mode)
     failed = 0
     totals: list[float] = []
@@ -519,6 +532,7 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
     scanner = Scanner(cfg, rig, calibration)
     try:
         t = time.perf_counter()
+        _note_compiling("scan")
         await scanner.open()
         await scanner.warm_up()
         print(f"rig ready in {time.perf_counter() - t:.1f} s: {len(cfg.cameras)} camera(s), "

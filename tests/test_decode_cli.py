@@ -219,3 +219,18 @@ def test_a_bad_reconstruction_setting_names_file_line_and_key(capture: dict[str,
     rc, _, err = _decode(capture["one"], "--calibration", capture["calib"]["procam"], "--config", cfg)
     assert rc == 2 and len(err.strip().splitlines()) == 1
     assert f"{cfg}:3: reconstruction.min_depth_mm = -5" in err
+
+
+@pytest.mark.parametrize("on_disk", [False, True])
+def test_a_first_run_says_it_compiles_the_kernels(
+    capture: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, on_disk: bool
+) -> None:
+    import appliance._numba_cache as nc
+
+    monkeypatch.setattr(nc, "kernels_on_disk", lambda kernel: (on_disk, "/var/cache/scan3d/src-x"))
+    rc, out, err = _decode(capture["one"], "--calibration", capture["calib"]["procam"], "--out", tmp_path / "c.ply")
+    assert rc == 0, err
+    note = "scan3d decode: compiling the numba kernels for this version"
+    assert (note in err) is not on_disk, err
+    if not on_disk:
+        assert "/var/cache/scan3d/src-x" in err and err.count("\n") == 1  # one line, then the usual output

@@ -50,3 +50,25 @@ def test_the_key_follows_the_sources(tmp_path: Path) -> None:
         f = copy / nc.KERNEL_FILES[1]
         f.write_text(f.read_text() + "\n# changed\n")
         assert nc.source_key() != before
+
+
+def test_kernels_on_disk_tells_a_first_run_from_a_cached_one(tmp_path: Path) -> None:
+    """What ``scan3d decode`` / ``scan3d scan`` use to say that this run compiles the kernels first."""
+    code = (
+        "import numpy as np\n"
+        "from appliance._numba_cache import kernels_on_disk\n"
+        "from appliance.reconstruct import _filter_kernels as K\n"
+        "print(kernels_on_disk(K.isolated_keep))\n"
+        "xyz = np.zeros((4, 4, 3), np.float32); keep = np.zeros((4, 4), np.bool_)\n"
+        "K.isolated_keep(xyz, 0, 1.0, keep)\n"
+        "print(kernels_on_disk(K.isolated_keep))\n"
+        "print(kernels_on_disk(len))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    run = [sys.executable, "-c", code]
+    first = subprocess.run(run, env=env, capture_output=True, text=True, timeout=300, check=True).stdout.splitlines()
+    folder = str(tmp_path / f"src-{nc.source_key()}")
+    assert first[0].startswith(f"(False, '{folder}") and first[1].startswith(f"(True, '{folder}"), first
+    assert first[2] == "None"  # not a numba kernel: nothing to report
+    again = subprocess.run(run, env=env, capture_output=True, text=True, timeout=300, check=True).stdout.splitlines()
+    assert again[0].startswith(f"(True, '{folder}"), again  # a later process finds them on disk
