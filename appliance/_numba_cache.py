@@ -12,12 +12,17 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
+import shutil
 from pathlib import Path
 from typing import Any
 
 from numba.core import config as _numba_config
 
 config: Any = _numba_config  # numba's settings module (its attributes are made at run time)
+
+_KEY_DIR = re.compile(r"src-[0-9a-f]{12}")
+"""Name of a keyed cache folder (:func:`source_key`)."""
 
 KERNEL_FILES = (
     "reconstruct/_cell_kernels.py", "reconstruct/_decode_kernels.py", "reconstruct/_filter_kernels.py",
@@ -50,6 +55,34 @@ def kernels_on_disk(kernel: Any) -> tuple[bool, str] | None:
         return bool(cache._cache_file._load_index()), str(cache._cache_path)
     except Exception:  # numba internals of another version, or an unreadable folder: nothing to report
         return None
+
+
+def prune_stale(keep_others: int = 1) -> list[Path]:
+    """Delete the compiled kernels of older sources under ``NUMBA_CACHE_DIR``: every ``src-<hash>`` folder but
+    the current one and the ``keep_others`` most recently used others (a rollback finds them). Each upgrade
+    otherwise leaves ~25-40 MB behind, for ever, on a box nobody looks at.
+
+    Only folders named like ours are touched, never links or other files; one that cannot be deleted stays
+    (a later start tries again). Without ``NUMBA_CACHE_DIR`` (numba's ``__pycache__`` beside the sources)
+    nothing is pruned. Returns the folders deleted.
+    """
+    current = Path(config.CACHE_DIR) if config.CACHE_DIR else None
+    if current is None or not current.name.startswith("src-"):
+        return []
+    try:
+        others = [p for p in current.parent.iterdir()
+                  if p != current and _KEY_DIR.fullmatch(p.name) and p.is_dir() and not p.is_symlink()]  # fmt: skip
+        others.sort(key=lambda p: p.stat().st_mtime, reverse=True)
+    except OSError:
+        return []
+    gone = []
+    for old in others[max(keep_others, 0) :]:
+        try:
+            shutil.rmtree(old)
+        except OSError:
+            continue
+        gone.append(old)
+    return gone
 
 
 def _configure() -> None:

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import appliance._numba_cache as nc
 
@@ -72,3 +73,30 @@ def test_kernels_on_disk_tells_a_first_run_from_a_cached_one(tmp_path: Path) -> 
     assert first[2] == "None"  # not a numba kernel: nothing to report
     again = subprocess.run(run, env=env, capture_output=True, text=True, timeout=300, check=True).stdout.splitlines()
     assert again[0].startswith(f"(True, '{folder}"), again  # a later process finds them on disk
+
+
+def test_prune_stale_keeps_the_current_and_the_newest_other(tmp_path: Path, monkeypatch: Any) -> None:
+    root = tmp_path / "cache"
+    current = root / "src-aaaaaaaaaaaa"
+    olds = [root / f"src-{c * 12}" for c in "bcd"]
+    for k, d in enumerate([current, *olds]):
+        (d / "reconstruct_x").mkdir(parents=True)
+        (d / "reconstruct_x" / "k.nbi").write_bytes(b"x")
+        os.utime(d, (1_000_000 + k, 1_000_000 + k))  # b oldest, d newest
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (root / "src-eeeeeeeeeeee").symlink_to(elsewhere)  # a link: never followed or removed
+    (root / "src-ffffffffffff").write_text("a file")  # not a folder
+    (root / "src-notahash00").mkdir()  # not our name
+    (root / "notes").mkdir()
+    monkeypatch.setattr(nc.config, "CACHE_DIR", str(current))
+    gone = nc.prune_stale(keep_others=1)
+    assert sorted(gone) == sorted(olds[:2])
+    left = sorted(p.name for p in root.iterdir())
+    assert left == ["notes", "src-aaaaaaaaaaaa", "src-dddddddddddd", "src-eeeeeeeeeeee", "src-ffffffffffff",
+                    "src-notahash00"]  # fmt: skip
+    assert elsewhere.is_dir() and (current / "reconstruct_x" / "k.nbi").exists()
+    assert nc.prune_stale(keep_others=1) == []  # nothing more to do
+    monkeypatch.setattr(nc.config, "CACHE_DIR", str(tmp_path / "plain"))  # not a keyed folder: hands off
+    assert nc.prune_stale(keep_others=0) == []
+    assert (root / "src-dddddddddddd").is_dir()

@@ -591,3 +591,28 @@ def test_an_unsafe_numba_threading_layer_is_refused_at_start(tmp_path: Path) -> 
     assert rc == 1, log
     assert "numba threading layer is 'workqueue'" in log and "omp or tbb" in log
     assert "Traceback" not in log
+
+
+def test_start_deletes_the_compiled_kernels_of_older_versions(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Each upgrade leaves a keyed kernel folder in /var/cache/scan3d; a start keeps the current and one other."""
+    import appliance._numba_cache as nc
+
+    root = tmp_path / "cache"
+    current = root / f"src-{nc.source_key()}"
+    current.mkdir(parents=True)
+    olds = [root / f"src-{c * 12}" for c in "123"]
+    for k, d in enumerate(olds):
+        d.mkdir()
+        os.utime(d, (1_000_000 + k, 1_000_000 + k))
+    monkeypatch.setattr(nc.config, "CACHE_DIR", str(current))  # only what prune reads: kernels keep their cache
+
+    async def body(svc: D.Service) -> None:
+        await scan_once(svc)
+
+    caplog.set_level("INFO")
+    rc, _ = run_in_process(write_config(tmp_path), body)
+    assert rc == 0
+    assert sorted(p.name for p in root.iterdir()) == sorted([current.name, olds[2].name])
+    assert "deleted the compiled kernels of 2 older version(s)" in caplog.text
