@@ -242,12 +242,19 @@ def test_frame_order_does_not_matter() -> None:
 
 
 def test_decode_into_preallocated_outputs() -> None:
-    seq = gray_phase_sequence(320, 160, "x", period=16)
-    frames = render(seq)
+    seq = gray_phase_sequence(320, 160, "xy", period=16)
+    frames = render(seq, shadow=(slice(0, 12), slice(0, 20)))  # unlit pixels at the start of rows
+    frames[:, 30:33] = frames[-1, 30:33]  # and whole unlit rows (every frame black there)
     out = empty_maps((H, W))
+    assert out.levels is not None
+    out.u[...], out.v[...], out.mask[...], out.quality[...], out.levels[...] = 7.0, 7.0, True, 3.0, 9  # stale
     got = decode(frames, plan_decode(seq), out=out)
     assert got is out
-    assert _same(out, decode(frames, seq))
+    fresh = decode(frames, seq)
+    assert _same(out, fresh)
+    assert fresh.levels is not None and np.array_equal(out.levels, fresh.levels)
+    assert not out.mask[:12, :20].any() and not out.mask[30:33].any()
+    assert np.isnan(out.u[30:33]).all() and not out.quality[30:33].any() and not out.levels[:, 30:33].any()
     with pytest.raises(DecodeError, match=r"out\.u"):
         decode(frames, seq, out=empty_maps((H, W + 1)))
 
