@@ -381,12 +381,6 @@ def _copy(dst, src):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fill(a, value):  # type: ignore[no-untyped-def]
-    for x in range(a.shape[0]):
-        a[x] = value
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
 def _unlit_outside(u, v, mask, quality, lev0, lev1, c0, c1):  # type: ignore[no-untyped-def]
     """Outputs of the pixels of a row outside its lit span c0 .. c1 - 1 (all of it when the span is empty):
     what the final step gives an unlit pixel, no code and no quality. One fill per output: a loop storing to
@@ -395,12 +389,12 @@ def _unlit_outside(u, v, mask, quality, lev0, lev1, c0, c1):  # type: ignore[no-
     w = u.shape[0]
     for lo, hi in ((0, c0), (max(c0, c1), w)):
         if hi > lo:
-            _fill(u[lo:hi], _FNAN)
-            _fill(v[lo:hi], _FNAN)
-            _fill(mask[lo:hi], False)
-            _fill(quality[lo:hi], _F0)
-            _fill(lev0[lo:hi], np.uint8(0))
-            _fill(lev1[lo:hi], np.uint8(0))
+            u[lo:hi] = _FNAN
+            v[lo:hi] = _FNAN
+            mask[lo:hi] = False
+            quality[lo:hi] = _F0
+            lev0[lo:hi] = np.uint8(0)
+            lev1[lo:hi] = np.uint8(0)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -429,6 +429,9 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
             ph_sin.append(round(math.sin(theta) / COEFFICIENT_QUANTUM) * COEFFICIENT_QUANTUM)
             ph_cos.append(round(math.cos(theta) / COEFFICIENT_QUANTUM) * COEFFICIENT_QUANTUM)
     used = sorted({i for row in gray_rows for i in row[2:] if i >= 0} | set(ph_idx) | set(plan.mean_frames))
+    sin_q = np.rint(np.array(ph_sin, np.float64) / COEFFICIENT_QUANTUM).astype(np.int32)
+    cos_q = np.rint(np.array(ph_cos, np.float64) / COEFFICIENT_QUANTUM).astype(np.int32)
+    sets = [(int(first), int(first + steps)) for _, steps, _, first in ph_tab.tolist()]
     return {
         "wb": np.array([plan.white, plan.black], np.int64),
         "gray_tab": np.array(gray_rows, np.int64).reshape(-1, 4),
@@ -438,11 +441,12 @@ def _tables(plan: DecodePlan) -> dict[str, Any]:
         "ph_idx": np.array(ph_idx, np.int64),
         "ph_sin": np.array(ph_sin, np.float64),
         "ph_cos": np.array(ph_cos, np.float64),
-        # the same coefficients in units of the quantum (exact integers)
-        "ph_sin_q": np.rint(np.array(ph_sin, np.float64) / COEFFICIENT_QUANTUM).astype(np.int64),
-        "ph_cos_q": np.rint(np.array(ph_cos, np.float64) / COEFFICIENT_QUANTUM).astype(np.int64),
-        "ph_sin_i": np.rint(np.array(ph_sin, np.float64) / COEFFICIENT_QUANTUM).astype(np.int32),
-        "ph_cos_i": np.rint(np.array(ph_cos, np.float64) / COEFFICIENT_QUANTUM).astype(np.int32),
+        # the same coefficients in units of the quantum (exact integers), and the largest sum of their magnitudes
+        # over one set: what a phase sum of frames up to 1 can reach, in quanta
+        "ph_sin_q": sin_q,
+        "ph_cos_q": cos_q,
+        "ph_coef_bound": max((int(max(np.abs(sin_q[a:b]).sum(), np.abs(cos_q[a:b]).sum())) for a, b in sets),
+                             default=0),
         "used": np.array(used, np.int64),
         "mean_idx": np.array(plan.mean_frames, np.int64),
     }
@@ -455,12 +459,7 @@ def _int_sums(tables: dict[str, Any], maxval: int) -> bool:
     bits), so no frame can make a sum leave int32. Batch and streaming decodes take the same decision; either
     way the sums are exact, and the outputs identical.
     """
-    bound = 0
-    for _, steps, _, first in tables["ph_tab"].tolist():
-        rows = slice(first, first + steps)
-        coef = max(int(np.abs(tables["ph_sin_q"][rows]).sum()), int(np.abs(tables["ph_cos_q"][rows]).sum()))
-        bound = max(bound, maxval * coef)
-    return bound <= 2**31 - 1
+    return int(tables["ph_coef_bound"]) * maxval <= 2**31 - 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -640,7 +639,7 @@ def decode(
     assert out.levels is not None
     # exact phase sums: int32 in units of the quantum where they fit (8-bit frames), else float64
     ints = _int_sums(t, maxval)
-    sin, cos = (t["ph_sin_i"], t["ph_cos_i"]) if ints else (t["ph_sin"], t["ph_cos"])
+    sin, cos = (t["ph_sin_q"], t["ph_cos_q"]) if ints else (t["ph_sin"], t["ph_cos"])
     _k.decode_stack(
         stack, t["wb"], t["used"], maxval, t["gray_tab"], t["mean_idx"], t["axis_tab"], t["ph_tab"],
         t["ph_period"], t["ph_idx"], sin, cos, COEFFICIENT_QUANTUM if ints else 1.0,

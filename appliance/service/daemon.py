@@ -32,6 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from appliance._numba_cache import prune_stale
 from appliance.config import AppConfig, load_config
 from appliance.hardware.base import TriggerEvent
 from appliance.output.share import ShareWriter
@@ -226,6 +227,7 @@ class Service:
             self.board.unsubscribe(self.publisher.publish)
             raise
         self.spawn(self.publisher.start_mdns(), "mdns", critical=False)  # probing takes ~2 s: never delays the start
+        self.spawn(self._prune_kernel_cache(), "kernel-cache", critical=False)  # once a process, off the loop
         self.watcher = ConfigWatcher(self.config_path, self._apply_config, self._config_rejected,
                                      self.cfg.service.config_poll_s)
         self.spawn(self.health.run(), "health")
@@ -242,6 +244,13 @@ class Service:
         finally:
             await self._shutdown()
         return self.exit_status
+
+    @staticmethod
+    async def _prune_kernel_cache() -> None:
+        """Delete the compiled kernels of older versions (see ``prune_stale``), once at start."""
+        gone = await asyncio.to_thread(prune_stale)
+        if gone:
+            log.info("deleted the compiled kernels of %d older version(s) from %s", len(gone), gone[0].parent)
 
     def request_stop(self) -> None:
         """Begin a clean shutdown (what SIGTERM does)."""

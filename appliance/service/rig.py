@@ -12,7 +12,6 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from appliance._numba_cache import prune_stale
 from appliance.errors import ApplianceError
 from appliance.hardware.base import Camera, CameraInfo, FrameCallback
 from appliance.service import memory
@@ -175,9 +174,6 @@ class RigManager:
         self.captured_count = 0
         await asyncio.to_thread(memory.trim)  # the warm-up's temporaries
         log.info("kernels warm in %.1f s", time.perf_counter() - t)
-        gone = await asyncio.to_thread(prune_stale)
-        if gone:
-            log.info("deleted the compiled kernels of %d older version(s) from %s", len(gone), gone[0].parent)
 
     def _trigger_link(self, state: Any, reason: str) -> None:
         """The trigger backend's link state changed (backends that reconnect by themselves report here)."""
