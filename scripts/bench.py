@@ -235,8 +235,12 @@ def bench_accuracy() -> list[dict[str, Any]]:
 
 
 def report(ref: dict[str, Any], ocv: dict[str, Any], acc: list[dict[str, Any]], extra: dict[str, Any]) -> str:
-    lines = [f"Machine: {os.cpu_count()} cores, numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}; "
-             f"{time.strftime('%Y-%m-%d')}.", ""]
+    from appliance._numba_cache import config as numba_config
+
+    wide = "-prefer-256-bit" in (numba_config.CPU_FEATURES or "")
+    width = "512-bit vectors" if wide else "LLVM's default vector width"
+    lines = [f"Machine: {os.cpu_count()} cores, numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}, "
+             f"kernels built for {width}; {time.strftime('%Y-%m-%d')}.", ""]
     if ref:
         lines += [
             "**Reference workload** (2 cameras × 2448×2048, 11-bit column Gray code with inverses + 4-step phase "

@@ -73,6 +73,9 @@ def test_kernels_on_disk_tells_a_first_run_from_a_cached_one(tmp_path: Path) -> 
     assert first[2] == "None"  # not a numba kernel: nothing to report
     again = subprocess.run(run, env=env, capture_output=True, text=True, timeout=300, check=True).stdout.splitlines()
     assert again[0].startswith(f"(True, '{folder}"), again  # a later process finds them on disk
+    generic = subprocess.run(run, env={**env, "NUMBA_CPU_NAME": "generic"}, capture_output=True, text=True,
+                             timeout=300, check=True).stdout.splitlines()  # fmt: skip
+    assert generic[0].startswith(f"(False, '{folder}"), generic  # built for another processor: compiles again
 
 
 def test_prune_stale_keeps_the_current_and_the_newest_other(tmp_path: Path, monkeypatch: Any) -> None:
@@ -100,3 +103,36 @@ def test_prune_stale_keeps_the_current_and_the_newest_other(tmp_path: Path, monk
     monkeypatch.setattr(nc.config, "CACHE_DIR", str(tmp_path / "plain"))  # not a keyed folder: hands off
     assert nc.prune_stale(keep_others=0) == []
     assert (root / "src-dddddddddddd").is_dir()
+
+
+def test_wide_vectors_only_where_avx512_costs_no_clock() -> None:
+    avx512 = "+sse4.2,+avx2,+avx512f,+avx512bw,+avx512vl,+avx512dq,-amx-tile"
+    assert nc.wide_vector_features("sapphirerapids", avx512) == avx512 + ",-prefer-256-bit"
+    assert nc.wide_vector_features("znver4", avx512) == avx512 + ",-prefer-256-bit"
+    for slow in ("skylake-avx512", "cascadelake"):  # 512-bit work lowers their clock
+        assert nc.wide_vector_features(slow, avx512) is None
+    assert nc.wide_vector_features("alderlake", "+sse4.2,+avx2,-avx512f,-avx512bw,-avx512vl") is None
+    assert nc.wide_vector_features("x", "+avx512f,+avx512vl,-avx512bw") is None  # no byte/word ops: the decoder's
+
+
+def _codegen_features(env: dict[str, str]) -> tuple[str, str, str]:
+    code = (
+        "import llvmlite.binding as llvm\n"
+        "from numba.core import codegen\n"
+        "from numba.core.registry import cpu_target\n"
+        "import appliance.reconstruct._filter_kernels\n"
+        "print(llvm.get_host_cpu_name()); print(codegen.get_host_cpu_features())\n"
+        "print(cpu_target.target_context.codegen()._tm_features)\n"
+    )
+    base = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES")}
+    out = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True,
+                         timeout=300, check=True)  # fmt: skip
+    name, host, used = out.stdout.strip().splitlines()[-3:]
+    return name, host, used
+
+
+def test_the_kernels_compile_with_the_chosen_width_and_a_set_numba_cpu_wins() -> None:
+    name, host, used = _codegen_features({})
+    assert used == (nc.wide_vector_features(name, host) or host)  # the codegen numba builds kernels with
+    _, _, used = _codegen_features({"NUMBA_CPU_FEATURES": host})
+    assert used == host  # the operator's setting stands
