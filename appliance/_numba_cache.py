@@ -98,6 +98,9 @@ def prune_stale(keep_others: int = 1) -> list[Path]:
     return gone
 
 
+PREFER_WIDE = "-prefer-256-bit"
+"""The feature that lifts LLVM's 256-bit preference (in ``config.CPU_FEATURES`` when the kernels use 512)."""
+
 NARROW_AVX512 = frozenset({"skylake-avx512", "cascadelake", "cooperlake", "cannonlake", "knl", "knm"})
 """LLVM's names of the processors whose clock drops under 512-bit work: they keep 256-bit vectors."""
 
@@ -115,17 +118,17 @@ def wide_vector_features(cpu_name: str, features: str) -> str | None:
     Returns
     -------
     str or None
-        ``features`` with ``-prefer-256-bit`` added when the host has AVX-512 F, BW and VL and is not one of
+        ``features`` with :data:`PREFER_WIDE` added when the host has AVX-512 F, BW and VL and is not one of
         :data:`NARROW_AVX512`; None otherwise.
     """
     have = {f[1:] for f in features.split(",") if f.startswith("+")}
     if cpu_name in NARROW_AVX512 or not {"avx512f", "avx512bw", "avx512vl"} <= have:
         return None
-    return f"{features},-prefer-256-bit"
+    return f"{features},{PREFER_WIDE}"
 
 
 def _configure() -> None:
-    if not (os.environ.get("NUMBA_CPU_NAME") or os.environ.get("NUMBA_CPU_FEATURES")):
+    if config.CPU_NAME is None and config.CPU_FEATURES is None:  # the operator chose nothing (env or file)
         try:  # numba's own view of the host (its llvmlite binding)
             cg = _numba_codegen
             wide = wide_vector_features(cg.ll.get_host_cpu_name(), cg.get_host_cpu_features())

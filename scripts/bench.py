@@ -235,10 +235,9 @@ def bench_accuracy() -> list[dict[str, Any]]:
 
 
 def report(ref: dict[str, Any], ocv: dict[str, Any], acc: list[dict[str, Any]], extra: dict[str, Any]) -> str:
-    from appliance._numba_cache import config as numba_config
+    from appliance._numba_cache import PREFER_WIDE, config
 
-    wide = "-prefer-256-bit" in (numba_config.CPU_FEATURES or "")
-    width = "512-bit vectors" if wide else "LLVM's default vector width"
+    width = "512-bit vectors" if PREFER_WIDE in (config.CPU_FEATURES or "") else "LLVM's default vector width"
     lines = [f"Machine: {os.cpu_count()} cores, numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}, "
              f"kernels built for {width}; {time.strftime('%Y-%m-%d')}.", ""]
     if ref:
