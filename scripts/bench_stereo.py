@@ -22,6 +22,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 BATCH = 5
 """Captures in the batch decode (one process); the figure is the median of those after the first."""
+COARSE_CELL_PX = 8.0
+"""The camera-camera path timed once more with code cells of at least this many camera px (the default is
+``stereo.CELL_MIN_PX``): what the time would be if the per-cell work were nearly free, and what accuracy that
+costs."""
 
 OPENCV_STACKS = r"""
 import sys, time, json, statistics
@@ -106,8 +110,22 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
         t_all_1 = _median_ms(lambda: tri.triangulate(*decode_both().values()), max(3, repeats // 3))
     finally:
         numba.set_num_threads(threads)
-    xyz = tri.triangulate(maps["cam0"], maps["cam1"])
     truth = rig.ground_truth("cam0").xyz
+    # How far the cell size moves the time: the same path with code cells of at least COARSE_CELL_PX camera px
+    # (far fewer cells than the default, so the per-cell work nearly vanishes and what is left is the
+    # per-pixel work: decode, cell sums, each pixel's match), and what it costs in accuracy.
+    import appliance.reconstruct.stereo as stereo_module
+
+    default_cell = stereo_module.CELL_MIN_PX
+    stereo_module.CELL_MIN_PX = COARSE_CELL_PX
+    try:
+        coarse = StereoTriangulator(rig.cameras["cam0"], rig.cameras["cam1"])
+        t_coarse = _median_ms(lambda: coarse.triangulate(*decode_both().values()), repeats)
+        err_c = np.linalg.norm(coarse.triangulate(maps["cam0"], maps["cam1"]) - truth, axis=2)
+    finally:
+        stereo_module.CELL_MIN_PX = default_cell
+    err_c = err_c[np.isfinite(err_c)]
+    xyz = tri.triangulate(maps["cam0"], maps["cam1"])
     err = np.linalg.norm(xyz - truth, axis=2)
     ok = np.isfinite(err)
     res: dict[str, Any] = {
@@ -116,6 +134,10 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
         "points": int(ok.sum()), "candidates": int(maps["cam0"].mask.sum()),
         "median_error_mm": float(np.median(err[ok])) if ok.any() else float("nan"),
         "floor_read_ms": t_read, "floor_read_parallel_ms": t_read_par, "floor_write_ms": t_write,
+        "p99_error_mm": float(np.percentile(err[ok], 99)) if ok.any() else float("nan"),
+        "coarse_cell_px": COARSE_CELL_PX, "coarse_decode_triangulate_ms": t_coarse,
+        "coarse_median_error_mm": float(np.median(err_c)) if err_c.size else float("nan"),
+        "coarse_p99_error_mm": float(np.percentile(err_c, 99)) if err_c.size else float("nan"),
     }  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -185,6 +207,17 @@ def report_lines(res: dict[str, Any]) -> list[str]:
         )
     elif "opencv_skipped" in res:
         lines.append(f"OpenCV comparison skipped: {res['opencv_skipped']}")
+    if "coarse_decode_triangulate_ms" in res:
+        against = (
+            f" ({res['opencv_decode_ms'] / res['coarse_decode_triangulate_ms']:.0f}× OpenCV)"
+            if "opencv_decode_ms" in res else ""
+        )
+        lines.append(
+            f"The same with code cells of at least {res['coarse_cell_px']:.0f} camera px instead of the default "
+            f"(the per-cell work nearly gone, the per-pixel work left): {res['coarse_decode_triangulate_ms']:.0f} ms"
+            f"{against}, median / p99 error {res['coarse_median_error_mm']:.3f} / {res['coarse_p99_error_mm']:.2f} "
+            f"mm against {res['median_error_mm']:.3f} / {res['p99_error_mm']:.2f} mm with the default cells."
+        )
     if "batch_ms" in res:
         lines.append(
             f"`scan3d decode` of a batch of {len(res['batch_ms'])} such captures: decode + triangulate "
