@@ -80,7 +80,7 @@ def prune_stale(keep_others: int = 1) -> list[Path]:
     nothing is pruned. Returns the folders deleted.
     """
     current = Path(config.CACHE_DIR) if config.CACHE_DIR else None
-    if current is None or not current.name.startswith("src-"):
+    if current is None or not _KEY_DIR.fullmatch(current.name):
         return []
     try:
         others = [p for p in current.parent.iterdir()

@@ -24,8 +24,8 @@ BATCH = 5
 """Captures in the batch decode (one process); the figure is the median of those after the first."""
 COARSE_CELL_PX = 8.0
 """The camera-camera path timed once more with code cells of at least this many camera px (the default is
-``stereo.CELL_MIN_PX``): what the time would be if the per-cell work were nearly free, and what accuracy that
-costs."""
+``StereoTriangulator.cell_min_px``): what the time would be if the per-cell work were nearly free, and what
+accuracy that costs."""
 
 OPENCV_STACKS = r"""
 import sys, time, json, statistics
@@ -114,16 +114,10 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
     # How far the cell size moves the time: the same path with code cells of at least COARSE_CELL_PX camera px
     # (far fewer cells than the default, so the per-cell work nearly vanishes and what is left is the
     # per-pixel work: decode, cell sums, each pixel's match), and what it costs in accuracy.
-    import appliance.reconstruct.stereo as stereo_module
-
-    default_cell = stereo_module.CELL_MIN_PX
-    stereo_module.CELL_MIN_PX = COARSE_CELL_PX
-    try:
-        coarse = StereoTriangulator(rig.cameras["cam0"], rig.cameras["cam1"])
-        t_coarse = _median_ms(lambda: coarse.triangulate(*decode_both().values()), repeats)
-        err_c = np.linalg.norm(coarse.triangulate(maps["cam0"], maps["cam1"]) - truth, axis=2)
-    finally:
-        stereo_module.CELL_MIN_PX = default_cell
+    coarse = StereoTriangulator(rig.cameras["cam0"], rig.cameras["cam1"])
+    coarse.cell_min_px = COARSE_CELL_PX
+    t_coarse = _median_ms(lambda: coarse.triangulate(*decode_both().values()), repeats)
+    err_c = np.linalg.norm(coarse.triangulate(maps["cam0"], maps["cam1"]) - truth, axis=2)
     err_c = err_c[np.isfinite(err_c)]
     xyz = tri.triangulate(maps["cam0"], maps["cam1"])
     err = np.linalg.norm(xyz - truth, axis=2)

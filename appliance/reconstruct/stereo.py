@@ -302,7 +302,15 @@ class StereoTriangulator:
     correct_epipolar : bool, optional
         Fit and correct a systematic epipolar offset measured from (u, v) matches. Default: with the automatic
         limit only (a fixed ``max_epipolar_px`` trusts the calibration as it is).
+
+    Attributes
+    ----------
+    cell_min_px : float
+        Both axes quantised: least extent of a matching code cell (camera px), ``CELL_MIN_PX`` unless set on
+        the instance (``scripts/bench`` times coarser cells this way).
     """
+
+    cell_min_px: float = CELL_MIN_PX
 
     def __init__(
         self,
@@ -556,8 +564,8 @@ class StereoTriangulator:
         zmax: float,
     ) -> None:
         """Both axes quantised: match by code cells (``_cell_kernels``), into xyz, epi, sigma and status."""
-        ku = max(1, math.ceil(CELL_MIN_PX / grid.stripe_px))
-        kv = max(1, math.ceil(CELL_MIN_PX / vgrid.stripe_px))
+        ku = max(1, math.ceil(self.cell_min_px / grid.stripe_px))
+        kv = max(1, math.ceil(self.cell_min_px / vgrid.stripe_px))
         cell_u, cell_v = ku * grid.stripe_px, kv * vgrid.stripe_px
         hu0, hv0 = K.code_max(u0, v0, mask0)
         hu1, hv1 = K.code_max(u1, v1, mask1)
