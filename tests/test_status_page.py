@@ -5,6 +5,7 @@ the preview and the cloud, triggers with the token it asks for once, refuses a w
 from __future__ import annotations
 
 import asyncio
+import datetime as dt
 import os
 import time
 from pathlib import Path
@@ -98,10 +99,12 @@ def test_page_follows_the_service_live(tmp_path: Path) -> None:
                 await until(f"{el}('advice').textContent.includes('validate-config')", 5)
                 assert "config" in await browser.evaluate(f"{el}('error').textContent")
                 await asyncio.to_thread(save, good)  # put right: the rejection goes away
+                saved_utc = dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
                 try:
                     await until(f"{el}('rejected').hidden", 5)
-                except AssertionError as exc:
-                    raise AssertionError(f"{exc}; board: {svc.board.config_error!r} {svc.board.counters}") from None
+                except AssertionError as exc:  # say whether the reload came late or the page missed its event
+                    raise AssertionError(f"{exc}; board: {svc.board.config_error!r} {svc.board.counters}; saved "
+                                         f"{saved_utc}, applied {svc.board.config_loaded_utc}") from None
 
                 if SHOT:
                     await browser.call("Emulation.setDeviceMetricsOverride", width=1100, height=1180,
