@@ -6,10 +6,11 @@ import asyncio
 import gc
 import importlib.machinery
 import importlib.util
+import logging
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -78,6 +79,37 @@ class _GcClock:
         self.wall[tid] = self.wall.get(tid, 0.0) + wall
 
 
+class _HarnessLogClock:
+    """Time pytest's own log handlers spent on each thread (s of CPU and of wall, garbage collections left out).
+
+    Under pytest every record goes through its capture handlers (the report section, ``caplog``, live logging),
+    which in a process that holds the whole suite cost up to ~30 ms for the first traceback logged: the
+    harness's cost, not the service's (which writes a line to stderr). Handlers of any other module are not
+    timed here, so the service's own logging still counts.
+    """
+
+    def __init__(self, gc_clock: _GcClock) -> None:
+        self.cpu: dict[int, float] = {}
+        self.wall: dict[int, float] = {}
+        self._gc = gc_clock
+
+    def wrap(self, real: Callable[[logging.Handler, logging.LogRecord], bool]) -> Callable[..., bool]:
+        def handle(handler: logging.Handler, record: logging.LogRecord) -> bool:
+            if not type(handler).__module__.startswith("_pytest"):
+                return real(handler, record)
+            tid = threading.get_ident()
+            c0, w0 = time.thread_time(), time.perf_counter()
+            g0, gw0 = self._gc.cpu.get(tid, 0.0), self._gc.wall.get(tid, 0.0)
+            try:
+                return real(handler, record)
+            finally:
+                gc_cpu, gc_wall = self._gc.cpu.get(tid, 0.0) - g0, self._gc.wall.get(tid, 0.0) - gw0
+                self.cpu[tid] = self.cpu.get(tid, 0.0) + time.thread_time() - c0 - gc_cpu
+                self.wall[tid] = self.wall.get(tid, 0.0) + time.perf_counter() - w0 - gc_wall
+
+        return handle
+
+
 def _run_delay_s() -> float:
     """Time this thread has spent runnable but waiting for a CPU (s), from the scheduler's statistics."""
     try:
@@ -95,7 +127,8 @@ def loop_guard(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
     Computing is the loop thread's CPU time; blocking is wall time less the time the thread waited for a CPU
     (other processes on a busy machine), both less the garbage collections run meanwhile on the loop thread
-    (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of them in one callback fails on its own). asyncio's
+    (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of them in one callback fails on its own) and less the
+    time pytest's own log handlers took (:class:`_HarnessLogClock`). asyncio's
     debug mode would measure plain wall time and add its own bookkeeping to every callback, which alone pushes
     task steps past 20 ms on a loaded machine. Warm numba's kernels before the measured part: the first call of
     a kernel compiles or loads it.
@@ -104,17 +137,20 @@ def loop_guard(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     slow: list[str] = []
     real_run = asyncio.events.Handle._run
     gc_clock = _GcClock()
+    log_clock = _HarnessLogClock(gc_clock)
 
     def timed_run(handle: asyncio.events.Handle) -> None:
         tid = threading.get_ident()
         t0, c0, d0 = time.perf_counter(), time.thread_time(), _run_delay_s()
         g0, gw0 = gc_clock.cpu.get(tid, 0.0), gc_clock.wall.get(tid, 0.0)
+        l0, lw0 = log_clock.cpu.get(tid, 0.0), log_clock.wall.get(tid, 0.0)
         try:
             real_run(handle)
         finally:
             gc_cpu, gc_wall = gc_clock.cpu.get(tid, 0.0) - g0, gc_clock.wall.get(tid, 0.0) - gw0
-            cpu = time.thread_time() - c0 - gc_cpu
-            held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall
+            log_cpu, log_wall = log_clock.cpu.get(tid, 0.0) - l0, log_clock.wall.get(tid, 0.0) - lw0
+            cpu = time.thread_time() - c0 - gc_cpu - log_cpu
+            held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall - log_wall
             if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S or gc_wall > GC_PAUSE_S:
                 slow.append(
                     f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held "
@@ -122,6 +158,7 @@ def loop_guard(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
                 )
 
     monkeypatch.setattr(asyncio.events.Handle, "_run", timed_run)
+    monkeypatch.setattr(logging.Handler, "handle", log_clock.wrap(logging.Handler.handle))
     gc.callbacks.append(gc_clock)
     try:
         yield
