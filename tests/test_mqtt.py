@@ -99,12 +99,21 @@ def test_state_scans_and_trigger_command(tmp_path: Path) -> None:
                     await wait_until(lambda: w.on("state")[-1] == {"state": "offline"}, 5, "old prefix offline")
                 async with aiomqtt.Client("127.0.0.1", broker.port, identifier="test-renamed") as c:
                     await c.subscribe("scan3d/SIM-0002/state", qos=1)
-                    async for m in c.messages:
-                        assert isinstance(m.payload, bytes)
-                        state = json.loads(m.payload)
-                        if state.get("serial") == "SIM-0002":
+                    async with asyncio.timeout(10):  # the face's first state on the new prefix
+                        async for m in c.messages:
+                            assert isinstance(m.payload, bytes)
+                            if json.loads(m.payload).get("serial") == "SIM-0002":
+                                break
+                # ... is retained: a client that subscribes after it was published gets it at once (the one above
+                # may have subscribed before the face published, and a message delivered live has no retain flag)
+                async with aiomqtt.Client("127.0.0.1", broker.port, identifier="test-renamed-late") as c:
+                    await c.subscribe("scan3d/SIM-0002/state", qos=1)
+                    async with asyncio.timeout(5):
+                        async for m in c.messages:
+                            assert isinstance(m.payload, bytes)
+                            state = json.loads(m.payload)
                             break
-                    assert state["state"] == "idle" and m.retain
+                    assert m.retain and state["serial"] == "SIM-0002" and state["state"] == "idle"
             async with aiomqtt.Client("127.0.0.1", broker.port, identifier="test-late") as c:
                 await c.subscribe("scan3d/SIM-0002/state", qos=1)  # the service stopped: retained offline
                 async for m in c.messages:

@@ -118,7 +118,7 @@ def test_any_exception_in_a_scan_is_a_failed_scan_and_the_service_goes_on(tmp_pa
 
 
 def test_a_critical_task_that_dies_is_a_fault_and_exit_status_1(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     svc = make(tmp_path)
     states: list[str] = []
@@ -135,6 +135,35 @@ def test_a_critical_task_that_dies_is_a_fault_and_exit_status_1(
     faults = [s for s in states if s.startswith("fault") and "scan3d-spool" in s]
     assert faults and "spool index corrupt" in faults[0]
     assert svc.board.last_error is not None and "scan3d-spool" in svc.board.last_error.message
+    # the log says what failed, then (formatted off the loop, before the exit) where: the traceback
+    said = [(r.levelname, r.getMessage(), r.exc_info) for r in caplog.records if "scan3d-spool" in r.getMessage()]
+    assert said[0][0] == "CRITICAL" and "stopping with exit status 1" in said[0][1] and not said[0][2]
+    tb = [(msg, exc) for level, msg, exc in said if exc]
+    assert len(tb) == 1 and tb[0][0].startswith("traceback of internal task scan3d-spool failed")
+    assert tb[0][1] is not None and isinstance(tb[0][1][1], RuntimeError)
+    assert "in broken" in caplog.text and "spool index corrupt (a bug)" in caplog.text
+
+
+def test_a_helper_task_that_dies_is_an_error_not_a_fault(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    svc = make(tmp_path)
+
+    async def body() -> None:
+        async def probe() -> None:
+            await asyncio.sleep(0)
+            raise ValueError("mDNS answer malformed (a bug)")
+
+        svc.spawn(probe(), "probe", critical=False)
+        await wait_until(lambda: "traceback of task scan3d-probe" in caplog.text, 5)
+        assert ready(svc) and not svc.stopping  # a helper is not worth a restart
+        assert (await ctl(svc, cmd="trigger", wait=True))["ok"]
+
+    assert run(svc, body) == 0
+    assert svc.board.last_error is not None and "internal task scan3d-probe failed" in svc.board.last_error.message
+    said = [r for r in caplog.records if "task scan3d-probe" in r.getMessage()]
+    assert [r.levelname for r in said] == ["ERROR", "ERROR"] and said[0].exc_info is None
+    assert said[1].exc_info is not None and isinstance(said[1].exc_info[1], ValueError)
 
 
 @pytest.fixture

@@ -19,6 +19,7 @@ file writes run in threads.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import datetime as dt
 import functools
@@ -61,6 +62,7 @@ log = logging.getLogger(__name__)
 AFTER_SCAN_GRACE_S = 10.0  # at stop, the last scan's bookkeeping gets this long
 ABORT_WAIT_S = 5.0  # at stop, an aborted scan gets this long to unwind
 WRITER_CLOSE_WAIT_S = 30.0  # at stop, the writer thread gets this long to finish its work
+TRACEBACK_LOG_WAIT_S = 5.0  # at stop, a failed task's traceback gets this long to reach the log
 
 StateListener = Callable[[StatusBoard], None]
 ScanListener = Callable[[ScanRecord], None]
@@ -130,6 +132,7 @@ class Service:
         self.handlers = ControlHandlers(self)
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
+        self._traceback_logs: list[asyncio.Future[None]] = []
         self._ready_sent = False
         self._scan_listeners: list[ScanListener] = []
         self.health = HealthCheck(self)
@@ -286,8 +289,9 @@ class Service:
         name = task.get_name()
         if not critical:
             if exc is not None:
-                log.error("task %s failed: %r", name, exc, exc_info=exc)
+                log.error(f"task {name} failed: {exc!r}")
                 self.board.error("service", f"internal task {name} failed: {exc!r}")
+                self._log_traceback(f"task {name}", exc)
             return
         if self.stopping and exc is None:
             return
@@ -296,11 +300,33 @@ class Service:
 
     def fail(self, reason: str, exc: BaseException | None = None) -> None:
         """A part of the service is gone: publish ``fault`` with ``reason``, stop, exit with status 1."""
-        log.critical("%s; stopping with exit status 1 (systemd restarts the service)", reason, exc_info=exc)
+        # one preformatted line on the loop; the traceback from a thread (see _log_traceback)
+        log.critical(f"{reason}; stopping with exit status 1 (systemd restarts the service)")
         self.exit_status = 1
         self.board.error("service", reason)
         self.board.set_state(State.FAULT, reason)
         self.request_stop()
+        if exc is not None:
+            self._log_traceback(reason, exc)
+
+    def _log_traceback(self, what: str, exc: BaseException) -> None:
+        """Log ``exc``'s traceback from a short-lived thread; :meth:`_shutdown` waits for it.
+
+        Formatting a traceback reads the source files and parses their lines: 5-30 ms of CPU the first time
+        in a process, which the event loop must not carry (triggers, the watchdog and the status page wait
+        behind it). The line saying what failed is logged on the loop first, so the order in the log is
+        the failure, then its traceback.
+        """
+        written: concurrent.futures.Future[None] = concurrent.futures.Future()
+
+        def write() -> None:
+            try:
+                log.error("traceback of %s:", what, exc_info=exc)
+            finally:
+                written.set_result(None)
+
+        threading.Thread(target=write, name="scan3d-log-traceback", daemon=True).start()
+        self._traceback_logs = [f for f in self._traceback_logs if not f.done()] + [asyncio.wrap_future(written)]
 
     def send_ready(self) -> None:
         """``READY=1`` to systemd, once (ready for triggers, or in fault but up)."""
@@ -347,6 +373,8 @@ class Service:
                       WRITER_CLOSE_WAIT_S)
         self.notifier.close()
         self.board.unsubscribe(self.publisher.publish)
+        if self._traceback_logs:  # a fault's traceback reaches the journal before the exit
+            await asyncio.wait(self._traceback_logs, timeout=TRACEBACK_LOG_WAIT_S)
         log.info("stopped after %d scans", self.board.counters["scans_done"])
 
     # --- hardware --------------------------------------------------------------------------------

@@ -1,0 +1,63 @@
+"""The event-loop guard that the service tests run under (tests/conftest.py) catches what it is there for:
+a callback that computes past the CPU limit, one that blocks in a sleep, a long task step; and lets through
+cheap callbacks on a loop that has been idle, and time spent waiting in ``await``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+from conftest import BLOCKED_CALLBACK_S, SLOW_CALLBACK_S, slow_callbacks
+
+
+def burn_cpu(seconds: float) -> None:
+    """Compute on this thread for ``seconds`` of its CPU time."""
+    end = time.thread_time() + seconds
+    x = 0
+    while time.thread_time() < end:
+        x += 1
+
+
+def test_a_callback_computing_past_the_limit_is_reported(monkeypatch: pytest.MonkeyPatch) -> None:
+    async def main() -> None:
+        asyncio.get_running_loop().call_soon(burn_cpu, 1.6 * SLOW_CALLBACK_S)
+        await asyncio.sleep(0.05)
+
+    with slow_callbacks(monkeypatch) as slow:
+        asyncio.run(main())
+    assert len(slow) == 1 and "burn_cpu" in slow[0], slow
+    cpu_ms = float(slow[0].split(" ms CPU")[0])
+    assert cpu_ms >= 1.5 * SLOW_CALLBACK_S * 1e3
+
+
+def test_a_task_step_that_sleeps_is_reported_as_held(monkeypatch: pytest.MonkeyPatch) -> None:
+    async def sleeper() -> None:
+        time.sleep(1.2 * BLOCKED_CALLBACK_S)  # noqa: ASYNC251 - the bug the guard is for: blocking in a coroutine
+
+    async def main() -> None:
+        await asyncio.create_task(sleeper(), name="test-sleeper")
+
+    with slow_callbacks(monkeypatch) as slow:
+        asyncio.run(main())
+    assert any("test-sleeper" in s for s in slow), slow
+    held_ms = float(next(s for s in slow if "test-sleeper" in s).split(" ms held")[0].rsplit(", ", 1)[1])
+    assert held_ms >= BLOCKED_CALLBACK_S * 1e3
+
+
+def test_cheap_callbacks_on_an_idle_loop_and_awaits_are_not_reported(monkeypatch: pytest.MonkeyPatch) -> None:
+    state: dict[str, list[int]] = {"log": []}
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        for i in range(3):
+            await asyncio.sleep(0.6)  # idle: the loop's memory goes cold on a virtual machine
+            loop.call_soon(lambda i=i: state["log"].append(sum(range(10_000)) + i))
+            await asyncio.to_thread(burn_cpu, 2 * SLOW_CALLBACK_S)  # computing in a thread is fine
+        await asyncio.sleep(0.01)
+
+    with slow_callbacks(monkeypatch) as slow:
+        asyncio.run(main())
+    assert len(state["log"]) == 3
+    assert slow == []
