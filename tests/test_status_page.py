@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import json
 import os
 import time
 from pathlib import Path
@@ -95,6 +96,14 @@ def test_page_follows_the_service_live(tmp_path: Path) -> None:
                 await asyncio.to_thread(save, good.replace("busy_policy: refuse", "busy_policy: maybe"))
                 await until(f"!{el}('rejected').hidden && {el}('rejected').textContent.includes('busy_policy')", 5)
                 assert "REJECTED" in await browser.evaluate(f"{el}('rejected').textContent")
+                # what the service answers now, replayed below as replies that come after the fix's event
+                stale = await browser.call("Runtime.evaluate", awaitPromise=True, returnByValue=True, expression=(
+                    "(async () => { window.staleReplies = {}; for (const u of ['/api/status', '/api/config'])"
+                    " window.staleReplies[u] = await (await fetch(u, { cache: 'no-store' })).text();"
+                    " return window.staleReplies; })()"))
+                stale = {u: json.loads(t) for u, t in stale["result"]["value"].items()}
+                assert "busy_policy" in stale["/api/status"]["config"]["error"]
+                assert "busy_policy" in stale["/api/config"]["rejected_edit"]
                 # the error and its advice arrive in the same state event, but may be drawn a moment later
                 await until(f"{el}('advice').textContent.includes('validate-config')", 5)
                 assert "config" in await browser.evaluate(f"{el}('error').textContent")
@@ -105,6 +114,14 @@ def test_page_follows_the_service_live(tmp_path: Path) -> None:
                 except AssertionError as exc:  # say whether the reload came late or the page missed its event
                     raise AssertionError(f"{exc}; board: {svc.board.config_error!r} {svc.board.counters}; saved "
                                          f"{saved_utc}, applied {svc.board.config_loaded_utc}") from None
+                # a reply answered before the fix but read after the event that cleared the rejection (they
+                # travel on two connections) must not bring it back: it is older than what the page shows
+                replayed = await browser.call("Runtime.evaluate", awaitPromise=True, returnByValue=True, expression=(
+                    "(async () => { const real = window.fetch; window.fetch = async (u, o) => u in"
+                    " window.staleReplies ? new Response(window.staleReplies[u]) : real(u, o);"
+                    " try { await refreshStatus(); await refreshConfig(); } finally { window.fetch = real; }"
+                    f" return [{el}('rejected').hidden, {el}('state').textContent]; }})()"))
+                assert replayed["result"]["value"] == [True, "idle"], replayed
 
                 if SHOT:
                     await browser.call("Emulation.setDeviceMetricsOverride", width=1100, height=1180,

@@ -231,14 +231,14 @@ class ServiceFaces:
         self._queues.discard(queue)
 
     def state_event(self) -> Event:
-        """The current state as an event (state, phase, detail, counters, last scan id, last error)."""
+        """The current state as an event (state, phase, detail, counters, last scan id, last error, revision)."""
         b = self.board
         err = b.last_error
         return {"type": "state", "state": str(b.state), "phase": str(b.phase), "detail": b.detail,
                 "serial": self.cfg.serial, "version": __version__, "scans_done": b.counters["scans_done"],
                 "counters": dict(b.counters), "queue_length": b.queue_length, "last_scan_id": b.last_scan_id(),
                 "last_error": asdict(err) if err is not None else None, "config_error": b.config_error,
-                "time_utc": dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")}
+                "revision": b.revision, "time_utc": dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")}
 
     def _known(self, scan_id: str) -> ScanRecord | None:
         if not SCAN_ID_RE.match(scan_id):
@@ -312,7 +312,8 @@ class ServiceFaces:
     def configuration(self) -> dict[str, Any]:
         """The running configuration, its file and the last rejected edit."""
         return {"path": str(self.config_path), "loaded_utc": self.board.config_loaded_utc,
-                "rejected_edit": self.board.config_error, "running": self.cfg.model_dump(mode="json")}
+                "rejected_edit": self.board.config_error, "revision": self.board.revision,
+                "running": self.cfg.model_dump(mode="json")}
 
     # --- events ------------------------------------------------------------------------------------
 

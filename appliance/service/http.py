@@ -11,6 +11,9 @@
 - ``GET /api/events`` server-sent events (``state`` and ``scan``);
 - ``GET /api/config`` the running configuration and the last rejected edit.
 
+The status, the ``state`` events and the configuration carry the board's ``revision`` (one more at every
+change): a client holding copies that came by different connections keeps the newest.
+
 Requests are bounded in size (``max_request_kb``) and rate (``rate_per_s`` per client address).
 """
 

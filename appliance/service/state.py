@@ -177,6 +177,7 @@ class StatusBoard:
         self.started_monotonic = time.monotonic()
         self.started_utc = _now_utc()
         self.sequence = ""
+        self.revision = 0  # +1 at every change: a reader can tell an older copy of the board from a newer one
         self._listeners: list[Listener] = []
 
     def subscribe(self, listener: Listener) -> None:
@@ -189,7 +190,8 @@ class StatusBoard:
             self._listeners.remove(listener)
 
     def changed(self) -> None:
-        """Tell the listeners (a failing listener is logged, never raised)."""
+        """Count a new :attr:`revision` and tell the listeners (a failing listener is logged, never raised)."""
+        self.revision += 1
         for fn in list(self._listeners):
             try:
                 fn(self)
@@ -261,6 +263,7 @@ class StatusBoard:
             "detail": self.detail,
             "version": __version__,
             "serial": self.serial,
+            "revision": self.revision,
             "uptime_s": round(time.monotonic() - self.started_monotonic, 1),
             "started_utc": self.started_utc,
             "config": {"path": self.config_path, "loaded_utc": self.config_loaded_utc,

@@ -6,6 +6,18 @@ const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = "scan3d-token";
 let lastScanShown = "";
 let statusTimer = null;
+let boardRevision = -1;  // the newest board revision shown (the service counts one at every change)
+
+// A reply to /api/status or /api/config may have been answered before a state event that arrived first,
+// or after one still on its way (they travel on two connections): drawn out of order, an older copy would
+// bring back what a newer one had cleared (a rejected edit already put right). Only a copy of the board
+// at least as new as the one shown is drawn.
+function isCurrent(revision) {
+  if (typeof revision !== "number") return true;  // a service without revisions
+  if (revision < boardRevision) return false;
+  boardRevision = revision;
+  return true;
+}
 
 function text(id, value) { $(id).textContent = value; }
 
@@ -66,9 +78,10 @@ function showShare(share) {
 async function refreshStatus() {
   try {
     const st = await getJSON("/api/status");
+    if (!isCurrent(st.revision)) return;  // older than what is shown; a newer event is already drawn
     showState(st);
     showShare(st.share);
-    if (st.config && st.config.error) showRejected(st.config.error);
+    showRejected(st.config ? st.config.error : "");
   } catch (e) { /* the event stream shows the link state */ }
 }
 
@@ -286,7 +299,7 @@ async function refreshConfig() {
   try {
     const c = await getJSON("/api/config");
     text("config-file", `${c.path} (loaded ${fmtTime(c.loaded_utc)})`);
-    showRejected(c.rejected_edit);
+    if (isCurrent(c.revision)) showRejected(c.rejected_edit);
     text("config", JSON.stringify(c.running, null, 2));
   } catch (e) { /* retried on the next state event */ }
 }
@@ -322,14 +335,18 @@ async function trigger() {
 function connectEvents() {
   const link = $("link");
   const es = new EventSource("/api/events");
-  es.onopen = () => { link.textContent = "live"; link.className = "link on"; refreshScans(); refreshStatus(); };
+  es.onopen = () => {  // perhaps a restarted service, counting revisions from 0 again
+    boardRevision = -1;
+    link.textContent = "live"; link.className = "link on"; refreshScans(); refreshStatus();
+  };
   es.onerror = () => { link.textContent = "reconnecting"; link.className = "link off"; };
   es.addEventListener("state", (e) => {
     const s = JSON.parse(e.data);
-    showState(s);
     if (s.last_scan_id && s.last_scan_id !== $("last-id").textContent) refreshScans();
-    showRejected(s.config_error);
     scheduleStatus();
+    if (!isCurrent(s.revision)) return;  // a newer copy of the board (from /api/status) is drawn already
+    showState(s);
+    showRejected(s.config_error);
   });
   es.addEventListener("scan", (e) => {
     const scan = JSON.parse(e.data);
