@@ -182,7 +182,7 @@ def test_batch_builds_once_and_writes_one_cloud_per_capture(
 def test_config_only_overrides_reconstruction(capture: dict[str, Any], tmp_path: Path) -> None:
     cfg = tmp_path / "recon.yaml"
     # hardware entries are never needed, and never touched when present
-    cfg.write_text("cameras: {cam0: {type: aravis, address: 192.0.2.1}}\n"
+    cfg.write_text("cameras: {cam0: {type: aravis, address: 127.0.0.254}}\n"
                    "reconstruction: {min_depth_mm: 560, max_depth_mm: 640, min_neighbours: 0}\n")  # fmt: skip
     rc, _, err = _decode(capture["one"], "--calibration", capture["calib"]["procam"], "--config", cfg,
                          "--out", tmp_path / "c.ply", "--report", tmp_path / "r.json")  # fmt: skip
