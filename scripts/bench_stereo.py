@@ -53,6 +53,15 @@ def _median_ms(fn: Any, repeats: int) -> float:
     return statistics.median(times)
 
 
+def _error_stats(xyz: np.ndarray, truth: np.ndarray) -> tuple[int, float, float]:
+    """Points, median and p99 distance (mm) of an (H, W, 3) cloud from the true (H, W, 3) surface, NaN left out."""
+    err = np.linalg.norm(xyz - truth, axis=2)
+    err = err[np.isfinite(err)]
+    if not err.size:
+        return 0, float("nan"), float("nan")
+    return int(err.size), float(np.median(err)), float(np.percentile(err, 99))
+
+
 def bench_stereo(repeats: int) -> dict[str, Any]:
     """Decode + camera-camera triangulation of two 1920x1280 Gray-only stacks; OpenCV contrib; batch decode."""
     from appliance.config.schema import DeviceOptics, PlaneObject, SphereObject, VirtualRigConfig
@@ -117,21 +126,15 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
     coarse = StereoTriangulator(rig.cameras["cam0"], rig.cameras["cam1"])
     coarse.cell_min_px = COARSE_CELL_PX
     t_coarse = _median_ms(lambda: coarse.triangulate(*decode_both().values()), repeats)
-    err_c = np.linalg.norm(coarse.triangulate(maps["cam0"], maps["cam1"]) - truth, axis=2)
-    err_c = err_c[np.isfinite(err_c)]
-    xyz = tri.triangulate(maps["cam0"], maps["cam1"])
-    err = np.linalg.norm(xyz - truth, axis=2)
-    ok = np.isfinite(err)
+    points, median_mm, p99_mm = _error_stats(tri.triangulate(maps["cam0"], maps["cam1"]), truth)
+    _, coarse_median_mm, coarse_p99_mm = _error_stats(coarse.triangulate(maps["cam0"], maps["cam1"]), truth)
     res: dict[str, Any] = {
         "shape": list(stacks["cam0"].shape), "render_s": render_s, "decode_ms": t_dec, "triangulate_ms": t_tri,
         "decode_triangulate_ms": t_all, "decode_triangulate_1thread_ms": t_all_1, "threads": threads,
-        "points": int(ok.sum()), "candidates": int(maps["cam0"].mask.sum()),
-        "median_error_mm": float(np.median(err[ok])) if ok.any() else float("nan"),
+        "points": points, "candidates": int(maps["cam0"].mask.sum()), "median_error_mm": median_mm,
         "floor_read_ms": t_read, "floor_read_parallel_ms": t_read_par, "floor_write_ms": t_write,
-        "p99_error_mm": float(np.percentile(err[ok], 99)) if ok.any() else float("nan"),
-        "coarse_cell_px": COARSE_CELL_PX, "coarse_decode_triangulate_ms": t_coarse,
-        "coarse_median_error_mm": float(np.median(err_c)) if err_c.size else float("nan"),
-        "coarse_p99_error_mm": float(np.percentile(err_c, 99)) if err_c.size else float("nan"),
+        "p99_error_mm": p99_mm, "coarse_cell_px": COARSE_CELL_PX, "coarse_decode_triangulate_ms": t_coarse,
+        "coarse_median_error_mm": coarse_median_mm, "coarse_p99_error_mm": coarse_p99_mm,
     }  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)

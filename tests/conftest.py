@@ -63,12 +63,31 @@ THREAD_GRACE_S = 5.0
 GC_PAUSE_S = 0.25
 
 
-class _GcClock:
+class _ThreadClock:
+    """Time spent on something, per thread: running totals (s of CPU, s of wall)."""
+
+    def __init__(self) -> None:
+        self._totals: dict[int, tuple[float, float]] = {}
+
+    def add(self, tid: int, cpu: float, wall: float) -> None:
+        c, w = self._totals.get(tid, (0.0, 0.0))
+        self._totals[tid] = (c + cpu, w + wall)
+
+    def totals(self, tid: int) -> tuple[float, float]:
+        """(CPU, wall) seconds counted so far on thread ``tid``; an interval's share is the difference."""
+        return self._totals.get(tid, (0.0, 0.0))
+
+    def since(self, tid: int, mark: tuple[float, float]) -> tuple[float, float]:
+        """(CPU, wall) seconds counted on thread ``tid`` since :meth:`totals` gave ``mark``."""
+        cpu, wall = self.totals(tid)
+        return cpu - mark[0], wall - mark[1]
+
+
+class _GcClock(_ThreadClock):
     """Time the interpreter spent collecting garbage, per thread (s of CPU and of wall), from ``gc.callbacks``."""
 
     def __init__(self) -> None:
-        self.cpu: dict[int, float] = {}
-        self.wall: dict[int, float] = {}
+        super().__init__()
         self._start: dict[int, tuple[float, float]] = {}
 
     def __call__(self, phase: str, info: dict[str, int]) -> None:
@@ -79,12 +98,10 @@ class _GcClock:
         begun = self._start.pop(tid, None)
         if begun is None:
             return
-        cpu, wall = time.thread_time() - begun[0], time.perf_counter() - begun[1]
-        self.cpu[tid] = self.cpu.get(tid, 0.0) + cpu
-        self.wall[tid] = self.wall.get(tid, 0.0) + wall
+        self.add(tid, time.thread_time() - begun[0], time.perf_counter() - begun[1])
 
 
-class _HarnessLogClock:
+class _HarnessLogClock(_ThreadClock):
     """Time pytest's own log handlers spent on each thread (s of CPU and of wall, garbage collections left out).
 
     Under pytest every record goes through its capture handlers (the report section, ``caplog``, live logging),
@@ -94,8 +111,7 @@ class _HarnessLogClock:
     """
 
     def __init__(self, gc_clock: _GcClock) -> None:
-        self.cpu: dict[int, float] = {}
-        self.wall: dict[int, float] = {}
+        super().__init__()
         self._gc = gc_clock
 
     def wrap(self, real: Callable[[logging.Handler, logging.LogRecord], bool]) -> Callable[..., bool]:
@@ -103,14 +119,12 @@ class _HarnessLogClock:
             if not type(handler).__module__.startswith("_pytest"):
                 return real(handler, record)
             tid = threading.get_ident()
-            c0, w0 = time.thread_time(), time.perf_counter()
-            g0, gw0 = self._gc.cpu.get(tid, 0.0), self._gc.wall.get(tid, 0.0)
+            c0, w0, gc0 = time.thread_time(), time.perf_counter(), self._gc.totals(tid)
             try:
                 return real(handler, record)
             finally:
-                gc_cpu, gc_wall = self._gc.cpu.get(tid, 0.0) - g0, self._gc.wall.get(tid, 0.0) - gw0
-                self.cpu[tid] = self.cpu.get(tid, 0.0) + time.thread_time() - c0 - gc_cpu
-                self.wall[tid] = self.wall.get(tid, 0.0) + time.perf_counter() - w0 - gc_wall
+                gc_cpu, gc_wall = self._gc.since(tid, gc0)
+                self.add(tid, time.thread_time() - c0 - gc_cpu, time.perf_counter() - w0 - gc_wall)
 
         return handle
 
@@ -145,13 +159,12 @@ def slow_callbacks(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
     def timed_run(handle: asyncio.events.Handle) -> None:
         tid = threading.get_ident()
         t0, c0, d0 = time.perf_counter(), time.thread_time(), _run_delay_s()
-        g0, gw0 = gc_clock.cpu.get(tid, 0.0), gc_clock.wall.get(tid, 0.0)
-        l0, lw0 = log_clock.cpu.get(tid, 0.0), log_clock.wall.get(tid, 0.0)
+        gc0, log0 = gc_clock.totals(tid), log_clock.totals(tid)
         try:
             real_run(handle)
         finally:
-            gc_cpu, gc_wall = gc_clock.cpu.get(tid, 0.0) - g0, gc_clock.wall.get(tid, 0.0) - gw0
-            log_cpu, log_wall = log_clock.cpu.get(tid, 0.0) - l0, log_clock.wall.get(tid, 0.0) - lw0
+            gc_cpu, gc_wall = gc_clock.since(tid, gc0)
+            log_cpu, log_wall = log_clock.since(tid, log0)
             cpu = time.thread_time() - c0 - gc_cpu - log_cpu
             held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall - log_wall
             if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S or gc_wall > GC_PAUSE_S:

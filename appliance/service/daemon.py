@@ -132,7 +132,7 @@ class Service:
         self.handlers = ControlHandlers(self)
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
-        self._traceback_logs: list[asyncio.Future[None]] = []
+        self._traceback_logs: set[asyncio.Future[None]] = set()  # tracebacks still being written
         self._ready_sent = False
         self._scan_listeners: list[ScanListener] = []
         self.health = HealthCheck(self)
@@ -326,7 +326,9 @@ class Service:
                 written.set_result(None)
 
         threading.Thread(target=write, name="scan3d-log-traceback", daemon=True).start()
-        self._traceback_logs = [f for f in self._traceback_logs if not f.done()] + [asyncio.wrap_future(written)]
+        logged = asyncio.wrap_future(written)
+        self._traceback_logs.add(logged)
+        logged.add_done_callback(self._traceback_logs.discard)
 
     def send_ready(self) -> None:
         """``READY=1`` to systemd, once (ready for triggers, or in fault but up)."""
