@@ -8,7 +8,7 @@ the camera mid-scan (it stops delivering frames), and SIGKILLs and restarts the 
 samples the share for partial scans and a pinger measures how long the service goes without answering
 ``status``.
 
-The share is a FUSE filesystem (``tests/share_hangfs.py``, passing through to a real folder) where FUSE is
+The share is a FUSE filesystem (``tests/output/share_hangfs.py``, passing through to a real folder) where FUSE is
 available (root or fusermount, /dev/fuse, fusepy and libfuse2): the ``share_hang`` fault makes every operation
 on it block, as a hard-mounted NFS/SMB share whose server stopped answering does, while scans are triggered,
 then lets them go. Without FUSE (``--no-fuse``, or when it is missing) the share is a plain folder and that
@@ -57,7 +57,7 @@ PING_S = 0.5
 WATCH_S = 0.05
 SCAN_WAIT_S = 120.0
 SHARE_TIMEOUT_S = 1.0  # output.share_timeout_s of the soak's service: a hung share counts as away after this
-HANGFS = REPO / "tests" / "share_hangfs.py"
+HANGFS = REPO / "tests" / "output" / "share_hangfs.py"
 
 SMALL_RIG = {
     "projector": {"width": 320, "height": 200, "focal_px": 400, "principal_px": [160, 190],

@@ -12,7 +12,7 @@ import pytest
 from appliance.calibration.boards import BoardSpec, Detection, board_from_args, detect, render_board
 from appliance.errors import CalibrationError
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CHARUCO = DATA / "charuco_sample"
 PROCAM = DATA / "procam_graycode_calib"
 

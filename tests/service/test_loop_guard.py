@@ -1,4 +1,4 @@
-"""The event-loop guard that the service tests run under (tests/conftest.py) catches what it is there for:
+"""The event-loop guard that the service tests run under (tests/loopguard.py) catches what it is there for:
 a callback that computes past the CPU limit, one that blocks in a sleep, a long task step; and lets through
 cheap callbacks on a loop that has been idle, and time spent waiting in ``await``.
 """
@@ -9,7 +9,7 @@ import asyncio
 import time
 
 import pytest
-from conftest import BLOCKED_CALLBACK_S, SLOW_CALLBACK_S, slow_callbacks
+from loopguard import BLOCKED_CALLBACK_S, SLOW_CALLBACK_S, slow_callbacks
 
 
 def burn_cpu(seconds: float) -> None:

@@ -18,7 +18,7 @@ from appliance.errors import CalibrationError
 from appliance.geometry.calibration_file import PROJECTOR_NAME, read_calibration
 from appliance.reconstruct.defaults import default_depth_range_mm
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def _rot_y(deg: float) -> npt.NDArray[np.float64]:

@@ -27,7 +27,7 @@ from appliance.patterns import (
     write_manifest,
 )
 
-PROCAM = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_graycode_calib"
+PROCAM = Path(__file__).resolve().parents[3] / "shared" / "data" / "procam_graycode_calib"
 SPEC = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
 
 

@@ -19,7 +19,7 @@ from appliance.hardware.registry import build_rig
 from appliance.reconstruct.decode import decode
 from appliance.scan import FrameMemory, Scanner, load_calibration_for, scan_once
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 SMALL = """
 cameras: {cam0: {type: sim}}

@@ -1,6 +1,6 @@
 """A FUSE filesystem for the share tests: passes through to a real folder, hangs or runs out of room on demand.
 
-Run as ``python tests/share_hangfs.py ROOT MOUNTPOINT`` (root, with /dev/fuse and libfuse2). It mounts,
+Run as ``python tests/output/share_hangfs.py ROOT MOUNTPOINT`` (root, with /dev/fuse and libfuse2). It mounts,
 prints ``ready`` on stdout and then reads commands from stdin, one a line, answering ``ok`` to each:
 
 ``hang [OP ...]``

@@ -36,7 +36,7 @@ from appliance.service import writing as writing_mod
 from appliance.service.control import request
 from appliance.service.state import Phase, State
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 SMALL_RIG = {
     "projector": {

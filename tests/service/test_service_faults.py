@@ -391,7 +391,7 @@ def test_run_refuses_an_empty_or_binary_config_in_one_line(tmp_path: Path, data:
         capture_output=True,
         text=True,
         timeout=120,
-        cwd=Path(__file__).resolve().parents[1],
+        cwd=Path(__file__).resolve().parents[2],
     )
     out = (r.stdout + r.stderr).strip()
     assert r.returncode != 0 and "Traceback" not in out and "not a YAML mapping" in out, out

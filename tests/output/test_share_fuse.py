@@ -1,5 +1,5 @@
 """The share writer against a share that really hangs or runs out of room: a FUSE filesystem
-(``tests/share_hangfs.py``, fusepy on libfuse2) passing through to a real folder, blocking on demand.
+(``tests/output/share_hangfs.py``, fusepy on libfuse2) passing through to a real folder, blocking on demand.
 
 Every test unblocks, unmounts (``fusermount -u -z``, else ``umount -l``) and ends the filesystem's process in
 its teardown, with timeouts, also when it fails, so no test can hang the suite.

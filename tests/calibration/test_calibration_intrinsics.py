@@ -14,7 +14,7 @@ from appliance.calibration.intrinsics import calibrate_camera, coverage_map, mod
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 
-PROCAM = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam_graycode_calib"
+PROCAM = Path(__file__).resolve().parents[3] / "shared" / "data" / "procam_graycode_calib"
 SPEC = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
 
 

@@ -34,7 +34,7 @@ from appliance.patterns.sequence import (
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, plan_decode
 from appliance.scan import pixel_format_bits, scan_once
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PROCAM = REPO.parent / "shared" / "data" / "procam_graycode_calib" / "capture_0"
 
 

@@ -17,7 +17,7 @@ from appliance.config import AppConfig, load_config
 from appliance.scan import ScanResult, scan_once
 from appliance.sim.accuracy import AccuracyReport, compare_to_ground_truth, normal_errors_deg
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _scan(cfg: AppConfig) -> tuple[ScanResult, AccuracyReport, Any]:

@@ -26,8 +26,8 @@ import yaml
 from appliance import cli
 from appliance.patterns.manifest import load_images, read_manifest
 
-REPO = Path(__file__).resolve().parents[1]
-CASES_DIR = Path(__file__).parent / "cases"
+REPO = Path(__file__).resolve().parents[2]
+CASES_DIR = Path(__file__).resolve().parents[1] / "cases"
 DATA = REPO.parent / "shared" / "data"
 _TMP = tempfile.TemporaryDirectory(prefix="scan3d-cases-")
 

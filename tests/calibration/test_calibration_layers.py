@@ -5,7 +5,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "appliance" / "calibration"
+PACKAGE = Path(__file__).resolve().parents[2] / "appliance" / "calibration"
 FORBIDDEN = ("appliance.hardware", "appliance.scan", "appliance.service", "appliance.procedures")
 
 

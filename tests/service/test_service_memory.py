@@ -27,7 +27,7 @@ import yaml
 
 from appliance.service.control import request
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 SECOND_CAMERA = {
     "width": 1280, "height": 1024, "focal_px": 2400.0, "dist": [-0.08, 0.12, 0.0005, -0.0003, 0.0],

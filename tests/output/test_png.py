@@ -17,7 +17,7 @@ import pytest
 
 from appliance.output.png import SIGNATURE, ZLIB_LEVEL, encode_png
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _image(shape: tuple[int, ...], content: str) -> npt.NDArray[np.uint8]:

@@ -13,7 +13,7 @@ from appliance.config import load_config, parse_config
 from appliance.config.loader import check_files
 from appliance.errors import ConfigError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_shipped_config_is_valid_and_virtual() -> None:

@@ -26,7 +26,7 @@ import yaml
 from appliance.service import daemon as D
 from appliance.service.faces import ServiceFaces
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TOKEN = "tok-3f9a1c77e2b84d05"
 
 # A small virtual rig (320x256 camera): a scan takes ~0.1 s, so the tests stay short.

@@ -14,7 +14,7 @@ from appliance.patterns.manifest import read_manifest, write_manifest
 from appliance.patterns.sequence import BlackFrame, Frame, GrayFrame, PhaseFrame, Sequence, WhiteFrame
 from appliance.reconstruct.decode import decode, plan_decode
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 PROCAM = DATA / "procam_graycode_calib" / "capture_0"
 OBJECTS = DATA / "phaseshift_graycode_objects"
 

@@ -1,0 +1,167 @@
+"""The event-loop guard of the test suite: times every event-loop callback (CPU and blocked wall time) so a test
+fails when the loop computes or blocks for too long. Used by the ``loop_guard`` fixture of ``tests/conftest.py``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import gc
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+
+# --- the event-loop guard: no blocking call inside the loop, no leaked thread ------------------------------
+
+# A loop callback (a task step included) that computes on the loop thread for longer than this (s, CPU time)
+# fails the test: work that belongs in a thread. Half asyncio's own slow_callback_duration (0.1 s, wall). Not
+# lower: on the virtual machines that run this suite (here and CI), memory a process has not touched for
+# half a second costs 8-26 us a 4 KiB page to touch again, against 0.3 us warm (scripts/cold_memory), so a
+# callback that wakes an idle loop and walks ~600 pages of the service's objects (a fault published to every
+# face, the health check) shows 10-23 ms of CPU for ~1 ms of work.
+SLOW_CALLBACK_S = 0.05
+# A callback that keeps the loop for longer than this (s, wall time less the time the thread waited for a
+# CPU) fails the test: a blocking call (sleep, connect, a wait for a thread, I/O). Larger than the CPU limit
+# because waiting for the GIL, held meanwhile by a worker thread (numba loading kernels, numpy), counts here.
+BLOCKED_CALLBACK_S = 0.25
+# Threads started by a test get this long (s) to end after it before they count as leaked.
+THREAD_GRACE_S = 5.0
+# A garbage collection that the interpreter happens to start inside a callback is the heap's cost, not the
+# callback's (in the test process the heap holds every module and fixture of the whole suite, gigabytes):
+# its time is taken out of the callback's figures. Collections inside one callback longer than this (s, wall)
+# still fail.
+GC_PAUSE_S = 0.25
+
+
+class _ThreadClock:
+    """Time spent on something, per thread: running totals (s of CPU, s of wall)."""
+
+    def __init__(self) -> None:
+        self._totals: dict[int, tuple[float, float]] = {}
+
+    def add(self, tid: int, cpu: float, wall: float) -> None:
+        c, w = self._totals.get(tid, (0.0, 0.0))
+        self._totals[tid] = (c + cpu, w + wall)
+
+    def totals(self, tid: int) -> tuple[float, float]:
+        """(CPU, wall) seconds counted so far on thread ``tid``; an interval's share is the difference."""
+        return self._totals.get(tid, (0.0, 0.0))
+
+    def since(self, tid: int, mark: tuple[float, float]) -> tuple[float, float]:
+        """(CPU, wall) seconds counted on thread ``tid`` since :meth:`totals` gave ``mark``."""
+        cpu, wall = self.totals(tid)
+        return cpu - mark[0], wall - mark[1]
+
+
+class _GcClock(_ThreadClock):
+    """Time the interpreter spent collecting garbage, per thread (s of CPU and of wall), from ``gc.callbacks``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._start: dict[int, tuple[float, float]] = {}
+
+    def __call__(self, phase: str, info: dict[str, int]) -> None:
+        tid = threading.get_ident()
+        if phase == "start":
+            self._start[tid] = (time.thread_time(), time.perf_counter())
+            return
+        begun = self._start.pop(tid, None)
+        if begun is None:
+            return
+        self.add(tid, time.thread_time() - begun[0], time.perf_counter() - begun[1])
+
+
+class _HarnessLogClock(_ThreadClock):
+    """Time pytest's own log handlers spent on each thread (s of CPU and of wall, garbage collections left out).
+
+    Under pytest every record goes through its capture handlers (the report section, ``caplog``, live logging),
+    which in a process that holds the whole suite cost up to ~30 ms for the first traceback logged: the
+    harness's cost, not the service's (which writes a line to stderr). Handlers of any other module are not
+    timed here, so the service's own logging still counts.
+    """
+
+    def __init__(self, gc_clock: _GcClock) -> None:
+        super().__init__()
+        self._gc = gc_clock
+
+    def wrap(self, real: Callable[[logging.Handler, logging.LogRecord], bool]) -> Callable[..., bool]:
+        def handle(handler: logging.Handler, record: logging.LogRecord) -> bool:
+            if not type(handler).__module__.startswith("_pytest"):
+                return real(handler, record)
+            tid = threading.get_ident()
+            c0, w0, gc0 = time.thread_time(), time.perf_counter(), self._gc.totals(tid)
+            try:
+                return real(handler, record)
+            finally:
+                gc_cpu, gc_wall = self._gc.since(tid, gc0)
+                self.add(tid, time.thread_time() - c0 - gc_cpu, time.perf_counter() - w0 - gc_wall)
+
+        return handle
+
+
+def _run_delay_s() -> float:
+    """Time this thread has spent runnable but waiting for a CPU (s), from the scheduler's statistics."""
+    try:
+        with open("/proc/thread-self/schedstat", "rb") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return 0.0  # no schedstat: plain wall time
+
+
+@contextlib.contextmanager
+def slow_callbacks(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
+    """Within the block, every event-loop callback (a task step included) that computes on the loop for more
+    than :data:`SLOW_CALLBACK_S` or blocks it for more than :data:`BLOCKED_CALLBACK_S` is described in the list
+    it gives.
+
+    Computing is the loop thread's CPU time; blocking is wall time less the time the thread waited for a CPU
+    (other processes on a busy machine), both less the garbage collections run meanwhile on the loop thread
+    (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of them in one callback counts on its own) and less the
+    time pytest's own log handlers took (:class:`_HarnessLogClock`). asyncio's debug mode would measure plain
+    wall time and add its own bookkeeping to every callback, which alone pushes task steps past 20 ms on a
+    loaded machine.
+    """
+    slow: list[str] = []
+    real_run = asyncio.events.Handle._run
+    gc_clock = _GcClock()
+    log_clock = _HarnessLogClock(gc_clock)
+
+    def timed_run(handle: asyncio.events.Handle) -> None:
+        tid = threading.get_ident()
+        t0, c0, d0 = time.perf_counter(), time.thread_time(), _run_delay_s()
+        gc0, log0 = gc_clock.totals(tid), log_clock.totals(tid)
+        try:
+            real_run(handle)
+        finally:
+            gc_cpu, gc_wall = gc_clock.since(tid, gc0)
+            log_cpu, log_wall = log_clock.since(tid, log0)
+            cpu = time.thread_time() - c0 - gc_cpu - log_cpu
+            held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall - log_wall
+            if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S or gc_wall > GC_PAUSE_S:
+                slow.append(
+                    f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held "
+                    f"(garbage collection {gc_wall * 1e3:.0f} ms not counted), in {_describe(handle)}"
+                )
+
+    with monkeypatch.context() as patch:
+        patch.setattr(asyncio.events.Handle, "_run", timed_run)
+        patch.setattr(logging.Handler, "handle", log_clock.wrap(logging.Handler.handle))
+        gc.callbacks.append(gc_clock)
+        try:
+            yield slow
+        finally:
+            gc.callbacks.remove(gc_clock)
+
+
+def _describe(handle: asyncio.events.Handle) -> str:
+    cb = getattr(handle, "_callback", None)
+    task = getattr(cb, "__self__", None)
+    if isinstance(task, asyncio.Task):
+        coro = task.get_coro()
+        frame = getattr(coro, "cr_frame", None)
+        where = f" at {frame.f_code.co_filename.rsplit('/', 1)[-1]}:{frame.f_lineno}" if frame is not None else ""
+        return f"task {task.get_name()} ({getattr(coro, '__qualname__', coro)}{where})"
+    return repr(handle)[:200]
