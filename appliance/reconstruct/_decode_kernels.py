@@ -940,3 +940,91 @@ def stream_finish(  # type: ignore[no-untyped-def]
                 lit, code[:, y, :], weak, qg, m1, m2, ssr, csr, quantum, axis_tab, ph_tab, ph_period,
                 finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1,
             )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------------
+# Saturation and the reason a pixel has no code
+# --------------------------------------------------------------------------------------------------
+
+#: Flags of the per-pixel clipped map: a phase sample of axis x / y at full scale.
+CLIP_PHASE_X = np.uint8(1)
+CLIP_PHASE_Y = np.uint8(2)
+#: Both frames of a Gray pair of axis x / y at full scale (the bit is unknown).
+CLIP_PAIR_X = np.uint8(4)
+CLIP_PAIR_Y = np.uint8(8)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def mark_clipped(img, full, flag, clip):  # type: ignore[no-untyped-def]
+    """``clip |= flag`` where ``img >= full`` (img (H, W) uint8/uint16; clip (H, W) uint8)."""
+    h, w = img.shape
+    for y in prange(h):
+        for x in range(w):
+            if img[y, x] >= full:
+                clip[y, x] |= flag
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def mark_clipped_pair(pos, neg, full, flag, clip):  # type: ignore[no-untyped-def]
+    """``clip |= flag`` where both frames of a Gray pair are at full scale."""
+    h, w = pos.shape
+    for y in prange(h):
+        for x in range(w):
+            if pos[y, x] >= full and neg[y, x] >= full:
+                clip[y, x] |= flag
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def drop_clipped(clip, drop, u, v, has_v, mask, quality, lev):  # type: ignore[no-untyped-def]
+    """Unmask every pixel with a flag of ``drop`` in ``clip``: NaN coordinates, quality 0, levels 0."""
+    h, w = clip.shape
+    nan = np.float32(np.nan)
+    for y in prange(h):
+        for x in range(w):
+            if clip[y, x] & drop:
+                mask[y, x] = False
+                u[y, x] = nan
+                if has_v:
+                    v[y, x] = nan
+                quality[y, x] = np.float32(0.0)
+                lev[0, y, x] = np.uint8(0)
+                lev[1, y, x] = np.uint8(0)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def decode_reasons(hi, lo, thr, dark, clip, mask, reason, r_ok, r_shadow, r_dark, r_sat, r_weak):  # type: ignore[no-untyped-def]
+    """Per pixel why it has no code (``r_ok`` where decoded): clipped samples, no lit range above ``dark``
+    (shadow), a lit range below the threshold ``thr`` (too dark), else a code too weak or inconsistent."""
+    h, w = mask.shape
+    for y in prange(h):
+        for x in range(w):
+            if mask[y, x]:
+                reason[y, x] = r_ok
+            elif clip[y, x] != 0:
+                reason[y, x] = r_sat
+            else:
+                r = float(hi[y, x]) - float(lo[y, x])
+                if r < dark:
+                    reason[y, x] = r_shadow
+                elif r < thr:
+                    reason[y, x] = r_dark
+                else:
+                    reason[y, x] = r_weak
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def stack_range(frames, used, hi, lo):  # type: ignore[no-untyped-def]
+    """Per pixel max / min over the frames ``used`` of a stack (F, H, W) into hi / lo (H, W)."""
+    _, h, w = frames.shape
+    for y in prange(h):
+        for x in range(w):
+            a = frames[used[0], y, x]
+            b = a
+            for k in range(1, used.shape[0]):
+                val = frames[used[k], y, x]
+                if val > a:
+                    a = val
+                if val < b:
+                    b = val
+            hi[y, x] = a
+            lo[y, x] = b

@@ -51,7 +51,7 @@ from appliance.patterns.sequence import (
 )
 from appliance.reconstruct import _decode_kernels as _k
 from appliance.reconstruct._pool import BufferPool
-from appliance.reconstruct.types import DecodedMaps
+from appliance.reconstruct.types import DecodedMaps, Reason
 
 FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
 
@@ -542,6 +542,7 @@ def empty_maps(shape: tuple[int, int]) -> DecodedMaps:
         np.empty(shape, np.bool_),
         np.empty(shape, np.float32),
         levels=np.empty((2, *shape), np.uint8),
+        reason=np.empty(shape, np.uint8),
     )
 
 
@@ -555,17 +556,21 @@ def _outputs(
         lev = out.levels
         if lev is None or lev.shape != lev_shape or lev.dtype != np.uint8 or not lev.flags.c_contiguous:
             out.levels = np.empty(lev_shape, np.uint8)
+        rsn = out.reason
+        if rsn is None or rsn.shape != shape or rsn.dtype != np.uint8 or not rsn.flags.c_contiguous:
+            out.reason = np.empty(shape, np.uint8)
         return out, out.v
     # outputs are views of blocks reused once the caller drops them (saves their first-touch page faults)
     if "y" in plan.axes:
-        u, v, mask, quality, levels = _POOL.arrays([(shape, np.float32), (shape, np.float32), (shape, np.bool_),
-                                                    (shape, np.float32), (lev_shape, np.uint8)])  # fmt: skip
-        maps = DecodedMaps(u, v, mask, quality, levels=levels)  # type: ignore[arg-type]
+        u, v, mask, quality, levels, reason = _POOL.arrays([(shape, np.float32), (shape, np.float32),
+                                                            (shape, np.bool_), (shape, np.float32),
+                                                            (lev_shape, np.uint8), (shape, np.uint8)])  # fmt: skip
+        maps = DecodedMaps(u, v, mask, quality, levels=levels, reason=reason)  # type: ignore[arg-type]
         return maps, maps.v
     # the y axis is not coded: v is NaN everywhere, one shared read-only map instead of H x W stores per call
-    u, mask, quality, levels = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32),
-                                             (lev_shape, np.uint8)])  # fmt: skip
-    maps = DecodedMaps(u, _nan_map(shape), mask, quality, levels=levels)  # type: ignore[arg-type]
+    u, mask, quality, levels, reason = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32),
+                                                     (lev_shape, np.uint8), (shape, np.uint8)])  # fmt: skip
+    maps = DecodedMaps(u, _nan_map(shape), mask, quality, levels=levels, reason=reason)  # type: ignore[arg-type]
     return maps, np.empty((0, shape[1]), np.float32)
 
 
@@ -580,6 +585,69 @@ def _nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
 def _narrow(plan: DecodePlan, dtype: np.dtype[Any]) -> bool:
     """8-bit frames, at most 15 Gray bits per axis, no mean thresholding: Gray bits fold in 16-bit lanes."""
     return bool(dtype == np.uint8 and all(g.bits <= 15 for g in plan.gray) and not plan.mean_frames)
+
+
+def _clip_plan(plan: DecodePlan) -> tuple[list[tuple[int, int]], list[tuple[int, int, int]]]:
+    """The samples a code needs unclipped: (phase frame, flag) and (Gray positive, negative, flag) pairs."""
+    t = plan.tables
+    phase: list[tuple[int, int]] = []
+    for s, (axis, steps, _src, first) in enumerate(t["ph_tab"].tolist()):
+        del s
+        flag = int(_k.CLIP_PHASE_X if axis == 0 else _k.CLIP_PHASE_Y)
+        phase.extend((int(i), flag) for i in t["ph_idx"][first:first + steps].tolist())
+    pairs = [
+        (int(pos), int(neg), int(_k.CLIP_PAIR_X if a == 0 else _k.CLIP_PAIR_Y))
+        for a, _bit, pos, neg in t["gray_tab"].tolist()
+        if pos >= 0 and neg >= 0
+    ]
+    return phase, pairs
+
+
+#: Clipped-map flags that drop a decoded pixel: a clipped phase sample biases its coordinate by up to a
+#: large share of the period, so the point would be wrong while looking right. (A Gray pair clipped in both
+#: frames already fails its contrast test.)
+_DROP = int(_k.CLIP_PHASE_X | _k.CLIP_PHASE_Y)
+
+
+def _saturation_and_reasons(
+    out: DecodedMaps,
+    v_arg: npt.NDArray[np.float32],
+    clip: npt.NDArray[np.uint8],
+    hi: npt.NDArray[Any],
+    lo: npt.NDArray[Any],
+    thr: float,
+    dtype: np.dtype[Any],
+    params: DecodeParams,
+) -> None:
+    """Drop the pixels whose needed samples are clipped, then write every pixel's :class:`Reason`."""
+    assert out.levels is not None and out.reason is not None
+    _k.drop_clipped(clip, _DROP, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.levels)
+    dark = params.min_contrast_dn * _max_value(dtype, params) / 255.0
+    _k.decode_reasons(
+        hi, lo, float(thr), float(dark), clip, out.mask, out.reason, int(Reason.DECODED), int(Reason.SHADOW),
+        int(Reason.TOO_DARK), int(Reason.SATURATED), int(Reason.WEAK_CODE),
+    )  # fmt: skip
+
+
+def reason_counts(maps: DecodedMaps) -> dict[str, int]:
+    """Pixels per :class:`Reason` of a decode (``{"decoded": n, "shadow": n, ...}``, zero counts left out).
+
+    Parameters
+    ----------
+    maps : DecodedMaps
+        A decode with ``reason``.
+
+    Returns
+    -------
+    dict of str to int
+        Pixel counts keyed by the reason's plain name; empty when ``maps.reason`` is None.
+    """
+    from appliance.reconstruct.types import REASON_NAMES
+
+    if maps.reason is None:
+        return {}
+    counts = np.bincount(maps.reason.ravel(), minlength=len(REASON_NAMES))
+    return {REASON_NAMES[i]: int(c) for i, c in enumerate(counts.tolist()) if c and i in REASON_NAMES}
 
 
 def decode(
@@ -647,6 +715,19 @@ def decode(
         bool(params.finest_bit), numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask,
         out.quality, out.levels,
     )  # fmt: skip
+    full = int(_max_value(stack.dtype, params))
+    clip = np.zeros(shape, np.uint8)
+    phase, pairs = _clip_plan(plan)
+    for idx, flag in phase:
+        _k.mark_clipped(stack[idx], full, flag, clip)
+    for pos, neg, flag in pairs:
+        _k.mark_clipped_pair(stack[pos], stack[neg], full, flag, clip)
+    if plan.white >= 0:
+        hi, lo = stack[plan.white], stack[plan.black]
+    else:
+        hi, lo = np.empty(shape, stack.dtype), np.empty(shape, stack.dtype)
+        _k.stack_range(stack, t["used"], hi, lo)
+    _saturation_and_reasons(out, v_arg, clip, hi, lo, thr, stack.dtype, params)
     out.ignored = list(plan.ignored)
     return out
 
@@ -781,6 +862,12 @@ class StreamingDecoder:
         self._pushed: set[int] = set()
         self._waiting: set[int] = set()  # gray rows with one frame stored in _pending
         self._levels_shape = (2, h, w)
+        # samples at full scale, per pixel (flags of _decode_kernels.CLIP_*), and which frames set which flag
+        self._full = int(_max_value(self.dtype, params))
+        self._clip = np.zeros((h, w), np.uint8)
+        phase, pairs = _clip_plan(self.plan)
+        self._clip_flag = dict(phase)
+        del pairs
         self.reset()
 
     def reset(self) -> None:
@@ -792,6 +879,7 @@ class StreamingDecoder:
         self._ssum.fill(0)
         self._csum.fill(0)
         self._msum.fill(0)
+        self._clip.fill(0)
         if self.plan.white < 0:
             self._hi.fill(0)
             self._lo.fill(self._maxval)
@@ -848,6 +936,7 @@ class StreamingDecoder:
         if index in self._mean:
             _k.stream_sum(img, self._msum)
         if kind == "phase":
+            _k.mark_clipped(img, self._full, self._clip_flag[index], self._clip)
             s = int(self._ph_set[row])
             if self._int_sums:
                 sk, ck = int(t["ph_sin_q"][row]), int(t["ph_cos_q"][row])
@@ -866,11 +955,16 @@ class StreamingDecoder:
                 other = self._pending[row]
                 pos, neg = (img, other) if kind == "pos" else (other, img)
                 _k.stream_pair(pos, neg, bit, self._code[a], self._cst[row])
+                _k.mark_clipped_pair(pos, neg, self._full, self._pair_flag_of(row), self._clip)
                 self._waiting.discard(row)
             else:
                 self._keep(row, img, index)
         if index in self._mean:
             self._flush_singles()
+
+    def _pair_flag_of(self, row: int) -> int:
+        a = int(self.plan.tables["gray_tab"][row, 0])
+        return int(_k.CLIP_PAIR_X if a == 0 else _k.CLIP_PAIR_Y)
 
     def _keep(self, row: int, img: npt.NDArray[Any], index: int) -> None:
         """Hold Gray row ``row``'s frame until its partner (or reference) arrives: a reference or a copy."""
@@ -941,5 +1035,6 @@ class StreamingDecoder:
             bool(self.params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
             out.levels,
         )  # fmt: skip
+        _saturation_and_reasons(out, v_arg, self._clip, self._hi, self._lo, thr, self.dtype, self.params)
         out.ignored = list(self.plan.ignored)
         return out

@@ -3,9 +3,47 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import IntEnum
 
 import numpy as np
 import numpy.typing as npt
+
+
+class Reason(IntEnum):
+    """Why a camera pixel has no point (``DecodedMaps.reason``); 0 where it has one.
+
+    The decoder sets ``SHADOW`` .. ``WEAK_CODE``; later stages set theirs on pixels the decoder kept.
+    """
+
+    DECODED = 0
+    #: no projector light reaches the pixel (white - black at the noise floor)
+    SHADOW = 1
+    #: lit, but the pattern's contrast is below the lit threshold: a longer exposure would help
+    TOO_DARK = 2
+    #: a sample the code needs is at the sensor's full scale: a shorter exposure would help
+    SATURATED = 3
+    #: lit, but a code bit or phase has too little contrast, or the codes disagree (an edge, a mixed pixel,
+    #: interreflection)
+    WEAK_CODE = 4
+    #: camera-camera: no partner pixel on the other camera
+    NOT_MATCHED = 5
+    #: triangulated outside the working range
+    OUT_OF_RANGE = 6
+    #: removed by a filter (neighbours disagree, sigma too large)
+    FILTERED = 7
+
+
+#: Plain-words name of each reason (sidecar keys, reports).
+REASON_NAMES: dict[int, str] = {
+    Reason.DECODED: "decoded",
+    Reason.SHADOW: "shadow",
+    Reason.TOO_DARK: "too dark",
+    Reason.SATURATED: "saturated",
+    Reason.WEAK_CODE: "weak or inconsistent code",
+    Reason.NOT_MATCHED: "not matched",
+    Reason.OUT_OF_RANGE: "out of range",
+    Reason.FILTERED: "filtered",
+}
 
 
 @dataclass
@@ -25,6 +63,8 @@ class DecodedMaps:
     levels : ndarray, shape (2, H, W), uint8, optional
         Per axis (x, y), how many of the finest Gray bits the pixel could not resolve and dropped: its code
         is a stripe of ``stripe * 2**level`` projector px (0 where undecoded). None when not computed.
+    reason : ndarray, shape (H, W), uint8, optional
+        Per pixel a :class:`Reason`: 0 where decoded, else why not. None when not computed.
     """
 
     u: npt.NDArray[np.float32]
@@ -33,6 +73,7 @@ class DecodedMaps:
     quality: npt.NDArray[np.float32]
     ignored: list[str] = field(default_factory=list)
     levels: npt.NDArray[np.uint8] | None = None
+    reason: npt.NDArray[np.uint8] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
