@@ -112,6 +112,13 @@ class ReconstructionConfig(_Strict):
         description="Stereo with rows coded: reject matches this far from the epipolar line (rectified px); "
         "unset: from the calibration's stated RMS and this scan's own residuals.",
     )
+    stereo_drift: Literal["refuse", "correct"] = Field(
+        "refuse",
+        description="Stereo with rows coded: an epipolar offset beyond max(5 px, 10x the calibration's stated RMS) "
+        "means the calibration does not fit the rig: 'refuse' writes no camera-camera points for the pair (the scan "
+        "fails in mode stereo) and says so; 'correct' fits and removes it like a small drift. Smaller offsets are "
+        "always measured and corrected.",
+    )
     normals: bool = Field(False, description="Estimate normals from the organised cloud.")
     normal_radius_px: int = Field(
         3, ge=1, le=10, description="Normals: half size of the pixel window a plane is fitted to (px)."

@@ -174,6 +174,7 @@ class Reconstructor:
                 RayTable(cam0),
                 max_epipolar_px=cfg.stereo_max_epipolar_px,
                 projector=calibration.projector,
+                drift=cfg.stereo_drift,
             )
             if cfg.mode == "stereo":
                 self.outputs = [names[0]]
@@ -318,6 +319,8 @@ class Reconstructor:
         n0, n1 = self.calibration.camera_names[0], self.calibration.camera_names[1]
         xyz = self._xyz[n0]
         self._stereo.triangulate(maps[n0], maps[n1], xyz, cfg.min_depth_mm, cfg.max_depth_mm, self.noise)
+        if self._stereo.report.refused:  # the only pair: nothing to write
+            raise ScanError(self._stereo.report.refused)
         t1 = time.perf_counter()
         matched = int(np.count_nonzero(np.isfinite(xyz[::1, ::1, 2])))
         const, fp, ks = self._jump[n0]

@@ -51,6 +51,9 @@ class ReconstructionSettings(Protocol):
     def stereo_max_epipolar_px(self) -> float | None: ...
 
     @property
+    def stereo_drift(self) -> str: ...
+
+    @property
     def normals(self) -> bool: ...
 
     @property

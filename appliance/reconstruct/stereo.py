@@ -79,6 +79,14 @@ MAX_OWN_PX = 1.0
 """Continuous codes, left-right check: largest distance between a pixel and its code on its own row (px)."""
 EPIPOLAR_OFFSET_MIN_PX = 0.3
 """A median epipolar residual beyond this (and beyond half its spread) is corrected (px)."""
+DRIFT_REFUSE_FACTOR = 10.0
+"""An epipolar offset beyond this multiple of the calibration's stated RMS (and beyond
+:data:`DRIFT_REFUSE_MIN_PX`) is not a drift but a calibration of another rig: with ``drift="refuse"`` the pair
+writes no points."""
+DRIFT_REFUSE_MIN_PX = 5.0
+"""... and never below this many rectified px: a bumped camera or warm-up moves the lines by a few px, which
+the plane fit corrects to well under a millimetre."""
+DRIFT_POLICIES = ("correct", "refuse")
 MIN_SAMPLES = 200
 """Fewest residuals a statistic is taken from."""
 MOST_SAMPLES = 40_000
@@ -215,6 +223,8 @@ class StereoReport:
         With a projector: residual median, spread, limit (projector px), samples.
     warnings : list of str
         Plain-words statements about stages that rejected most candidates, with what to do.
+    refused : str
+        Non-empty when the pair wrote no points because its calibration does not fit (the reason and the fix).
     """
 
     candidates: int = 0
@@ -224,6 +234,7 @@ class StereoReport:
     epipolar: dict[str, float] = field(default_factory=dict)
     three_view: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    refused: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form (for the sidecar and ``scan3d decode --report``)."""
@@ -235,6 +246,7 @@ class StereoReport:
             "epipolar": dict(self.epipolar),
             "three_view": dict(self.three_view),
             "warnings": list(self.warnings),
+            "refused": self.refused,
         }
 
 
@@ -302,6 +314,10 @@ class StereoTriangulator:
     correct_epipolar : bool, optional
         Fit and correct a systematic epipolar offset measured from (u, v) matches. Default: with the automatic
         limit only (a fixed ``max_epipolar_px`` trusts the calibration as it is).
+    drift : {"refuse", "correct"}
+        An offset beyond ``max(DRIFT_REFUSE_MIN_PX, DRIFT_REFUSE_FACTOR x the stated RMS)``: ``"refuse"``
+        writes no points for the pair and says why (:attr:`StereoReport.refused`); ``"correct"`` corrects it
+        like a small drift.
 
     Attributes
     ----------
@@ -321,7 +337,11 @@ class StereoTriangulator:
         projector: CameraModel | None = None,
         max_code_err_px: float | None = None,
         correct_epipolar: bool | None = None,
+        drift: str = "refuse",
     ) -> None:
+        if drift not in DRIFT_POLICIES:
+            raise ValueError(f"stereo drift policy {drift!r}: must be one of {DRIFT_POLICIES}")
+        self.drift = drift
         self.cam0, self.cam1, self.projector = cam0, cam1, projector
         self.rays0 = rays0 if rays0 is not None else RayTable(cam0)
         self.max_epipolar_px, self.max_code_err_px = max_epipolar_px, max_code_err_px
@@ -638,6 +658,24 @@ class StereoTriangulator:
             if res is not None:
                 self.residuals.append(res)
             rep.epipolar = {"median_px": med, "spread_px": sig, "samples": float(n), "offset_px": 0.0}
+            allowed = max(DRIFT_REFUSE_MIN_PX, DRIFT_REFUSE_FACTOR * stated)
+            if self.drift == "refuse" and self.correct_epipolar and n >= MIN_SAMPLES and abs(med) > allowed:
+                rep.epipolar["allowed_px"] = allowed
+                rep.refused = (
+                    f"{self.cam0.name}/{self.cam1.name}: the epipolar lines are off by a median {med:.1f} px, "
+                    f"beyond the {allowed:.1f} px a drift may reach ({DRIFT_REFUSE_FACTOR:g}x the calibration's "
+                    f"stated {stated:.2f} px RMS, at least {DRIFT_REFUSE_MIN_PX:g} px): this calibration does not "
+                    "fit the rig, so no camera-camera points were written for this pair; recalibrate (scan3d "
+                    "calibrate) or check that the calibration file belongs to this rig "
+                    "(reconstruction.stereo_drift: correct bends it anyway)"
+                )
+                rep.warnings.append(rep.refused)
+                kept = self._status == C.ST_OK  # every point of the pair goes, a NaN residual too
+                xyz[kept] = np.nan
+                self._status[kept] = C.ST_EPIPOLAR
+                self.sigma[kept] = np.nan
+                self._summarise(rep)
+                return
             if self.correct_epipolar and n >= MIN_SAMPLES and abs(med) > max(EPIPOLAR_OFFSET_MIN_PX, 0.5 * sig):
                 shift = self._fit_offset(med, sig)
                 if cells:  # the match itself does not depend on the row: only the residuals move

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -53,11 +54,16 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     k = c1.K.copy()
     k[1, 2] += 3.5  # cam1's principal point 3.5 px down: every epipolar line moves
     drifted = CameraModel("cam1", k, c1.dist, c1.width, c1.height, c1.R, c1.T, 0.3)
-    for name, cam1 in (("exact", c1), ("drifted", drifted)):
+    k50 = c1.K.copy()
+    k50[1, 2] += 50.0  # a calibration of another rig: 50 px off every epipolar line
+    other = CameraModel("cam1", k50, c1.dist, c1.width, c1.height, c1.R, c1.T, 0.3)
+    for name, cam1 in (("exact", c1), ("drifted", drifted), ("other", other)):
         files[name] = folder / f"{name}.yaml"
         write_calibration(files[name], Calibration({"cam0": exact.devices["cam0"], "cam1": cam1}))
     files["strict"] = folder / "strict.yaml"
     files["strict"].write_text("reconstruction: {stereo_max_epipolar_px: 1.0}\n")
+    files["bend"] = folder / "bend.yaml"
+    files["bend"].write_text("reconstruction: {stereo_drift: correct}\n")
     files["folder"] = folder
     return files
 
@@ -98,3 +104,24 @@ def test_a_fixed_epipolar_limit_rejects_most_and_says_why(capture: dict[str, Pat
     said = [w for w in rep["warnings"] if "off the epipolar line (limit 1.0)" in w]
     assert said and "the calibration may no longer fit the rig" in said[0], rep["warnings"]
     assert rep["counts"]["points"] < 0.5 * rep["counts"]["cameras"]["cam0"]["decoded_pixels"]
+
+
+def test_a_calibration_50_px_off_writes_no_cloud_and_says_what_to_do(capture: dict[str, Path]) -> None:
+    out = capture["folder"] / "other.ply"
+    rc, text, rep = _decode(capture["manifest"], "--calibration", capture["other"], "--out", out, "--report",
+                            capture["folder"] / "other.json")  # fmt: skip
+    assert rc != 0, text
+    assert not out.exists()  # no centimetre-off cloud written
+    assert "Traceback" not in text
+    errors = [ln for ln in text.splitlines() if ln.startswith("scan3d decode:")]
+    assert len(errors) == 1, text  # one line: the offset measured (50 px of principal point: ~53 rectified px)
+    assert re.search(r"off by a median -?5\d\.\d px", errors[0]), errors[0]
+    assert "does not fit the rig" in errors[0] and "recalibrate" in errors[0], errors[0]
+
+
+def test_stereo_drift_correct_still_bends_it_when_asked(capture: dict[str, Path]) -> None:
+    rc, text, rep = _decode(capture["manifest"], "--calibration", capture["other"], "--config", capture["bend"],
+                            "--report", capture["folder"] / "bend.json")  # fmt: skip
+    assert rc == 0, text
+    assert any("calibration has drifted" in w for w in rep["warnings"]), rep["warnings"]
+    assert rep["calibration_health"]["status"] == "bad"
