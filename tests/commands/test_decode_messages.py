@@ -108,7 +108,7 @@ def test_a_fixed_epipolar_limit_rejects_most_and_says_why(capture: dict[str, Pat
 
 def test_a_calibration_50_px_off_writes_no_cloud_and_says_what_to_do(capture: dict[str, Path]) -> None:
     out = capture["folder"] / "other.ply"
-    rc, text, rep = _decode(capture["manifest"], "--calibration", capture["other"], "--out", out, "--report",
+    rc, text, _rep = _decode(capture["manifest"], "--calibration", capture["other"], "--out", out, "--report",
                             capture["folder"] / "other.json")  # fmt: skip
     assert rc != 0, text
     assert not out.exists()  # no centimetre-off cloud written
