@@ -790,7 +790,7 @@ class StereoTriangulator:
         epi = rep.epipolar
         for s, words in STAGES.items():
             share = counts[s] / rep.candidates
-            if share <= MOST:
+            if share <= MOST or (s == C.ST_EPIPOLAR and rep.refused):  # a refused pair says it once
                 continue
             if s == C.ST_EPIPOLAR:
                 rep.warnings.append(
