@@ -318,12 +318,28 @@ def _decode_one(
         mode = ""
     t2 = time.perf_counter()
     maps = {}
+    hdr_white: dict[str, npt.NDArray[np.uint8]] = {}
     for cam, st in stacks.items():
         params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast,
                               max_value=float((1 << bits[cam]) - 1))
-        maps[cam] = decode(st, plan, params)
+        if man.exposures is None:
+            maps[cam] = decode(st, plan, params)
+            continue
+        # several exposures: each pass decoded on its own, fused per pixel (the brightest unclipped pass)
+        from appliance.patterns.sequence import Sequence as PatternSequence
+        from appliance.reconstruct.hdr import decode_passes, pick_per_pixel
+
+        maps[cam], choice, passes = decode_passes(st, man.sequence, man.exposures, params)
+        greys = []
+        for _light, idx in passes:
+            sub = PatternSequence(man.sequence.width, man.sequence.height, tuple(man.sequence.frames[i] for i in idx))
+            greys.append(_intensity8(st[idx], batch.plan(sub), bits[cam]))
+        hdr_white[cam] = np.asarray(pick_per_pixel(greys, choice), np.uint8)
+        per_pass = np.bincount(choice[maps[cam].mask], minlength=len(passes)) / max(int(maps[cam].mask.sum()), 1)
+        print(f"{tag}{cam}: {len(passes)} exposure passes fused; decoded pixels per pass (darkest first): "
+              + ", ".join(f"{100 * s:.1f} %" for s in per_pass))
     t3 = time.perf_counter()
-    for note in plan.ignored:
+    for note in plan.ignored if man.exposures is None else ():
         print(f"{tag}ignored: {note}")
     for cam, m in maps.items():
         line = f"{tag}{cam}: {int(m.mask.sum())} of {m.mask.size} pixels decoded ({100 * m.mask.mean():.1f} %)"
@@ -335,7 +351,7 @@ def _decode_one(
     cloud = None
     stage_ms = {"triangulate_ms": 0.0, "filter_ms": 0.0}
     if recon is not None:
-        white = {cam: _intensity8(st, plan, bits[cam]) for cam, st in stacks.items()}
+        white = hdr_white or {cam: _intensity8(st, plan, bits[cam]) for cam, st in stacks.items()}
         cloud, rt = recon.run(maps, white)
         stage_ms = {"triangulate_ms": rt["triangulate_ms"], "filter_ms": rt["filter_ms"]}
     t4 = time.perf_counter()

@@ -7,7 +7,9 @@ with either one image per camera (``images``) or, for the whole manifest, one ``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
+from collections.abc import Sequence as Sequence_
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,6 +50,9 @@ class Manifest:
         ``stacks[camera]``: a ``.npy`` array (frames, height, width) (absolute path).
     bit_depth : int or None
         Significant bits of the pixel values (8..16); None: the data type's own (8 for uint8, 16 for uint16).
+    exposures : tuple of (float, float) or None
+        Per frame its ``(exposure_us, intensity)`` when any frame states either (a high-dynamic-range capture:
+        the same patterns at several exposures or projector intensities); None: one exposure for all.
     """
 
     path: Path
@@ -56,6 +61,7 @@ class Manifest:
     images: dict[str, tuple[Path, ...]] | None = None
     stacks: dict[str, Path] | None = None
     bit_depth: int | None = None
+    exposures: tuple[tuple[float, float], ...] | None = None
 
     def bits_of(self, stack: FrameStack) -> int:
         """Significant bits of ``stack`` (this manifest's ``bit_depth``, else its dtype's)."""
@@ -186,8 +192,10 @@ def frame_to_dict(frame: Frame) -> dict[str, Any]:
     return {"pattern": frame.pattern, **dict(frame.params)}
 
 
-_GRAY_KEYS = {"pattern", "axis", "bit", "inverted", "stripe", "images"}
-_PHASE_KEYS = {"pattern", "axis", "period", "step", "steps", "offset", "images"}
+#: Keys any frame may carry (SEQUENCE-MANIFEST.md): its images, the camera exposure and projector intensity.
+_ANY_KEYS = {"pattern", "images", "exposure_us", "intensity"}
+_GRAY_KEYS = {"axis", "bit", "inverted", "stripe"} | _ANY_KEYS
+_PHASE_KEYS = {"axis", "period", "step", "steps", "offset"} | _ANY_KEYS
 
 
 def frame_from_dict(d: Mapping[str, Any], where: str) -> Frame:
@@ -218,13 +226,34 @@ def frame_from_dict(d: Mapping[str, Any], where: str) -> Frame:
     except (TypeError, ValueError) as exc:
         raise ManifestError(f"{where}: {exc}; check the frame's keys") from exc
     if kind == "white":
-        _check_keys(d, {"pattern", "images"}, where)
+        _check_keys(d, _ANY_KEYS, where)
         return WhiteFrame()
     if kind == "black":
-        _check_keys(d, {"pattern", "images"}, where)
+        _check_keys(d, _ANY_KEYS, where)
         return BlackFrame()
-    params = tuple((str(k), str(v)) for k, v in d.items() if k not in ("pattern", "images"))
+    params = tuple((str(k), str(v)) for k, v in d.items() if k not in _ANY_KEYS)
     return OtherFrame(str(kind), params)
+
+
+def frame_exposure(d: Mapping[str, Any], where: str) -> tuple[float, float] | None:
+    """A frame's ``(exposure_us, intensity)``, or None when it states neither.
+
+    Raises
+    ------
+    ManifestError
+        ``exposure_us`` not a finite number > 0, or ``intensity`` not a number in (0, 1].
+    """
+    if "exposure_us" not in d and "intensity" not in d:
+        return None
+    exp, inten = d.get("exposure_us", 0.0), d.get("intensity", 1.0)
+    for key, val in (("exposure_us", exp), ("intensity", inten)):
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            raise ManifestError(f"{where}: {key} = {val!r}: must be a finite number")
+    if "exposure_us" in d and not exp > 0:
+        raise ManifestError(f"{where}: exposure_us = {exp!r}: must be > 0 (microseconds)")
+    if not 0 < inten <= 1:
+        raise ManifestError(f"{where}: intensity = {inten!r}: must be in (0, 1] of the projector's full scale")
+    return float(exp), float(inten)
 
 
 def _need(d: Mapping[str, Any], key: str, where: str) -> Any:
@@ -288,10 +317,12 @@ def read_manifest(path: str | Path) -> Manifest:
         raise ManifestError(f"{path}: frames: must be a non-empty list")
     stacks_doc = doc.get("stacks")
     frames: list[Frame] = []
+    exposures: list[tuple[float, float] | None] = []
     images: dict[str, list[Path]] = {c: [] for c in cameras}
     for i, fd in enumerate(frames_doc):
         where = f"{path}: frames[{i}]"
         frames.append(frame_from_dict(fd, where))
+        exposures.append(frame_exposure(fd, where))
         if stacks_doc is None:
             imgs = fd.get("images")
             if not isinstance(imgs, dict):
@@ -304,13 +335,30 @@ def read_manifest(path: str | Path) -> Manifest:
         seq = Sequence(int(proj["width"]), int(proj["height"]), tuple(frames))
     except PatternError as exc:
         raise ManifestError(f"{path}: {exc}") from exc
+    exp = _exposures(exposures, path)
     if stacks_doc is not None:
         if not isinstance(stacks_doc, dict) or set(stacks_doc) != set(cameras):
             raise ManifestError(f"{path}: stacks: must map every camera {cameras} to a .npy file")
         return Manifest(path, seq, tuple(cameras), stacks={c: root / str(stacks_doc[c]) for c in cameras},
-                        bit_depth=bit_depth)
+                        bit_depth=bit_depth, exposures=exp)
     return Manifest(path, seq, tuple(cameras), images={c: tuple(v) for c, v in images.items()},
-                    bit_depth=bit_depth)
+                    bit_depth=bit_depth, exposures=exp)
+
+
+def _exposures(per_frame: list[tuple[float, float] | None], path: Path) -> tuple[tuple[float, float], ...] | None:
+    """Every frame's (exposure_us, intensity), or None when no frame states one; all or none must."""
+    if all(e is None for e in per_frame):
+        return None
+    missing = [i for i, e in enumerate(per_frame) if e is None]
+    if missing:
+        raise ManifestError(
+            f"{path}: frames {missing[:8]}{' ...' if len(missing) > 8 else ''} state no exposure_us / intensity "
+            "while others do: give every frame of a multi-exposure capture its exposure_us (and intensity)"
+        )
+    exps = {e[0] for e in per_frame if e is not None}
+    if 0.0 in exps and len(exps) > 1:
+        raise ManifestError(f"{path}: some frames state exposure_us and some only intensity: state both or one")
+    return tuple(e for e in per_frame if e is not None)
 
 
 def write_manifest(
@@ -321,10 +369,12 @@ def write_manifest(
     images: Mapping[str, list[str] | tuple[str, ...]] | None = None,
     stacks: Mapping[str, str] | None = None,
     bit_depth: int | None = None,
+    exposures: Sequence_[tuple[float, float]] | None = None,
 ) -> Path:
     """Write a manifest; ``images``/``stacks`` hold paths relative to the manifest's folder.
 
-    ``bit_depth`` (8..16), when given, is written as the top-level ``bit_depth`` (significant bits).
+    ``bit_depth`` (8..16), when given, is written as the top-level ``bit_depth`` (significant bits);
+    ``exposures``, when given, as each frame's ``exposure_us`` and ``intensity``.
     """
     path = Path(path)
     if (images is None) == (stacks is None):
@@ -332,6 +382,8 @@ def write_manifest(
     frames: list[dict[str, Any]] = []
     for i, f in enumerate(sequence.frames):
         d = frame_to_dict(f)
+        if exposures is not None:
+            d["exposure_us"], d["intensity"] = float(exposures[i][0]), float(exposures[i][1])
         if images is not None:
             d["images"] = {c: str(images[c][i]) for c in cameras}
         frames.append(d)

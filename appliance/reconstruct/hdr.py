@@ -1,0 +1,175 @@
+"""High dynamic range: one pattern sequence captured at several exposures (or projector intensities), fused
+per pixel.
+
+Each exposure is a full pass of the sequence and is decoded on its own (a clipped sample carries no code, see
+:mod:`appliance.reconstruct.decode`), so a pixel decodes in every pass where its light is neither clipped nor
+too dark. Per pixel the fusion keeps the brightest pass that decoded it: the longest exposure whose needed
+samples are all below full scale, which has the most contrast over the read noise. Its coordinates, quality
+(DN of that pass, so the per-point error model still applies) and grey value are taken whole; nothing is
+averaged across passes, so no pass's bias leaks into another's.
+
+A pixel that no pass decodes keeps the reason of the brightest pass that did not clip it (too dark even
+there, or a weak code), or ``saturated`` when every pass clipped it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Sequence
+from typing import cast
+
+import numpy as np
+import numpy.typing as npt
+
+from appliance.errors import DecodeError, PatternError
+from appliance.patterns.sequence import Sequence as PatternSequence
+from appliance.reconstruct import _hdr_kernels as _k
+from appliance.reconstruct.decode import DecodeParams, decode, plan_decode
+from appliance.reconstruct.types import DecodedMaps, Reason
+
+
+def exposure_passes(keys: Sequence[Hashable], light: Sequence[float]) -> list[tuple[float, list[int]]]:
+    """Frame indices of each exposure pass, darkest pass first.
+
+    Parameters
+    ----------
+    keys : sequence
+        Per frame, what identifies its pass (e.g. ``(exposure_us, intensity)``).
+    light : sequence of float
+        Per frame, its relative light (exposure x intensity); equal within a pass.
+
+    Returns
+    -------
+    list of (float, list of int)
+        Per pass its light and its frame indices in capture order, sorted by light.
+    """
+    if len(keys) != len(light):
+        raise DecodeError(f"exposure passes: {len(keys)} keys for {len(light)} frames: one each")
+    passes: dict[Hashable, tuple[float, list[int]]] = {}
+    for i, (k, lv) in enumerate(zip(keys, light, strict=True)):
+        if not (float(lv) > 0.0 and np.isfinite(lv)):
+            raise DecodeError(f"exposure passes: frame {i} has light {lv}: must be a finite number > 0")
+        passes.setdefault(k, (float(lv), []))[1].append(i)
+    return sorted(passes.values(), key=lambda p: p[0])
+
+
+def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
+    """Fuse the decodes of one scene's exposure passes, given darkest first.
+
+    Parameters
+    ----------
+    passes : sequence of DecodedMaps
+        One decode per pass, same shape, ordered by increasing light, each with ``reason``.
+
+    Returns
+    -------
+    maps : DecodedMaps
+        Per pixel the brightest pass that decoded it (``u``, ``v``, ``mask``, ``quality`` in that pass's DN,
+        ``levels``), and the fused ``reason``.
+    choice : ndarray, shape (H, W), uint8
+        Index of the pass each pixel's result came from (the pass its reason came from where undecoded).
+    """
+    if not passes:
+        raise DecodeError("fuse exposures: no pass given")
+    shape = passes[0].shape
+    for m in passes:
+        if m.shape != shape or m.reason is None or m.levels is None:
+            raise DecodeError(f"fuse exposures: every pass needs {shape} maps with reason and levels")
+    n = len(passes)
+    if n > 255:
+        raise DecodeError(f"fuse exposures: {n} passes: at most 255")
+    mask = np.stack([m.mask for m in passes])
+    reason = np.stack([m.reason for m in passes if m.reason is not None])
+    choice = np.empty(shape, np.uint8)
+    out_reason = np.empty(shape, np.uint8)
+    _k.choose_pass(mask, reason, int(Reason.SATURATED), int(Reason.DECODED), choice, out_reason)
+    u = np.stack([m.u for m in passes])
+    v = np.stack([m.v for m in passes])
+    q = np.stack([m.quality for m in passes])
+    lev = np.stack([m.levels for m in passes if m.levels is not None])
+    out = DecodedMaps(
+        np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.bool_),
+        np.empty(shape, np.float32), ignored=sorted({s for m in passes for s in m.ignored}),
+        levels=np.empty((2, *shape), np.uint8), reason=out_reason,
+    )  # fmt: skip
+    assert out.levels is not None
+    _k.gather_pass(choice, mask, u, v, q, lev, out.u, out.v, out.mask, out.quality, out.levels)
+    return out, choice
+
+
+def pick_per_pixel(images: Sequence[npt.NDArray[np.generic]], choice: npt.NDArray[np.uint8]) -> npt.NDArray[np.generic]:
+    """Per pixel the image of the pass ``choice`` names (e.g. each pass's grey value under white light).
+
+    Parameters
+    ----------
+    images : sequence of ndarray, shape (H, W)
+        One image per pass, same dtype, in the order given to :func:`fuse_exposures`.
+    choice : ndarray, shape (H, W), uint8
+        From :func:`fuse_exposures`.
+
+    Returns
+    -------
+    ndarray, shape (H, W)
+        The chosen pass's value at every pixel.
+    """
+    stack = np.stack([np.asarray(im) for im in images])
+    picked: npt.NDArray[np.generic] = np.take_along_axis(stack, choice[None].astype(np.intp), axis=0)[0]
+    return picked
+
+
+def decode_passes(
+    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
+    sequence: PatternSequence,
+    exposures: Sequence[tuple[float, float]],
+    params: DecodeParams,
+) -> tuple[DecodedMaps, npt.NDArray[np.uint8], list[tuple[float, list[int]]]]:
+    """Decode a multi-exposure frame stack: each pass on its own, then :func:`fuse_exposures`.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (F, H, W), uint8 or uint16
+        One camera's frames in the order of ``sequence``.
+    sequence : Sequence
+        Every frame of every pass, in capture order.
+    exposures : sequence of (float, float)
+        Per frame its ``(exposure_us, intensity)``; a pass is the frames sharing one pair.
+    params : DecodeParams
+        Thresholds (the same for every pass).
+
+    Returns
+    -------
+    maps : DecodedMaps
+        The fused maps.
+    choice : ndarray, shape (H, W), uint8
+        The pass each pixel came from (index into ``passes``).
+    passes : list of (float, list of int)
+        Per pass (darkest first) its relative light and its frame indices.
+
+    Raises
+    ------
+    PatternError
+        A pass whose frames cannot be decoded on their own (names the pass).
+    """
+    keys = [(float(e), float(i)) for e, i in exposures]
+    light = [(e if e > 0 else 1.0) * i for e, i in keys]
+    passes = exposure_passes(keys, light)
+    decoded = []
+    for lv, idx in passes:
+        sub = PatternSequence(sequence.width, sequence.height, tuple(sequence.frames[i] for i in idx))
+        try:
+            plan = plan_decode(sub)
+        except PatternError as exc:
+            e, i = keys[idx[0]]
+            raise PatternError(f"exposure pass exposure_us={e:g} intensity={i:g} (light {lv:g}): {exc}") from exc
+        sub_frames = cast("npt.NDArray[np.uint8] | npt.NDArray[np.uint16]", np.ascontiguousarray(frames[idx]))
+        m = decode(sub_frames, plan, params)
+        decoded.append(_owned(m))
+    fused, choice = fuse_exposures(decoded)
+    return fused, choice, passes
+
+
+def _owned(m: DecodedMaps) -> DecodedMaps:
+    """A copy of maps that may be views of the decoder's reused output blocks."""
+    return DecodedMaps(
+        m.u.copy(), m.v.copy(), m.mask.copy(), m.quality.copy(), list(m.ignored),
+        None if m.levels is None else m.levels.copy(), None if m.reason is None else m.reason.copy(),
+    )  # fmt: skip
