@@ -9,6 +9,7 @@ of a batch of five manifests of the capture (per-capture times after the first a
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -169,7 +170,26 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
             res["batch_ratio_to_warm"] = later / t_all
         else:
             res["batch_skipped"] = (out.stderr.strip() or out.stdout.strip())[-300:]
+        res.update(_bench_load_jpeg(folder, stacks, repeats))
     return res
+
+
+def _bench_load_jpeg(folder: Path, stacks: dict[str, np.ndarray], repeats: int) -> dict[str, Any]:
+    """Reading the capture's frames as a manifest's JPEG files (quality 95): one thread, then every core."""
+    import cv2
+
+    from appliance.patterns.manifest import load_images
+
+    paths: dict[str, list[Path]] = {}
+    for n, s in stacks.items():
+        paths[n] = [folder / f"{n}_{i:02d}.jpg" for i in range(len(s))]
+        for p, img in zip(paths[n], s, strict=True):
+            cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    runs = max(3, repeats // 3)
+    one = _median_ms(lambda: [load_images(ps, threads=1) for ps in paths.values()], runs)
+    many = _median_ms(lambda: [load_images(ps) for ps in paths.values()], runs)
+    return {"load_frames": sum(map(len, paths.values())), "load_jpeg_1thread_ms": one, "load_jpeg_ms": many,
+            "load_threads": len(os.sched_getaffinity(0))}  # fmt: skip
 
 
 def report_lines(res: dict[str, Any]) -> list[str]:
@@ -222,6 +242,12 @@ def report_lines(res: dict[str, Any]) -> list[str]:
             f"ms per capture (the command's `decode_ms` + `triangulate_ms`; total {res['batch_ms']} ms, with "
             "loading, the filters, the point cloud and the PLY); after the first, "
             f"**{res['batch_ratio_to_warm']:.2f}×** the warm figure."
+        )
+    if "load_jpeg_ms" in res:
+        lines.append(
+            f"Reading the {res['load_frames']} frames of one such capture from JPEG files (a manifest's `images`): "
+            f"**{res['load_jpeg_ms']:.0f} ms** on {res['load_threads']} threads, "
+            f"{res['load_jpeg_1thread_ms']:.0f} ms on one."
         )
     lines.append("")
     return lines

@@ -8,8 +8,10 @@ with either one image per camera (``images``) or, for the whole manifest, one ``
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import os
+from collections.abc import Callable, Mapping
 from collections.abc import Sequence as Sequence_
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -133,33 +135,68 @@ def _load_npy(path: Path, n_frames: int, manifest: Path) -> FrameStack:
     return np.ascontiguousarray(arr)
 
 
-def load_images(paths: tuple[Path, ...] | list[Path], manifest: Path | str = "manifest") -> FrameStack:
-    """Read grayscale images (PNG, JPEG, TIFF, 8 or 16 bit) into one (frames, height, width) stack."""
+def _read_image(p: Path, i: int, manifest: Path | str) -> npt.NDArray[Any]:
+    """One frame as a 2-D 8 or 16 bit array (colour images are converted to grey)."""
     import cv2
 
-    first: npt.NDArray[Any] | None = None
-    out: npt.NDArray[Any] | None = None
-    for i, p in enumerate(paths):
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise ManifestError(f"{manifest}: frame {i}: image {p} is missing or unreadable; check the path")
-        if img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-        if img.dtype not in (np.uint8, np.uint16):
-            raise ManifestError(f"{manifest}: frame {i}: image {p} has dtype {img.dtype}: must be 8 or 16 bit")
-        if first is None:
-            first = img
-            out = np.empty((len(paths), *img.shape), dtype=img.dtype)
-        elif img.shape != first.shape or img.dtype != first.dtype:
-            raise ManifestError(
-                f"{manifest}: frame {i}: image {p} is {img.shape[1]}x{img.shape[0]} {img.dtype}, but frame 0 "
-                f"is {first.shape[1]}x{first.shape[0]} {first.dtype}: all frames of a camera must match"
-            )
-        assert out is not None
-        out[i] = img
-    if out is None:
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ManifestError(f"{manifest}: frame {i}: image {p} is missing or unreadable; check the path")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise ManifestError(f"{manifest}: frame {i}: image {p} has dtype {img.dtype}: must be 8 or 16 bit")
+    return np.asarray(img)
+
+
+def load_images(
+    paths: tuple[Path, ...] | list[Path], manifest: Path | str = "manifest", threads: int | None = None
+) -> FrameStack:
+    """Read grayscale images (PNG, JPEG, TIFF, 8 or 16 bit) into one (frames, height, width) stack.
+
+    The frames are read by ``threads`` threads at once (default: one per CPU core this process may use);
+    OpenCV's image decoders release the GIL, so a batch of JPEGs decodes on every core. On a bad frame the
+    error names the first one in capture order.
+    """
+    if not paths:
         raise ManifestError(f"{manifest}: no frames")
+    first = _read_image(Path(paths[0]), 0, manifest)
+    out = np.empty((len(paths), *first.shape), dtype=first.dtype)
+    out[0] = first
+
+    def read_into(i: int) -> None:
+        img = _read_image(Path(paths[i]), i, manifest)
+        if img.shape != first.shape or img.dtype != first.dtype:
+            raise ManifestError(
+                f"{manifest}: frame {i}: image {paths[i]} is {img.shape[1]}x{img.shape[0]} {img.dtype}, but "
+                f"frame 0 is {first.shape[1]}x{first.shape[0]} {first.dtype}: all frames of a camera must match"
+            )
+        out[i] = img
+
+    n = threads if threads is not None else len(os.sched_getaffinity(0))
+    if n <= 1 or len(paths) < 3:
+        for i in range(1, len(paths)):
+            read_into(i)
+        return out
+    with ThreadPoolExecutor(min(n, len(paths) - 1), thread_name_prefix="load-images") as pool:
+        done = list(pool.map(_outcome(read_into), range(1, len(paths))))
+    for exc in done:  # the first bad frame in capture order
+        if exc is not None:
+            raise exc
     return out
+
+
+def _outcome(fn: Callable[[int], None]) -> Callable[[int], BaseException | None]:
+    """``fn`` made to return its exception instead of raising it (every frame is tried, the first error wins)."""
+
+    def run(i: int) -> BaseException | None:
+        try:
+            fn(i)
+        except ManifestError as exc:
+            return exc
+        return None
+
+    return run
 
 
 # --------------------------------------------------------------------------------------------------

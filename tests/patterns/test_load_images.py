@@ -1,0 +1,59 @@
+"""A manifest's image frames read on several threads: the same stack as one thread, bad frames named in order.
+
+The speed (an 88-frame batch of 1920x1280 JPEGs) is measured by ``scripts/bench_stereo.py``, not here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance.errors import ManifestError
+from appliance.patterns.manifest import load_images
+
+
+def _frames(folder: Path, n: int, ext: str, dtype: type = np.uint8) -> list[Path]:
+    rng = np.random.default_rng(3)
+    top = 255 if dtype == np.uint8 else 4095
+    paths = []
+    for i in range(n):
+        img = (rng.random((48, 64)) * top).astype(dtype)
+        img[:, (i * 3) % 64] = top  # every frame differs where a mix-up would show
+        paths.append(folder / f"{i:02d}.{ext}")
+        cv2.imwrite(str(paths[-1]), img)
+    return paths
+
+
+@pytest.mark.parametrize(("ext", "dtype"), [("png", np.uint8), ("png", np.uint16), ("jpg", np.uint8)])
+def test_threads_read_the_same_stack_in_capture_order(tmp_path: Path, ext: str, dtype: type) -> None:
+    paths = _frames(tmp_path, 17, ext, dtype)
+    one = load_images(paths, threads=1)
+    many = load_images(paths, threads=4)
+    assert one.shape == (17, 48, 64) and one.dtype == dtype
+    np.testing.assert_array_equal(many, one)
+    for i, p in enumerate(paths):  # frame i is file i
+        np.testing.assert_array_equal(many[i], cv2.imread(str(p), cv2.IMREAD_UNCHANGED))
+
+
+def test_colour_frames_become_grey(tmp_path: Path) -> None:
+    paths = _frames(tmp_path, 4, "png")
+    colour = cv2.cvtColor(cv2.imread(str(paths[2]), cv2.IMREAD_UNCHANGED), cv2.COLOR_GRAY2BGR)
+    cv2.imwrite(str(paths[2]), colour)
+    stack = load_images(paths, threads=3)
+    np.testing.assert_array_equal(stack[2], cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))
+
+
+def test_the_first_bad_frame_in_capture_order_is_named(tmp_path: Path) -> None:
+    paths = _frames(tmp_path, 12, "png")
+    cv2.imwrite(str(paths[9]), np.zeros((10, 10), np.uint8))  # a frame of another size, late
+    paths[5].unlink()  # and a missing one before it
+    with pytest.raises(ManifestError, match=r"scan\.yaml: frame 5: image .*05\.png is missing or unreadable"):
+        load_images(paths, "scan.yaml", threads=4)
+    cv2.imwrite(str(paths[5]), cv2.imread(str(paths[4]), cv2.IMREAD_UNCHANGED))
+    with pytest.raises(ManifestError, match=r"frame 9: .* is 10x10 uint8, but frame 0 is 64x48 uint8"):
+        load_images(paths, "scan.yaml", threads=4)
+    with pytest.raises(ManifestError, match="no frames"):
+        load_images([], "scan.yaml")
