@@ -608,35 +608,11 @@ def validate_config(path: Path) -> int:
 def devices_command(config: Path, discover: bool = False) -> int:
     """Print each configured device and whether it answers (no broadcast unless ``discover``)."""
     cfg = load_config(config)
-    lines: list[str] = []
-    for name, cam in cfg.cameras.items():
-        if cam.type == "sim":
-            lines.append(f"camera {name}: sim (virtual rig) — ok")
-        elif cam.type == "aravis":
-            from appliance.hardware.devices_probe import probe_aravis
+    from appliance.hardware.registry import backend
 
-            lines.append(f"camera {name}: aravis {cam.address or cam.serial} — "
-                         f"{probe_aravis(cam.address) if cam.address else 'by serial: needs --discover'}")
-        else:
-            lines.append(f"camera {name}: uvc {cam.device} — "
-                         f"{'present' if Path(cam.device).exists() else 'absent'}")
-    p = cfg.projector
-    if p.type == "lightcrafter4500":
-        from appliance.hardware.lightcrafter4500 import probe_lightcrafter
-
-        lines.append(f"projector: lightcrafter4500 — {probe_lightcrafter()}")
-    else:
-        lines.append(f"projector: {p.type}")
-    t = cfg.trigger
-    if t.type == "serial":
-        from appliance.hardware.serial import probe_serial
-
-        lines.append(f"trigger: serial {t.port} — {probe_serial(t.port)}")
-    elif t.type == "gpio":
-        lines.append(f"trigger: gpio {t.chip} line {t.line} — "
-                     f"{'present' if Path(t.chip).exists() else 'absent'}")
-    else:
-        lines.append("trigger: sim")
+    lines = [f"camera {name}: {backend('camera', cam).probe(cam)}" for name, cam in cfg.cameras.items()]
+    lines.append(f"projector: {backend('projector', cfg.projector).probe(cfg.projector)}")
+    lines.append(f"trigger: {backend('trigger', cfg.trigger).probe(cfg.trigger)}")
     if discover:
         from appliance.hardware.devices_probe import discover_aravis
 

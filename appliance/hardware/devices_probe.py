@@ -1,4 +1,5 @@
-"""One-line device checks for ``scan3d devices``; none of them broadcasts on the network."""
+"""One-line device checks for ``scan3d devices`` (each backend's ``probe`` in the registry's table, and the
+Aravis discovery a person asks for by name); none of the checks broadcasts on the network."""
 
 from __future__ import annotations
 
@@ -50,6 +51,46 @@ def probe_aravis(address: str) -> str:
         return f"{label}: answers but its features cannot be read ({exc.message})"
     finally:
         del camera
+
+
+def sim_camera(cfg: Any) -> str:
+    """A virtual-rig camera: always there."""
+    return "sim (virtual rig) — ok"
+
+
+def aravis_camera(cfg: Any) -> str:
+    """A GigE Vision camera by address (:func:`probe_aravis`); one configured by serial needs discovery."""
+    where = f"aravis {cfg.address or cfg.serial} — "
+    return where + (probe_aravis(cfg.address) if cfg.address else "by serial: needs --discover")
+
+
+def uvc_camera(cfg: Any) -> str:
+    """A V4L2 camera: whether its device node exists."""
+    return f"uvc {cfg.device} — {'present' if Path(cfg.device).exists() else 'absent'}"
+
+
+def lightcrafter(cfg: Any) -> str:
+    """A LightCrafter 4500 on USB: whether it answers."""
+    from appliance.hardware.lightcrafter4500 import probe_lightcrafter
+
+    return f"lightcrafter4500 — {probe_lightcrafter()}"
+
+
+def serial_trigger(cfg: Any) -> str:
+    """The trigger controller on a serial port: whether it answers with the right protocol."""
+    from appliance.hardware.serial import probe_serial
+
+    return f"serial {cfg.port} — {probe_serial(cfg.port)}"
+
+
+def gpio_trigger(cfg: Any) -> str:
+    """A GPIO line: whether its chip exists."""
+    return f"gpio {cfg.chip} line {cfg.line} — {'present' if Path(cfg.chip).exists() else 'absent'}"
+
+
+def plain(cfg: Any) -> str:
+    """A device with nothing to ask: its type."""
+    return str(cfg.type)
 
 
 def discover_aravis() -> list[str]:
@@ -117,20 +158,16 @@ async def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> li
         )
 
     async def grab_all() -> list[npt.NDArray[Any]]:
-        if cam_cfg.type == "sim":
+        from appliance.hardware.registry import backend
+
+        chosen = backend("camera", cam_cfg)
+        if chosen.simulated:
             from appliance.patterns.sequence import WhiteFrame
             from appliance.sim.rig import VirtualRig
 
             rig = VirtualRig(cfg.virtual_rig)
             return [await asyncio.to_thread(rig.render_frame, WhiteFrame(), name) for _ in range(frames)]
-        if cam_cfg.type == "aravis":
-            from appliance.hardware.aravis import AravisCamera
-
-            cam: Any = AravisCamera(name, cam_cfg)
-        else:
-            from appliance.hardware.uvc import UvcCamera
-
-            cam = UvcCamera(name, cam_cfg)
+        cam = chosen.make(name, cam_cfg, None)
         try:
             await cam.open()
             return [np.array(await cam.grab()) for _ in range(frames)]
