@@ -195,10 +195,15 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: in
     gaps = np.diff(common)
     gaps = gaps[gaps > 0.25]
     if gaps.size and counts.max() >= 3:
-        step = float(np.min(gaps))
-        origin = float(np.median(np.mod(common, step)))
-        if step >= 1.0 - 1e-6 and C.on_grid_share(vals32, origin, step) >= 0.99:
-            return CodeGrid(True, step, origin, max(per_px, 1e-3))
+        # the smallest gap, unless edge values between stripe centres happen to repeat in the sample (about
+        # one camera px per stripe): then the next larger gap that puts (nearly) every value on the grid
+        for step in np.unique(np.round(gaps, 4))[:4].tolist():
+            if step < 1.0 - 1e-6:
+                continue
+            origin = float(np.median(np.mod(common, step)))
+            if C.on_grid_share(vals32, origin, step) >= 0.99:
+                return CodeGrid(True, float(step), origin, max(per_px, 1e-3))
+            break
     return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
 
 
