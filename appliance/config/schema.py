@@ -46,6 +46,22 @@ class SequenceConfig(_Strict):
     steps: int = Field(4, ge=3, le=16, description="Phase steps per period.")
     stripe_px: int = Field(1, ge=1, le=256, description="Gray stripe width for kind 'gray' (projector px).")
     inverses: bool = Field(True, description="Project the inverse of every Gray bit.")
+    exposures_us: tuple[int, ...] = Field(
+        (),
+        max_length=8,
+        description="Camera exposure of each capture pass (µs), e.g. [2500, 10000, 40000] for HDR (scan3d tune "
+        "chooses them); empty: one pass at each camera's own exposure.",
+    )
+
+    @field_validator("exposures_us")
+    @classmethod
+    def _exposures_positive(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        for e in v:
+            if e <= 0:
+                raise ValueError(f"exposures_us: {e} must be > 0 (µs)")
+        if len(set(v)) != len(v):
+            raise ValueError(f"exposures_us: {list(v)} lists an exposure twice; list each once")
+        return v
 
     @model_validator(mode="after")
     def _periods_even(self) -> SequenceConfig:
@@ -146,12 +162,40 @@ class DeviceOptics(_Strict):
     look_at_mm: Vec3 = Field((0.0, 0.0, 600.0), description="A point on the optical axis (mm).")
 
 
+class Material(_Strict):
+    """Surface physics of a virtual-rig object beyond its diffuse albedo (all off by default)."""
+
+    patches: tuple[float, ...] = Field(
+        (), max_length=64,
+        description="Albedo patches 0..1 (replace 'albedo'): squares of patch_mm on world x/y, cycling the list.",
+    )
+    patch_mm: float = Field(20.0, gt=0, le=10_000, description="Side of an albedo patch (mm).")
+    specular: float = Field(
+        0.0, ge=0, le=1000, description="Peak of the specular lobe, relative to a white diffuse surface."
+    )
+    shininess: float = Field(50.0, gt=0, le=100_000, description="Blinn-Phong exponent of the specular lobe.")
+    mirror: float = Field(
+        0.0, ge=0, le=1,
+        description="Mirror reflectance 0..1 (planar objects: a plane or a flat mesh): one-bounce reflections of "
+        "the projector onto what the mirror faces, and of the scene into the camera.",
+    )
+
+    @field_validator("patches")
+    @classmethod
+    def _patches_in_range(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        for a in v:
+            if not 0.0 <= a <= 1.0:
+                raise ValueError(f"patches: {a} must be in 0..1")
+        return v
+
+
 class PlaneObject(_Strict):
     type: Literal["plane"] = "plane"
     point_mm: Vec3 = Field(description="A point on the plane (mm).")
     normal: Vec3 = Field((0.0, 0.0, -1.0), description="Plane normal (any length).")
     albedo: float = Field(0.8, ge=0, le=1, description="Reflectance 0..1.")
     texture: float = Field(0.0, ge=0, le=1, description="Albedo texture amplitude (share of albedo).")
+    material: Material = Field(default_factory=Material, description="Specular, mirror, patches.")
 
 
 class SphereObject(_Strict):
@@ -160,6 +204,7 @@ class SphereObject(_Strict):
     radius_mm: float = Field(gt=0)
     albedo: float = Field(0.8, ge=0, le=1)
     texture: float = Field(0.0, ge=0, le=1)
+    material: Material = Field(default_factory=Material, description="Specular, mirror, patches.")
 
 
 class BoxObject(_Strict):
@@ -169,6 +214,7 @@ class BoxObject(_Strict):
     rotation_deg: Vec3 = Field((0.0, 0.0, 0.0), description="Rotation about x, y, z (degrees, x then y then z).")
     albedo: float = Field(0.8, ge=0, le=1)
     texture: float = Field(0.0, ge=0, le=1)
+    material: Material = Field(default_factory=Material, description="Specular, mirror, patches.")
 
 
 class CylinderObject(_Strict):
@@ -179,6 +225,7 @@ class CylinderObject(_Strict):
     height_mm: float = Field(gt=0)
     albedo: float = Field(0.8, ge=0, le=1)
     texture: float = Field(0.0, ge=0, le=1)
+    material: Material = Field(default_factory=Material, description="Specular, mirror, patches.")
 
 
 class MeshObject(_Strict):
@@ -191,6 +238,7 @@ class MeshObject(_Strict):
     scale: float = Field(1.0, gt=0)
     albedo: float = Field(0.8, ge=0, le=1)
     texture: float = Field(0.0, ge=0, le=1)
+    material: Material = Field(default_factory=Material, description="Specular, mirror, patches.")
 
     @model_validator(mode="after")
     def _source(self) -> MeshObject:
@@ -211,6 +259,16 @@ class ImagingConfig(_Strict):
     gamma_corrected: bool = Field(True, description="Patterns are pre-corrected for the projector gamma.")
     projector_gain_dn: float = Field(180.0, ge=0, description="Camera DN for a white projector on albedo 1.")
     ambient_dn: float = Field(10.0, ge=0, description="Ambient light (DN at albedo 1).")
+    reference_exposure_us: float = Field(
+        10000.0, gt=0, le=10_000_000, description="Exposure at which projector_gain_dn and ambient_dn hold (µs)."
+    )
+    exposure_us: float = Field(
+        10000.0, gt=0, le=10_000_000,
+        description="The cameras' exposure (µs) until a scan sets another; light scales with it before noise.",
+    )
+    projector_intensity: float = Field(
+        1.0, gt=0, le=1, description="Projector intensity 0..1; scales the projector's light, not the ambient."
+    )
     read_noise_dn: float = Field(2.0, ge=0, description="Read noise sigma (DN).")
     shot_noise: bool = Field(True, description="Poisson shot noise.")
     electrons_per_dn: float = Field(

@@ -32,6 +32,8 @@ class SimWorld:
     def __init__(self, rig: VirtualRig) -> None:
         self.rig = rig
         self.sequence: Sequence | None = None
+        self.intensity: float | None = None
+        """Projector intensity 0..1 of the frames shown now (None: ``imaging.projector_intensity``)."""
         self._cameras: list[SimCamera] = []
         self._lock = threading.Lock()
 
@@ -66,7 +68,7 @@ class SimCamera:
         self.name = name
         self.cfg = cfg
         self.world = world
-        self._queue: queue.Queue[int | None] = queue.Queue()
+        self._queue: queue.Queue[int | tuple[str, float] | None] = queue.Queue()
         self._thread: threading.Thread | None = None
         self._out: npt.NDArray[Any] | None = None
         self._on_frame: FrameCallback | None = None
@@ -76,6 +78,8 @@ class SimCamera:
         self._error: str | None = None
         self._rng = np.random.default_rng(world.rig.cfg.imaging.seed)
         self.frames_delivered = 0
+        self.exposure_us: float | None = None
+        """Exposure of the next frames (µs; None: ``virtual_rig.imaging.exposure_us``)."""
 
     async def open(self) -> CameraInfo:
         if self.name not in self.world.rig.cameras:
@@ -101,6 +105,14 @@ class SimCamera:
         self._done.clear()
         self.world.attach(self)
 
+    async def set_exposure(self, exposure_us: float) -> None:
+        """Expose the following frames for ``exposure_us`` (µs), e.g. between the passes of an HDR scan.
+
+        Frames already triggered keep the exposure they were triggered with.
+        """
+        self.world.rig.light_scale(exposure_us)  # a bad value is refused here, not in the render thread
+        self._queue.put(("exposure", float(exposure_us)))
+
     def expose(self, index: int) -> None:
         """Expose frame ``index`` (any thread): queued for the acquisition thread."""
         self._queue.put(index)
@@ -113,6 +125,9 @@ class SimCamera:
             index = self._queue.get()
             if index is None:
                 return
+            if isinstance(index, tuple):  # a setting, in order with the triggers
+                self.exposure_us = index[1]
+                continue
             out, seq = self._out, self.world.sequence
             if out is None or seq is None or index >= self._n:
                 continue
@@ -122,7 +137,8 @@ class SimCamera:
             if self.cfg.frame_delay_ms:
                 time.sleep(self.cfg.frame_delay_ms / 1000)
             try:
-                self.world.rig.render_frame(seq.frames[index], self.name, out=out[index], rng=self._rng)
+                self.world.rig.render_frame(seq.frames[index], self.name, out=out[index], rng=self._rng,
+                                            exposure_us=self.exposure_us, intensity=self.world.intensity)
             except Exception as exc:  # a render failure is a camera failure for the scan
                 self._error = f"render of frame {index} failed: {exc}"
                 self._done.set()
@@ -183,6 +199,11 @@ class SimProjector:
             self.world.show(i)
             if self.period_s:
                 await asyncio.sleep(self.period_s)
+
+    async def set_intensity(self, intensity: float) -> None:
+        """Show the following frames at projector intensity ``intensity`` (0..1], e.g. per HDR pass."""
+        self.world.rig.light_scale(None, intensity)
+        self.world.intensity = float(intensity)
 
     async def stop(self) -> None:
         return None

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,6 +43,10 @@ ImageArray = npt.NDArray[np.unsignedinteger[Any]]
 """A camera image: uint8 (8-bit camera) or uint16 (12/16-bit)."""
 
 _WHITE, _BLACK, _GRAY, _PHASE = 0, 1, 2, 3
+
+Layer = tuple[F64, F32]
+"""A second light path to the camera pixels (e.g. by a mirror): projector coordinates (H, W, 2) px and the
+DN of full projector light along it (H, W) (8-bit scale, 0 where the path does not exist)."""
 
 
 @dataclass(frozen=True)
@@ -145,6 +150,11 @@ class FrameRenderer:
         DN of the ambient light at each pixel (8-bit scale).
     imaging : ImagingConfig
         Blur, gamma, noise and ADC settings.
+    axes : frozenset of str, optional
+        Projector axes to keep coordinates of (default both).
+    layers : sequence of Layer, optional
+        Further light paths (one-bounce mirror light), each with its own projector coordinates and gain;
+        their light adds to the direct light before blur, noise and clipping.
 
     Notes
     -----
@@ -154,7 +164,7 @@ class FrameRenderer:
     """
 
     def __init__(self, proj_uv: F64, gain: F64 | F32, ambient: F64 | F32, imaging: ImagingConfig,
-                 axes: frozenset[str] | None = None) -> None:
+                 axes: frozenset[str] | None = None, layers: Sequence[Layer] = ()) -> None:
         h, w = gain.shape
         self.height, self.width = h, w
         self.imaging = imaging
@@ -169,6 +179,13 @@ class FrameRenderer:
         self._gain = np.ascontiguousarray(gain, dtype=np.float32).ravel()
         self._ambient = np.ascontiguousarray(ambient, dtype=np.float32).ravel()
         self._clean = np.empty((h, w), dtype=np.float32)
+        self._layers = [({axis: np.nan_to_num(np.asarray(luv[..., k], dtype=np.float32), nan=-1e6).ravel()
+                          for k, axis in enumerate(("x", "y")) if axis in self.axes},
+                         np.ascontiguousarray(lgain, dtype=np.float32).ravel())
+                        for luv, lgain in layers]  # fmt: skip
+        if self._layers:  # scratch of the layers' light, and their (zero) ambient
+            self._layer_buf = np.empty(h * w, dtype=np.float32)
+            self._zero = np.zeros(h * w, dtype=np.float32)
         self._lock = threading.Lock()
         self.dtype: type[np.uint8] | type[np.uint16] = np.uint8 if imaging.bit_depth == 8 else np.uint16
         self._scale = float(2 ** (imaging.bit_depth - 8))
@@ -197,6 +214,10 @@ class FrameRenderer:
                                f"{fl.axis!r} needs one built with it (VirtualRig.coded_axes)")
         _shade(frame, coord, self._gain, self._ambient, self.imaging.projector_blur_px,
                self._gamma, self._clean.ravel())
+        for lcoord, lgain in self._layers:
+            c = coord if fl.kind in (_WHITE, _BLACK) else lcoord[fl.axis]
+            _shade(frame, c, lgain, self._zero, self.imaging.projector_blur_px, self._gamma, self._layer_buf)
+            self._clean.ravel()[:] += self._layer_buf
         return self._clean
 
     def clean(self, frame: Frame, blur: bool = False) -> F32:
@@ -210,8 +231,13 @@ class FrameRenderer:
                 self._blur(img)
         return img
 
-    def render(self, frame: Frame, out: ImageArray, rng: np.random.Generator) -> ImageArray:
-        """Render ``frame`` into ``out`` (shape (H, W), uint8 or uint16 by bit depth) and return it."""
+    def render(self, frame: Frame, out: ImageArray, rng: np.random.Generator, exposure: float = 1.0,
+               intensity: float = 1.0) -> ImageArray:
+        """Render ``frame`` into ``out`` (shape (H, W), uint8 or uint16 by bit depth) and return it.
+
+        ``exposure`` scales all light (relative to ``imaging.reference_exposure_us``), ``intensity`` the
+        projector's light only; both before noise and clipping.
+        """
         if out.shape != (self.height, self.width) or out.dtype != self.dtype or not out.flags.c_contiguous:
             raise ValueError(
                 f"out: shape {out.shape} dtype {out.dtype}: must be C-contiguous "
@@ -221,6 +247,13 @@ class FrameRenderer:
         key = np.uint64(rng.integers(0, 2**63, dtype=np.int64))
         with self._lock:
             src = self._clean_into(frame)
+            if intensity != 1.0 or exposure != 1.0:  # in place: (ambient + intensity * light) * exposure
+                flat = src.ravel()
+                if intensity != 1.0:
+                    flat -= self._ambient
+                    flat *= np.float32(intensity)
+                    flat += self._ambient
+                flat *= np.float32(exposure)
             self._blur(src)  # in place, through per-thread scratch rows (no second image per camera)
             shot = 1.0 / im.electrons_per_dn if im.shot_noise else 0.0
             with _k.KERNEL_LOCK:

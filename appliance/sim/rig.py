@@ -22,7 +22,7 @@ from appliance.errors import ConfigError, PatternError
 from appliance.geometry.camera import CameraModel, look_at
 from appliance.patterns.sequence import Frame, Sequence
 from appliance.sim import _sim_kernels as _k
-from appliance.sim.render import FrameRenderer, ImageArray
+from appliance.sim.render import FrameRenderer, ImageArray, Layer
 from appliance.sim.scene import Scene
 
 F64 = npt.NDArray[np.float64]
@@ -193,10 +193,10 @@ class VirtualRig:
             have = self._renderers.get(camera)
             if have is None or (axis is not None and axis not in have.axes):
                 axes = self.coded_axes if have is None else None
-                truth, uv, gain, ambient = self._compute(cam, self.keep_truth)
+                truth, uv, gain, ambient, layers = self._compute(cam, self.keep_truth)
                 if truth is not None:
                     self._truth[camera] = truth
-                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging, axes)
+                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging, axes, layers)
             return self._renderers[camera]
 
     def _rays_rows(self, cam: CameraModel, r0: int, r1: int) -> F64:
@@ -210,11 +210,12 @@ class VirtualRig:
             _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
         return dirs
 
-    def _compute(self, cam: CameraModel, full: bool) -> tuple[GroundTruth | None, F64, F32, F32]:
+    def _compute(self, cam: CameraModel, full: bool) -> tuple[GroundTruth | None, F64, F32, F32, list[Layer]]:
         """Cast the camera's pixels into the scene, :data:`CHUNK_ROWS` rows at a time.
 
         Returns the ground truth (None unless ``full``), the projector coordinates (H, W, 2) (NaN where
-        no hit) and the gain and ambient light (H, W) float32 the renderer needs.
+        no hit), the gain and ambient light (H, W) float32 the renderer needs, and one light layer per
+        planar mirror (the projector's light reaching the pixel by one mirror bounce).
         """
         h, w = cam.height, cam.width
         n = h * w
@@ -232,6 +233,10 @@ class VirtualRig:
             oid_all = np.empty(n, dtype=np.int32)
         proj = self.projector
         pw, ph = proj.width, proj.height
+        mats = [o.material for o in self.scene.objects]
+        spec_of = np.asarray([m.specular for m in mats] + [0.0])  # index -1 (no hit) -> 0
+        shin_of = np.asarray([m.shininess for m in mats] + [1.0])
+        layers: list[Layer] = [(np.full((n, 2), np.nan), np.zeros(n, dtype=np.float32)) for _ in self.scene.mirrors]
         for r0 in range(0, h, CHUNK_ROWS):
             r1 = min(h, r0 + CHUNK_ROWS)
             s = slice(r0 * w, r1 * w)
@@ -265,8 +270,17 @@ class VirtualRig:
             with _k.KERNEL_LOCK:
                 _k.projector_window(np.ascontiguousarray(puv[:, 0]), np.ascontiguousarray(puv[:, 1]), pw, ph,
                                     self.imaging.projector_blur_px, window)
-            gain[s] = np.where(illum, self.imaging.projector_gain_dn * albedo * cos_inc * window, 0.0)
+            reflect = albedo * cos_inc
+            spec = spec_of[hits.object_id]
+            if spec.any():  # Blinn-Phong lobe of the projector (a point source): scales the same pixel's light
+                half = ldir - dirs
+                half /= np.linalg.norm(half, axis=1)[:, None]
+                lobe = np.maximum(np.nan_to_num(_dot(nrm, half)), 0.0) ** shin_of[hits.object_id]
+                reflect = reflect + spec * lobe
+            gain[s] = np.where(illum, self.imaging.projector_gain_dn * reflect * window, 0.0)
             ambient[s] = self.imaging.ambient_dn * albedo
+            for (luv, lgain), mirror in zip(layers, self.scene.mirrors, strict=True):
+                self._mirror_light(cam, mirror, xyz, nrm, dirs, hits.object_id, luv[s], lgain[s], ambient[s])
             uv[s] = puv
             if full:
                 dev = np.empty((m, 3))
@@ -297,7 +311,85 @@ class VirtualRig:
             for arr in (truth.xyz, truth.depth, truth.hit, truth.lit, truth.proj_uv, truth.normal,
                         truth.object_id):
                 arr.flags.writeable = False
-        return truth, uv.reshape(h, w, 2), gain.reshape(h, w), ambient.reshape(h, w)
+        layers = [(luv.reshape(h, w, 2), lgain.reshape(h, w)) for luv, lgain in layers]
+        return truth, uv.reshape(h, w, 2), gain.reshape(h, w), ambient.reshape(h, w), layers
+
+    def _mirror_light(self, cam: CameraModel, mirror: tuple[int, F64, F64, float], xyz: F64, nrm: F64,
+                      dirs: F64, oid: I32, luv: F64, lgain: F32, ambient: F32) -> None:
+        """One planar mirror's one-bounce light on a chunk of pixels, written into ``luv``/``lgain``.
+
+        Where the pixel sees another object: the projector mirrored in the mirror's plane lights it (the
+        light of the projector pixel that sees the point's mirror image). Where it sees the mirror: the
+        camera sees the mirrored scene, lit directly by the projector.
+        """
+        k, p0, nm, refl = mirror
+        proj = self.projector
+        pc = proj.center
+        s_p = float(np.dot(pc - p0, nm))
+        gain_dn = self.imaging.projector_gain_dn
+        side = np.sign(s_p) * nm  # the mirror's face towards the projector
+        hit = oid >= 0
+        with np.errstate(invalid="ignore"):
+            s_x = (xyz - p0) @ nm
+        # (a) light reaching another object by the mirror: its path is X -> M (on the mirror) -> projector
+        sel = np.flatnonzero(hit & (oid != k) & (s_x * s_p > 0))
+        if sel.size and s_p != 0.0:
+            x = xyz[sel]
+            virt = pc - 2.0 * s_p * nm
+            d = virt - x
+            dist = np.sqrt(_dot(d, d))
+            du = d / dist[:, None]
+            cos_x = _dot(nrm[sel], du)
+            front = cos_x > 0
+            sel, x, du, dist, cos_x = sel[front], x[front], du[front], dist[front], cos_x[front]
+            first = self.scene.intersect(x + SHADOW_OFFSET_MM * nrm[sel], du, t_min=1e-6, t_max=dist)
+            on = first.object_id == k
+            sel, x, du, cos_x, tm = sel[on], x[on], du[on], cos_x[on], first.t[on]
+            m = x + tm[:, None] * du
+            to_p = pc - m
+            dp = np.sqrt(_dot(to_p, to_p))
+            free = ~self.scene.occluded(m + SHADOW_OFFSET_MM * side, to_p / dp[:, None], dp, t_min=1e-6)
+            sel, x, cos_x = sel[free], x[free], cos_x[free]
+            image = x - 2.0 * ((x - p0) @ nm)[:, None] * nm
+            self._light_from(image, sel, refl * self.scene.albedo(x, oid[sel]) * cos_x * gain_dn, luv, lgain)
+        # (b) the camera sees the mirror: the reflected ray's first hit, lit directly
+        s_c = float(np.dot(cam.center - p0, nm))
+        sel = np.flatnonzero(oid == k)
+        if sel.size and s_c != 0.0:
+            r = dirs[sel] - 2.0 * (dirs[sel] @ nm)[:, None] * nm
+            start = xyz[sel] + SHADOW_OFFSET_MM * np.sign(s_c) * nm
+            seen = self.scene.intersect(start, r, t_min=1e-6)
+            ok = (seen.object_id >= 0) & (seen.object_id != k)
+            sel, r, y, ny, yid = sel[ok], r[ok], start[ok] + seen.t[ok][:, None] * r[ok], seen.normal[ok], \
+                seen.object_id[ok]
+            ny = np.where((_dot(ny, r) > 0)[:, None], -ny, ny)
+            to_p = pc - y
+            dp = np.sqrt(_dot(to_p, to_p))
+            ly = to_p / dp[:, None]
+            cos_y = _dot(ny, ly)
+            lit = cos_y > 0
+            sel, y, ny, yid, ly, dp, cos_y = sel[lit], y[lit], ny[lit], yid[lit], ly[lit], dp[lit], cos_y[lit]
+            lit = ~self.scene.occluded(y + SHADOW_OFFSET_MM * ny, ly, dp, t_min=1e-6)
+            sel, y, yid, cos_y = sel[lit], y[lit], yid[lit], cos_y[lit]
+            alb = self.scene.albedo(y, yid)
+            ambient[sel] += np.float32(self.imaging.ambient_dn * refl) * alb.astype(np.float32)
+            self._light_from(y, sel, refl * alb * cos_y * gain_dn, luv, lgain)
+
+    def _light_from(self, points: F64, sel: npt.NDArray[np.intp], gain: F64, luv: F64, lgain: F32) -> None:
+        """Projector coordinates of world ``points`` and their light ``gain`` (DN) into rows ``sel``."""
+        if sel.size == 0:
+            return
+        proj = self.projector
+        puv = np.empty((sel.size, 2))
+        pz = np.empty(sel.size)
+        window = np.empty(sel.size)
+        with _k.KERNEL_LOCK:
+            _k.project_points(np.ascontiguousarray(points), proj.R, proj.T, proj.K, proj.dist_padded(8), puv, pz)
+            _k.projector_window(np.ascontiguousarray(puv[:, 0]), np.ascontiguousarray(puv[:, 1]), proj.width,
+                                proj.height, self.imaging.projector_blur_px, window)
+        front = pz > 0
+        luv[sel] = puv
+        lgain[sel] = np.where(front, gain * window, 0.0)
 
     def ground_truth(self, camera: str) -> GroundTruth:
         """Exact per-pixel geometry of ``camera`` (read-only arrays); see :class:`GroundTruth`.
@@ -307,7 +399,7 @@ class VirtualRig:
         cam = self._check_camera(camera)
         with self._lock:
             if camera not in self._truth:
-                truth, _, _, _ = self._compute(cam, True)
+                truth, _, _, _, _ = self._compute(cam, True)
                 assert truth is not None
                 self._truth[camera] = truth
             return self._truth[camera]
@@ -320,7 +412,8 @@ class VirtualRig:
         return np.uint8 if self.imaging.bit_depth == 8 else np.uint16
 
     def render_frame(self, frame: Frame, camera: str, out: ImageArray | None = None,
-                     rng: np.random.Generator | None = None) -> ImageArray:
+                     rng: np.random.Generator | None = None, exposure_us: float | None = None,
+                     intensity: float | None = None) -> ImageArray:
         """Camera image of one projected frame.
 
         Parameters
@@ -333,6 +426,11 @@ class VirtualRig:
             C-contiguous destination of the camera's dtype (see :attr:`image_dtype`).
         rng : numpy.random.Generator, optional
             Noise source; default the camera's own generator seeded from ``imaging.seed``.
+        exposure_us : float, optional
+            Camera exposure (µs; default ``imaging.exposure_us``): the light scales with it relative to
+            ``imaging.reference_exposure_us`` before noise and clipping.
+        intensity : float, optional
+            Projector intensity 0..1 (default ``imaging.projector_intensity``): scales the projector's light.
 
         Returns
         -------
@@ -341,7 +439,18 @@ class VirtualRig:
         renderer = self._state(camera, frame)
         if out is None:
             out = np.empty((renderer.height, renderer.width), dtype=self.image_dtype)
-        return renderer.render(frame, out, rng if rng is not None else self._rng[camera])
+        exp, inten = self.light_scale(exposure_us, intensity)
+        return renderer.render(frame, out, rng if rng is not None else self._rng[camera], exp, inten)
+
+    def light_scale(self, exposure_us: float | None = None, intensity: float | None = None) -> tuple[float, float]:
+        """Relative exposure and projector intensity of a render (the configured ones where None)."""
+        im = self.imaging
+        exp = im.exposure_us if exposure_us is None else float(exposure_us)
+        inten = im.projector_intensity if intensity is None else float(intensity)
+        if not (exp > 0 and 0 < inten <= 1):
+            raise ConfigError(f"virtual rig: exposure_us = {exp}, intensity = {inten}: exposure must be > 0 "
+                              "and intensity in (0, 1]")
+        return exp / im.reference_exposure_us, inten
 
     def render_clean(self, frame: Frame, camera: str, blur: bool = True) -> npt.NDArray[np.float32]:
         """Noise-free camera image of ``frame`` before quantisation (the mean of :meth:`render_frame`).
@@ -363,7 +472,8 @@ class VirtualRig:
         return self._state(camera, frame).clean(frame, blur=blur)
 
     def render(self, sequence: Sequence, camera: str, out: ImageArray | None = None,
-               seed: int | Literal["config"] | None = _CONFIG_SEED) -> ImageArray:
+               seed: int | Literal["config"] | None = _CONFIG_SEED, exposure_us: float | None = None,
+               intensity: float | None = None) -> ImageArray:
         """Camera images of every frame of ``sequence``.
 
         Parameters
@@ -377,6 +487,8 @@ class VirtualRig:
         seed : int, None or 'config'
             Noise seed of this render ('config': ``imaging.seed`` mixed with the camera index, so a
             repeated render is identical; None: fresh noise).
+        exposure_us, intensity : float, optional
+            As in :meth:`render_frame`.
 
         Returns
         -------
@@ -401,5 +513,5 @@ class VirtualRig:
         else:
             rng = np.random.default_rng(seed)
         for i, frame in enumerate(sequence):
-            self.render_frame(frame, camera, out=out[i], rng=rng)
+            self.render_frame(frame, camera, out=out[i], rng=rng, exposure_us=exposure_us, intensity=intensity)
         return out

@@ -291,6 +291,46 @@ class PlaneImageAlbedo:
         return np.where(inside, val, self.outside)
 
 
+@dataclass(frozen=True)
+class PatchAlbedo:
+    """Albedo in square patches on world x/y: ``patches[(ix + 3 * iy) % n] * (1 + texture * s(X))``.
+
+    ``ix = floor(x / patch_mm)``, ``iy = floor(y / patch_mm)``; ``s`` as in :class:`ProceduralAlbedo`.
+
+    Parameters
+    ----------
+    patches : tuple of float
+        Albedos 0..1, cycled over the patches.
+    patch_mm : float
+        Side of a patch (mm).
+    texture, phase : float
+        As in :class:`ProceduralAlbedo`.
+    """
+
+    patches: tuple[float, ...]
+    patch_mm: float
+    texture: float = 0.0
+    phase: float = 0.0
+
+    def __call__(self, points: F64) -> F64:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        ix = np.floor(p[:, 0] / self.patch_mm).astype(np.int64)
+        iy = np.floor(p[:, 1] / self.patch_mm).astype(np.int64)
+        base: F64 = np.asarray(self.patches, dtype=np.float64)[(ix + 3 * iy) % len(self.patches)]
+        if self.texture == 0.0:
+            return base
+        rel = ProceduralAlbedo(1.0, self.texture, self.phase)(p)
+        out: F64 = np.clip(base * rel, 0.0, 1.0)
+        return out
+
+
+def configured_albedo(obj: SceneObject, object_id: int) -> AlbedoFn:
+    """The albedo function an object's configuration gives (patches when its material has them)."""
+    if obj.material.patches:
+        return PatchAlbedo(tuple(obj.material.patches), obj.material.patch_mm, obj.texture, phase=1.3 * object_id)
+    return ProceduralAlbedo(obj.albedo, obj.texture, phase=1.3 * object_id)
+
+
 # --- the scene ----------------------------------------------------------------------------------------------
 
 
@@ -314,7 +354,7 @@ class Scene:
         tri_obj: list[I32] = []
         self._albedo: list[AlbedoFn] = []
         for i, obj in enumerate(self.objects):
-            self._albedo.append(ProceduralAlbedo(obj.albedo, obj.texture, phase=1.3 * i))
+            self._albedo.append(configured_albedo(obj, i))
             row = np.zeros(16)
             if isinstance(obj, MeshObject):
                 tv = self._mesh_triangles(obj, i, base_dir)
@@ -351,9 +391,32 @@ class Scene:
         self._prim_obj = np.asarray(prim_obj, dtype=np.int64)
         tri = np.concatenate(tris) if tris else np.zeros((0, 9))
         tobj = np.concatenate(tri_obj) if tri_obj else np.zeros(0, dtype=np.int32)
+        self.mirrors: tuple[tuple[int, F64, F64, float], ...] = tuple(
+            (i, *self._mirror_plane(obj, i, tris, tri_obj), float(obj.material.mirror))
+            for i, obj in enumerate(self.objects) if obj.material.mirror > 0
+        )
+        """Planar mirrors: (object id, a point on the plane (mm), unit normal, reflectance)."""
         order, self._bvh = _build_bvh(tri)
         self._tri = np.ascontiguousarray(tri[order])
         self._tri_obj = np.ascontiguousarray(tobj[order].astype(np.int64))
+
+    @staticmethod
+    def _mirror_plane(obj: SceneObject, i: int, tris: list[F64], tri_obj: list[I32]) -> tuple[F64, F64]:
+        if isinstance(obj, PlaneObject):
+            return np.asarray(obj.point_mm, dtype=np.float64), _unit(obj.normal, f"scene[{i}].normal")
+        if isinstance(obj, MeshObject):
+            tv = next(t for t, o in zip(tris, tri_obj, strict=True) if o.size and o[0] == i).reshape(-1, 3, 3)
+            p0 = tv[0, 0]
+            nrm = np.cross(tv[0, 1] - p0, tv[0, 2] - p0)
+            if np.linalg.norm(nrm) > 0:
+                nrm = nrm / np.linalg.norm(nrm)
+                off = np.abs((tv.reshape(-1, 3) - p0) @ nrm)
+                if float(off.max()) <= 1e-6 * max(1.0, float(np.abs(tv).max())):
+                    return p0, nrm
+        raise ConfigError(
+            f"scene[{i}].material.mirror = {obj.material.mirror}: a mirror must be planar; use a plane or a "
+            "flat mesh (all vertices in one plane), or set mirror: 0"
+        )
 
     @property
     def n_objects(self) -> int:
@@ -390,8 +453,7 @@ class Scene:
         if not 0 <= object_id < self.n_objects:
             raise ConfigError(f"scene: object_id = {object_id}: must be in 0..{self.n_objects - 1}")
         if fn is None:
-            obj = self.objects[object_id]
-            fn = ProceduralAlbedo(obj.albedo, obj.texture, phase=1.3 * object_id)
+            fn = configured_albedo(self.objects[object_id], object_id)
         self._albedo[object_id] = fn
 
     def albedo(self, points: F64, object_id: I32) -> F64:
