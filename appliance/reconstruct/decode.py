@@ -650,6 +650,27 @@ def reason_counts(maps: DecodedMaps) -> dict[str, int]:
     return {REASON_NAMES[i]: int(c) for i, c in enumerate(counts.tolist()) if c and i in REASON_NAMES}
 
 
+def reason_block(maps: DecodedMaps) -> dict[str, dict[str, Any]]:
+    """The sidecar's per-camera reason block: pixels and share of the image per :class:`Reason`.
+
+    Parameters
+    ----------
+    maps : DecodedMaps
+        A decode with ``reason``.
+
+    Returns
+    -------
+    dict
+        ``{"reasons": {name: pixels}, "reason_shares": {name: share of the image's pixels, 0..1}}`` (zero
+        counts left out); empty when ``maps.reason`` is None.
+    """
+    counts = reason_counts(maps)
+    if not counts:
+        return {}
+    total = max(int(maps.mask.size), 1)
+    return {"reasons": counts, "reason_shares": {k: round(n / total, 6) for k, n in counts.items()}}
+
+
 def decode(
     frames: FrameStack,
     sequence: Sequence | DecodePlan,
