@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -10,22 +11,41 @@ import yaml
 from pydantic import ValidationError
 
 from appliance.config.schema import AppConfig
+from appliance.config.strict import STRICT_TYPE
+from appliance.config.yamlfile import DuplicateKeyError, parse_yaml, read_bytes_file, yaml_problem
 from appliance.errors import ConfigError
 
+MAX_CONFIG_BYTES = 32 * 1024 * 1024
+"""Largest configuration file read (bytes); an inline mesh of ~8 MB is well within it."""
 
-def _node_at(root: yaml.Node | None, loc: tuple[int | str, ...]) -> yaml.Node | None:
+MAX_PROBLEMS = 20
+"""Problems listed one per line; the rest are counted."""
+
+
+def _keys_of(node: yaml.MappingNode, index: dict[int, dict[str, tuple[yaml.Node, yaml.Node]]],
+             ) -> dict[str, tuple[yaml.Node, yaml.Node]]:
+    """The scalar keys of a mapping node (built once per node, so locating N errors stays linear)."""
+    keys = index.get(id(node))
+    if keys is None:
+        keys = {}
+        for k, v in node.value:
+            if isinstance(k, yaml.ScalarNode):
+                keys.setdefault(k.value, (k, v))
+        index[id(node)] = keys
+    return keys
+
+
+def _node_at(root: yaml.Node | None, loc: tuple[int | str, ...],
+             index: dict[int, dict[str, tuple[yaml.Node, yaml.Node]]] | None = None) -> yaml.Node | None:
     """The deepest YAML node along ``loc`` (pydantic's error location)."""
+    index = {} if index is None else index
     node = root
     for key in loc:
         if isinstance(node, yaml.MappingNode):
-            nxt = None
-            for k, v in node.value:
-                if isinstance(k, yaml.ScalarNode) and k.value == str(key):
-                    nxt = v if not _is_last(loc, key) else k
-                    break
-            if nxt is None:
+            pair = _keys_of(node, index).get(str(key))
+            if pair is None:
                 return node
-            node = nxt
+            node = pair[1] if not _is_last(loc, key) else pair[0]
         elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
             node = node.value[key]
         else:
@@ -71,22 +91,39 @@ def _clean_loc(loc: tuple[int | str, ...], doc: Any) -> tuple[int | str, ...]:
 
 
 def format_validation_error(exc: ValidationError, source: str, doc: Any, root: yaml.Node | None) -> str:
-    """One line per problem: ``file:line: key.path = value: rule``."""
+    """One line per problem: ``file:line: key.path = value: rule``; past :data:`MAX_PROBLEMS`, a count."""
     lines = []
-    for err in exc.errors():
+    errors = exc.errors(include_url=False)
+    index: dict[int, dict[str, tuple[yaml.Node, yaml.Node]]] = {}
+    for err in errors[:MAX_PROBLEMS]:
         loc = _clean_loc(tuple(err["loc"]), doc)
-        path = ".".join(str(p) for p in loc) or "(top level)"
-        node = _node_at(root, loc)
-        line = f"{node.start_mark.line + 1}" if node is not None else "?"
-        found, value = _lookup(doc, loc)
         rule = err["msg"]
-        if err["type"] == "extra_forbidden":
+        if err["type"] == STRICT_TYPE:  # a model-level check: its context names the field
+            ctx = err.get("ctx") or {}
+            loc = (*loc, str(ctx.get("field", "?")))
+            rule = str(ctx.get("problem", rule)).split(" ", 1)[-1]
+        elif err["type"] == "extra_forbidden":
             rule = "unknown key (check its spelling against config/appliance.yaml)"
         elif err["type"] == "missing":
             rule = "required key is missing"
-        shown = f" = {value!r}" if found and not isinstance(value, dict | list) else ""
+        elif rule.startswith("Value error, "):
+            rule = rule[len("Value error, "):]
+        path = ".".join(str(p) for p in loc) or "(top level)"
+        node = _node_at(root, loc, index)
+        line = f"{node.start_mark.line + 1}" if node is not None else "?"
+        found, value = _lookup(doc, loc)
+        shown = f" = {_short(value)}" if found and not isinstance(value, dict | list) else ""
         lines.append(f"{source}:{line}: {path}{shown}: {rule}")
+    if len(errors) > MAX_PROBLEMS:
+        unknown = sum(e["type"] == "extra_forbidden" for e in errors)
+        lines.append(f"{source}: ... and {len(errors) - MAX_PROBLEMS} more problems ({unknown} unknown keys in all); "
+                     "fix these first (is this the right file?)")
     return "\n".join(lines)
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def parse_config(text: str, source: str = "<config>", base_dir: Path | None = None) -> AppConfig:
@@ -110,12 +147,12 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
         raise ConfigError(f"{source}: not a YAML mapping (binary data: a NUL character at offset "
                           f"{text.index(chr(0))}); restore the file from config/appliance.yaml or a backup")
     try:
-        root = yaml.compose(text)
-        doc = yaml.safe_load(text)
+        doc, root = parse_yaml(text)
+    except DuplicateKeyError as exc:
+        where, problem = yaml_problem(exc, source)
+        raise ConfigError(f"{where}: {problem}") from exc
     except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark
-        where = f"{source}:{mark.line + 1}" if mark is not None else source
-        problem = " ".join(str(exc.problem or exc).split())
+        where, problem = yaml_problem(exc, source)
         raise ConfigError(f"{where}: not valid YAML: {problem}; check indentation and quoting") from exc
     except yaml.YAMLError as exc:  # e.g. a reader error: a character YAML does not allow
         problem = " ".join(str(exc).split())
@@ -161,10 +198,10 @@ def _resolve_paths(cfg: AppConfig, base: Path) -> AppConfig:
 def load_config(path: str | Path) -> AppConfig:
     """Read and validate a configuration file (see :func:`parse_config`)."""
     p = Path(path)
-    try:
-        data = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot be read ({exc.strerror}); check the path or pass --config FILE") from exc
+    data = read_bytes_file(p, what="configuration", error=ConfigError, limit_bytes=MAX_CONFIG_BYTES,
+                           fix="check the path or pass --config FILE")
+    if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise ConfigError(f"{p}: not a YAML mapping (UTF-16 text); save the file as UTF-8 text")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -175,16 +212,19 @@ def load_config(path: str | Path) -> AppConfig:
 
 
 def _readable_file(path: Path) -> str:
-    """'' when ``path`` is a file this process can read, else why not."""
+    """'' when ``path`` is a regular file this process can read, else why not (a FIFO is not opened)."""
     try:
-        with open(path, "rb") as f:
-            f.read(1)
-    except IsADirectoryError:
-        return "is a folder, not a file"
+        st = os.stat(path)
     except FileNotFoundError:
         return "does not exist"
     except OSError as exc:
         return f"cannot be read ({exc.strerror or exc})"
+    if stat.S_ISDIR(st.st_mode):
+        return "is a folder, not a file"
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a regular file (a FIFO, a device or a socket)"
+    if not os.access(path, os.R_OK):
+        return "cannot be read (permission denied)"
     return ""
 
 

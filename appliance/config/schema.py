@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from appliance.config.backends import (
     CameraConfig,
@@ -19,12 +19,13 @@ from appliance.config.backends import (
     SimTriggerConfig,
     TriggerConfig,
 )
+from appliance.config.strict import StrictModel
 
 Vec3 = tuple[float, float, float]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class _Strict(StrictModel):
+    """Unknown keys, NaN and infinity refused; integers and booleans strictly typed (see config/strict.py)."""
 
 
 # --- the pattern sequence -----------------------------------------------------------------------------
@@ -41,7 +42,7 @@ class SequenceConfig(_Strict):
         (16,),
         min_length=1,
         max_length=4,
-        description="Fringe periods (projector px), coarsest first; Gray stripe = half the coarsest.",
+        description="Fringe periods (projector px, 4..8192), coarsest first; Gray stripe = half the coarsest.",
     )
     steps: int = Field(4, ge=3, le=16, description="Phase steps per period.")
     stripe_px: int = Field(1, ge=1, le=256, description="Gray stripe width for kind 'gray' (projector px).")
@@ -57,8 +58,8 @@ class SequenceConfig(_Strict):
     @classmethod
     def _exposures_positive(cls, v: tuple[int, ...]) -> tuple[int, ...]:
         for e in v:
-            if e <= 0:
-                raise ValueError(f"exposures_us: {e} must be > 0 (µs)")
+            if not 0 < e <= 10_000_000:
+                raise ValueError(f"exposures_us: {e} must be > 0 and at most 10000000 (µs)")
         if len(set(v)) != len(v):
             raise ValueError(f"exposures_us: {list(v)} lists an exposure twice; list each once")
         return v
@@ -66,8 +67,8 @@ class SequenceConfig(_Strict):
     @model_validator(mode="after")
     def _periods_even(self) -> SequenceConfig:
         for p in self.periods_px:
-            if p < 4 or p % 2:
-                raise ValueError(f"periods_px: {p} must be an even number >= 4")
+            if p < 4 or p % 2 or p > 8192:
+                raise ValueError(f"periods_px: {p} must be an even number from 4 to 8192 (projector px)")
         if list(self.periods_px) != sorted(self.periods_px, reverse=True):
             raise ValueError(f"periods_px: {list(self.periods_px)} must be listed coarsest first")
         return self
@@ -150,16 +151,29 @@ class ReconstructionConfig(_Strict):
 # --- the virtual rig ----------------------------------------------------------------------------------
 
 
+MAX_VIRTUAL_PIXELS = 20_000_000
+"""Largest virtual camera or projector image (pixels)."""
+
+
 class DeviceOptics(_Strict):
     """Intrinsics and pose of a virtual camera or projector (ground truth of the virtual rig)."""
 
     width: int = Field(ge=16, le=10000, description="Image width (px).")
     height: int = Field(ge=16, le=10000, description="Image height (px).")
-    focal_px: float = Field(gt=0, description="Focal length (px).")
+    focal_px: float = Field(gt=0, le=1_000_000, description="Focal length (px).")
     principal_px: tuple[float, float] | None = Field(None, description="Principal point (px); centre when unset.")
     dist: tuple[float, ...] = Field((), max_length=8, description="Distortion k1 k2 p1 p2 k3 (OpenCV order).")
     position_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Optical centre in the world frame (mm).")
     look_at_mm: Vec3 = Field((0.0, 0.0, 600.0), description="A point on the optical axis (mm).")
+
+    @model_validator(mode="after")
+    def _size(self) -> DeviceOptics:
+        # the virtual rig renders every pattern of a scan as float images of this size, and the reconstruction
+        # keeps several per-pixel maps: 20 Mpx (a 5472x3648 sensor) keeps a scan within a few GB
+        if self.width * self.height > MAX_VIRTUAL_PIXELS:
+            raise ValueError(f"{self.width}x{self.height} = {self.width * self.height / 1e6:.0f} Mpx is more than "
+                             f"the virtual rig renders ({MAX_VIRTUAL_PIXELS / 1e6:.0f} Mpx); use a smaller size")
+        return self
 
 
 class Material(_Strict):
@@ -257,8 +271,10 @@ class ImagingConfig(_Strict):
 
     projector_gamma: float = Field(2.2, gt=0.1, le=5, description="Projector intensity = value^gamma.")
     gamma_corrected: bool = Field(True, description="Patterns are pre-corrected for the projector gamma.")
-    projector_gain_dn: float = Field(180.0, ge=0, description="Camera DN for a white projector on albedo 1.")
-    ambient_dn: float = Field(10.0, ge=0, description="Ambient light (DN at albedo 1).")
+    projector_gain_dn: float = Field(
+        180.0, ge=0, le=1_000_000, description="Camera DN for a white projector on albedo 1."
+    )
+    ambient_dn: float = Field(10.0, ge=0, le=1_000_000, description="Ambient light (DN at albedo 1).")
     reference_exposure_us: float = Field(
         10000.0, gt=0, le=10_000_000, description="Exposure at which projector_gain_dn and ambient_dn hold (µs)."
     )
@@ -269,15 +285,22 @@ class ImagingConfig(_Strict):
     projector_intensity: float = Field(
         1.0, gt=0, le=1, description="Projector intensity 0..1; scales the projector's light, not the ambient."
     )
-    read_noise_dn: float = Field(2.0, ge=0, description="Read noise sigma (DN).")
+    read_noise_dn: float = Field(2.0, ge=0, le=65535, description="Read noise sigma (DN).")
     shot_noise: bool = Field(True, description="Poisson shot noise.")
     electrons_per_dn: float = Field(
-        25.0, gt=0, description="Conversion gain for shot noise (e- per DN, 8-bit scale; ~6000 e- full well)."
+        25.0, gt=0, le=1_000_000,
+        description="Conversion gain for shot noise (e- per DN, 8-bit scale; ~6000 e- full well).",
     )
-    projector_blur_px: float = Field(0.6, ge=0, description="Projector defocus (Gaussian sigma, projector px).")
-    camera_blur_px: float = Field(0.5, ge=0, description="Camera defocus (Gaussian sigma, camera px).")
+    projector_blur_px: float = Field(
+        0.6, ge=0, le=20, description="Projector defocus (Gaussian sigma, projector px, at most 20)."
+    )
+    camera_blur_px: float = Field(
+        0.5, ge=0, le=20, description="Camera defocus (Gaussian sigma, camera px, at most 20)."
+    )
     bit_depth: Literal[8, 12, 16] = Field(8, description="Camera bit depth; saturates at full scale.")
-    seed: int | None = Field(1, description="Noise seed (None: different noise each scan).")
+    seed: int | None = Field(
+        1, ge=0, le=2**63 - 1, description="Noise seed, a whole number >= 0 (None: different noise each scan)."
+    )
 
 
 def _default_cameras() -> dict[str, DeviceOptics]:
