@@ -46,6 +46,13 @@ def _cmd_scan(a: argparse.Namespace) -> int:
     return asyncio.run(scan_command(a.config, a.out, a.count, a.compare))
 
 
+def _cmd_tune(a: argparse.Namespace) -> int:
+    from appliance.config import load_config
+    from appliance.procedures.tune import tune_command
+
+    return tune_command(load_config(a.config), a.config, a.time_budget_ms, a.apply)
+
+
 def _cmd_validate(a: argparse.Namespace) -> int:
     from appliance.commands import validate_config
 
@@ -176,6 +183,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--count", type=int, default=1, help="number of scans")
     sp.add_argument("--no-compare", dest="compare", action="store_false",
                     help="virtual rig: do not compare with ground truth")
+
+    sp = cmd("tune", _cmd_tune, "probe the scene on the configured rig and choose the scan's exposures "
+             "(sequence.exposures_us) for a time budget")
+    sp.add_argument("--time-budget-ms", type=float, default=2000.0,
+                    help="longest expected capture time (ms; default: %(default)s)")
+    sp.add_argument("--apply", action="store_true",
+                    help="write the choice into the configuration file (validated, atomic; a service reloads it)")
+    config_arg(sp)
 
     sp = cmd("validate-config", _cmd_validate, "check a configuration file and print what is wrong")
     sp.add_argument("file", type=Path, nargs="?", default=None)

@@ -1,0 +1,342 @@
+"""``scan3d tune``: a capture assistant that chooses the exposures of a scan for the scene in front of the rig.
+
+A short probe projects white and black at a few exposures (:data:`PROBE_FACTORS` of the configured one) on the
+configured rig. From it each lit pixel gets its projector contrast and its white level per microsecond of
+exposure (from the longest probe exposure that did not clip it). A pixel is *decodable* at an exposure when its
+contrast reaches :data:`DECODABLE_CONTRAST` times ``reconstruction.min_contrast_dn`` and its white level stays
+below :data:`CLIP_MARGIN` of the sensor's full scale. Over a ladder of exposures (:data:`LADDER_FACTORS`, steps
+of sqrt 2) the fewest that bring at least :data:`TARGET_SHARE` of the lit pixels into a decodable range within
+the time budget are chosen; what no exposure recovers is named with its cause (too dark even at the longest,
+clipped even at the shortest). ``--apply`` writes the choice to ``sequence.exposures_us`` of the configuration
+file, validated first and written atomically, as an edit over SSH would be (a running service reloads it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import yaml
+
+from appliance.config import AppConfig
+from appliance.config.loader import parse_config
+from appliance.errors import ConfigError, HardwareError
+from appliance.output.atomic import write_bytes_atomic
+from appliance.patterns.from_config import build_sequence
+from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
+
+PROBE_FACTORS = (0.25, 1.0, 4.0)
+"""Exposures of the probe, relative to the configured exposure."""
+LADDER_FACTORS = tuple(2.0 ** (k / 2) for k in range(-4, 11))
+"""Exposures the choice may use, relative to the configured exposure (1/4x .. 32x, steps of sqrt 2; none
+shorter than the probe's shortest, which is all that says a pixel is not clipped)."""
+DECODABLE_CONTRAST = 5.0
+"""A pixel decodes well when white - black reaches this many times ``reconstruction.min_contrast_dn``."""
+CLIP_MARGIN = 0.95
+"""... and its white level stays below this share of the sensor's full scale (noise headroom)."""
+LIT_CONTRAST = 1.0
+"""A pixel is lit when its contrast at the longest probe exposure reaches this many ``min_contrast_dn``
+(or it clips)."""
+TARGET_SHARE = 0.99
+"""Share of the lit pixels the choice must bring into a decodable range."""
+MAX_EXPOSURES = 4
+"""The most exposures (capture passes) a choice may have."""
+FRAME_PERIOD_US = 16_667.0
+"""Frame period of the projector when the exposure is shorter (µs; 60 Hz)."""
+PROBE_TIMEOUT_S = 10.0
+
+
+@dataclass(frozen=True)
+class Probe:
+    """White and black images of every camera at each probe exposure.
+
+    Attributes
+    ----------
+    exposures_us : tuple of float
+        Probe exposures (µs), ascending.
+    white, black : dict of str to ndarray, shape (E, H, W), float64
+        DN per exposure.
+    full_scale : dict of str to float
+        The sensor's largest value (DN) per camera.
+    """
+
+    exposures_us: tuple[float, ...]
+    white: dict[str, npt.NDArray[np.float64]]
+    black: dict[str, npt.NDArray[np.float64]]
+    full_scale: dict[str, float]
+
+
+@dataclass(frozen=True)
+class TuneChoice:
+    """The exposures chosen and what they reach.
+
+    Attributes
+    ----------
+    exposures_us : tuple of int
+        Exposure of each capture pass (µs), ascending.
+    scan_ms : float
+        Expected capture time of the scan (ms).
+    covered : float
+        Share (0..1) of the lit pixels in a decodable range at one of the exposures.
+    lit_pixels : int
+        Lit pixels of all cameras.
+    too_dark, clipped : float
+        Shares of the lit pixels that no exposure of the ladder recovers: too dark even at the longest,
+        clipped even at the shortest.
+    dynamic_range : float
+        Ratio of the brightest to the darkest lit pixel's contrast per µs.
+    within_budget : bool
+        False when no choice reaching :data:`TARGET_SHARE` fits the budget (then the best that fits).
+    """
+
+    exposures_us: tuple[int, ...]
+    scan_ms: float
+    covered: float
+    lit_pixels: int
+    too_dark: float
+    clipped: float
+    dynamic_range: float
+    within_budget: bool
+    ladder_us: tuple[int, ...]
+
+    def lines(self, time_budget_ms: float) -> list[str]:
+        """The plain-words report printed by ``scan3d tune``."""
+        ex = ", ".join(str(e) for e in self.exposures_us)
+        n = len(self.exposures_us)
+        out = [
+            f"lit pixels: {self.lit_pixels}; their contrast spans 1:{self.dynamic_range:.0f}",
+            f"choice: sequence.exposures_us = [{ex}] ({n} exposure{'s' if n > 1 else ''}): expected scan time "
+            f"{self.scan_ms:.0f} ms, {100 * self.covered:.1f} % of the lit pixels in a decodable range",
+        ]
+        if not self.within_budget:
+            out.append(f"no choice brings {100 * TARGET_SHARE:.0f} % of the lit pixels into range within "
+                       f"{time_budget_ms:.0f} ms: this is the best that fits; raise --time-budget-ms")
+        lost = []
+        if self.too_dark >= 5e-4:
+            lost.append(f"{100 * self.too_dark:.1f} % too dark even at {max(self.ladder_us)} µs (raise the "
+                        "projector's brightness or the camera gain, or bring the part closer)")
+        if self.clipped >= 5e-4:
+            lost.append(f"{100 * self.clipped:.1f} % clipped even at {min(self.ladder_us)} µs (specular "
+                        "highlights: tilt the part or lower the projector intensity)")
+        out.append("cannot recover: " + "; ".join(lost) if lost else "cannot recover: nothing")
+        out.append("not measured by the probe: interreflections (a mirror-like face lighting another); the "
+                   "decoder's consistency checks drop those pixels")
+        return out
+
+
+def base_exposure_us(cfg: AppConfig) -> float:
+    """The exposure the configuration scans with now (µs): the middle of ``sequence.exposures_us``, else the
+    first camera's own."""
+    if cfg.sequence.exposures_us:
+        ex = sorted(cfg.sequence.exposures_us)
+        return float(ex[len(ex) // 2])
+    name, cam = next(iter(cfg.cameras.items()))
+    own = getattr(cam, "exposure_us", None)
+    if own is not None:
+        return float(own)
+    if cam.type == "sim":
+        return float(cfg.virtual_rig.imaging.exposure_us)
+    raise ConfigError(f"camera {name!r} ({cam.type}): has no exposure_us the scan can set; scan3d tune needs "
+                      "a camera whose exposure is set in microseconds (aravis or sim)")
+
+
+async def probe(cfg: AppConfig, exposures_us: tuple[float, ...]) -> Probe:
+    """White and black frames of every configured camera at each exposure (µs) on the configured rig."""
+    from appliance.hardware.registry import build_rig
+    from appliance.scan import load_calibration_for, pixel_format_bits
+
+    loop = asyncio.get_running_loop()
+    rig = await loop.run_in_executor(None, build_rig, cfg)
+    calibration = await loop.run_in_executor(None, load_calibration_for, cfg, rig)
+    proj = calibration.devices["projector"]
+    seq = Sequence(proj.width, proj.height, (WhiteFrame(), BlackFrame()))
+    white: dict[str, npt.NDArray[np.float64]] = {}
+    black: dict[str, npt.NDArray[np.float64]] = {}
+    full: dict[str, float] = {}
+    try:
+        bufs: dict[str, npt.NDArray[Any]] = {}
+        for name, cam in rig.cameras.items():
+            info = await cam.open()
+            bits = pixel_format_bits(info.pixel_format)
+            full[name] = float((1 << bits) - 1)
+            bufs[name] = np.zeros((2, info.height, info.width), np.uint8 if bits == 8 else np.uint16)
+            white[name] = np.zeros((len(exposures_us), info.height, info.width))
+            black[name] = np.zeros_like(white[name])
+            if not callable(getattr(cam, "set_exposure", None)):
+                raise HardwareError(f"camera {name!r}: cannot set its exposure between passes; scan3d tune "
+                                    "needs one that can (sim; aravis once it supports it)")
+        await rig.projector.open()
+        await rig.projector.load(seq)
+        for k, exposure in enumerate(exposures_us):
+            for name, cam in rig.cameras.items():
+                await cam.set_exposure(exposure)  # type: ignore[attr-defined]
+                await cam.arm(2, bufs[name])
+            await rig.projector.start()
+            software = [c for c in rig.cameras.values() if c.needs_software_trigger]
+            for i in range(2 if software else 0):
+                await asyncio.gather(*(c.trigger(i) for c in software))
+            await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
+            for name, buf in bufs.items():
+                white[name][k] = buf[0]
+                black[name][k] = buf[1]
+    finally:
+        for cam in rig.cameras.values():
+            await cam.close()
+        await rig.projector.close()
+    return Probe(tuple(exposures_us), white, black, full)
+
+
+def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_ms: float,
+           base_us: float) -> TuneChoice:
+    """The fewest exposures of the ladder that bring :data:`TARGET_SHARE` of the lit pixels into range.
+
+    Parameters
+    ----------
+    pr : Probe
+        The probe's images.
+    min_contrast_dn : float
+        ``reconstruction.min_contrast_dn`` (8-bit DN; scaled to each camera's bit depth).
+    frames_per_pass : int
+        Frames of one pass of the configured sequence.
+    time_budget_ms : float
+        The longest expected capture time allowed (ms).
+    base_us : float
+        The configured exposure the ladder is relative to (µs).
+    """
+    ladder = np.asarray(sorted({round(base_us * f) for f in LADDER_FACTORS}), dtype=np.float64)
+    masks: list[npt.NDArray[np.int64]] = []
+    dark_n = clip_n = 0
+    rates: list[npt.NDArray[np.float64]] = []
+    e = np.asarray(pr.exposures_us)
+    for name in pr.white:
+        w, b, full = pr.white[name], pr.black[name], pr.full_scale[name]
+        scale = (full + 1) / 256.0
+        ok = w < CLIP_MARGIN * full  # per exposure: this pixel's white did not clip
+        # the longest unclipped probe exposure of each pixel; -1 where every one clipped
+        idx = np.where(ok.any(axis=0), len(e) - 1 - np.argmax(ok[::-1], axis=0), -1)
+        k = np.clip(idx, 0, None)
+        wk = np.take_along_axis(w, k[None], 0)[0]
+        ck = wk - np.take_along_axis(b, k[None], 0)[0]
+        c_rate = ck / e[k]  # contrast per µs
+        w_rate = wk / e[k]  # white level per µs
+        clipped_all = idx < 0
+        # lit: clipped at some probe exposure, or with contrast at the longest
+        lit = (idx < len(e) - 1) | (w[-1] - b[-1] >= LIT_CONTRAST * min_contrast_dn * scale)
+        need = DECODABLE_CONTRAST * min_contrast_dn * scale
+        # decodable at ladder exposure L: contrast reaches need and white stays below the margin (a pixel that
+        # clipped at every probe exposure has no measured rate: it counts as clipped)
+        good = (c_rate[..., None] * ladder >= need) & (w_rate[..., None] * ladder < CLIP_MARGIN * full)
+        good &= ~clipped_all[..., None]
+        bits = (good[lit] * (1 << np.arange(ladder.size))).sum(axis=1)
+        masks.append(bits.astype(np.int64))
+        none = bits == 0
+        too_dark = none & (c_rate[lit] * ladder[-1] < need)
+        dark_n += int(too_dark.sum())
+        clip_n += int((none & ~too_dark).sum())
+        rates.append(c_rate[lit & ~clipped_all])
+    allbits = np.concatenate(masks) if masks else np.zeros(0, np.int64)
+    lit_n = int(allbits.size)
+    uniq, counts = np.unique(allbits, return_counts=True)
+    best: tuple[float, float, tuple[int, ...]] | None = None
+    chosen: tuple[int, ...] = ()
+    within = False
+    for n in range(1, MAX_EXPOSURES + 1):
+        for combo in itertools.combinations(range(ladder.size), n):
+            t_ms = scan_time_ms([float(ladder[i]) for i in combo], frames_per_pass)
+            if t_ms > time_budget_ms:
+                continue
+            m = sum(1 << i for i in combo)
+            cov = float(counts[(uniq & m) != 0].sum()) / lit_n if lit_n else 1.0
+            key = (cov, -t_ms, combo)
+            if best is None or key[:2] > best[:2]:
+                best = key
+        if best is not None and best[0] >= TARGET_SHARE:
+            within = True
+            break
+    if best is not None:
+        chosen = best[2]
+    cov = best[0] if best is not None else 0.0
+    ex = tuple(int(ladder[i]) for i in chosen)
+    r = np.concatenate(rates) if rates else np.zeros(0)
+    r = r[r > 0]
+    dr = float(np.percentile(r, 99.9) / np.percentile(r, 0.1)) if r.size else 1.0
+    return TuneChoice(ex, scan_time_ms([float(x) for x in ex], frames_per_pass), cov, lit_n,
+                      dark_n / lit_n if lit_n else 0.0, clip_n / lit_n if lit_n else 0.0, dr, within,
+                      tuple(int(x) for x in ladder))
+
+
+def scan_time_ms(exposures_us: list[float], frames_per_pass: int) -> float:
+    """Expected capture time (ms): each pass shows every frame for its exposure or the frame period."""
+    return sum(frames_per_pass * max(e, FRAME_PERIOD_US) for e in exposures_us) / 1000.0
+
+
+def tune(cfg: AppConfig, time_budget_ms: float) -> TuneChoice:
+    """Probe the configured rig and choose its exposures (see the module docstring)."""
+    if not (time_budget_ms > 0 and math.isfinite(time_budget_ms)):
+        raise ConfigError(f"scan3d tune: --time-budget-ms = {time_budget_ms}: must be a positive number of ms")
+    base = base_exposure_us(cfg)
+    pr = asyncio.run(probe(cfg, tuple(base * f for f in PROBE_FACTORS)))
+    seq = build_sequence(cfg.sequence, 1280, 800)  # the frame count does not depend on the projector size
+    return choose(pr, cfg.reconstruction.min_contrast_dn, len(seq), time_budget_ms, base)
+
+
+_SEQ_KEY = re.compile(r"^sequence:[ \t]*(#.*)?$")
+_EXPOSURES_KEY = re.compile(r"^([ \t]+)exposures_us:.*$")
+
+
+def with_exposures(text: str, exposures_us: tuple[int, ...]) -> str:
+    """The configuration text with ``sequence.exposures_us`` set (comments and layout kept where the
+    ``sequence`` section is a block)."""
+    value = "[" + ", ".join(str(e) for e in exposures_us) + "]"
+    lines = text.splitlines(keepends=True)
+    start = next((i for i, ln in enumerate(lines) if _SEQ_KEY.match(ln.rstrip("\r\n"))), None)
+    if start is None:
+        doc = yaml.safe_load(text) or {}
+        if "sequence" in doc:  # a flow-style section: rewritten (its comments are lost)
+            seq = dict(doc["sequence"] or {})
+            seq["exposures_us"] = list(exposures_us)
+            doc["sequence"] = seq
+            return str(yaml.safe_dump(doc, sort_keys=False))
+        sep = "" if not text or text.endswith("\n") else "\n"
+        return f"{text}{sep}sequence:\n  exposures_us: {value}\n"
+    end = start + 1
+    indent = "  "
+    while end < len(lines) and (lines[end].startswith((" ", "\t")) or not lines[end].strip()):
+        if lines[end].strip() and not lines[end].lstrip().startswith("#"):
+            indent = lines[end][: len(lines[end]) - len(lines[end].lstrip())]
+        end += 1
+    for i in range(start + 1, end):
+        if _EXPOSURES_KEY.match(lines[i].rstrip("\r\n")):
+            lines[i] = f"{indent}exposures_us: {value}  # chosen by scan3d tune\n"
+            return "".join(lines)
+    lines.insert(start + 1, f"{indent}exposures_us: {value}  # chosen by scan3d tune\n")
+    return "".join(lines)
+
+
+def apply_choice(path: Path, exposures_us: tuple[int, ...]) -> None:
+    """Write ``sequence.exposures_us`` into the configuration file: validated first, then written atomically
+    (a running service reloads it as it would an edit over SSH)."""
+    text = path.read_text()
+    new = with_exposures(text, exposures_us)
+    parse_config(new, str(path), path.parent)  # raises ConfigError with the file, line and rule
+    write_bytes_atomic(path, new.encode())
+
+
+def tune_command(cfg: AppConfig, config_path: Path | None, time_budget_ms: float, apply: bool) -> int:
+    """``scan3d tune``: probe, print the choice and, with ``apply``, write it into the configuration file."""
+    choice = tune(cfg, time_budget_ms)
+    for line in choice.lines(time_budget_ms):
+        print(line)
+    if apply:
+        if config_path is None:
+            raise ConfigError("scan3d tune --apply: no configuration file to write; pass --config FILE")
+        apply_choice(config_path, choice.exposures_us)
+        print(f"written: {config_path}: sequence.exposures_us = {list(choice.exposures_us)}")
+    return 0

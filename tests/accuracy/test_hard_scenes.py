@@ -1,0 +1,71 @@
+"""Issue 25's hard scenes on the virtual rig, with exact truth: over-exposure, a bright hall, a diffuse and a
+mirror groove. Each is rendered (camera 480x384, the default sequence), reconstructed by ``scan3d decode`` and
+compared point by point with the truth: completeness of the lit pixels, share of points > 1 mm off, and the
+calibration of the per-point sigma (|error| / sigma RMS in 0.7-1.4, <= 0.1 % beyond 5 sigma).
+
+Targets the decoder does not reach yet are strict xfails that state the numbers measured when they were written.
+The multi-exposure dark-and-shiny scene is in ``tests/commands/test_tune.py`` (with the exposures scan3d tune
+chooses).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hard_scenes import SceneStats, measure, scene_config
+
+SIGMA_RMS = (0.7, 1.4)
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("hard")
+
+
+def _sigma_is_honest(s: SceneStats) -> None:
+    assert SIGMA_RMS[0] <= s.z_rms <= SIGMA_RMS[1], s.line()
+    assert s.over_5sigma <= 1e-3, s.line()
+
+
+def test_default_scene_small_render(folder: Path) -> None:
+    s = measure(scene_config("default"), folder, "default")
+    print(s.line())
+    assert s.completeness >= 0.97 and s.over_1mm <= 1e-4 and s.rms_mm <= 0.15, s.line()
+    _sigma_is_honest(s)
+
+
+def test_over_exposed_4x_single_exposure_puts_out_no_wrong_point(folder: Path) -> None:
+    # the dark-and-shiny plane at 4x: its bright patches and the sphere's highlight clip at 255
+    s = measure(scene_config("dark_shiny", exposure_us=40_000), folder, "over")
+    print(s.line())
+    assert s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
+
+
+def test_bright_hall_holds(folder: Path) -> None:
+    # ambient light at 80 % of the projector's white level (white 120 DN at albedo 1, so nothing clips)
+    s = measure(scene_config("default", ambient_dn=96, gain_dn=120), folder, "hall")
+    print(s.line())
+    assert s.completeness >= 0.97 and s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
+
+
+def test_diffuse_groove_holds(folder: Path) -> None:
+    # a matte concave corner (the renderer has no diffuse interreflection yet: this checks the geometry)
+    s = measure(scene_config("diffuse_groove"), folder, "dgroove")
+    print(s.line())
+    assert s.completeness >= 0.97 and s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 25 target not reached yet: measured 17.2 % of the points > 1 mm "
+                   "(ghosts from the mirrored projector), 8.7 % beyond 5 sigma, |err|/sigma RMS 53, 92.2 % complete")
+def test_mirror_groove_has_no_ghost_points(folder: Path) -> None:
+    # a concave corner whose left face is a mirror (reflectance 0.6): the right face gets a second copy of the
+    # pattern from the mirrored projector, and the camera sees the lit right face in the mirror
+    s = measure(scene_config("mirror_groove"), folder, "mgroove")
+    print(s.line())
+    assert s.over_1mm <= 1e-3, s.line()
+    assert s.completeness >= 0.85, s.line()
+    _sigma_is_honest(s)

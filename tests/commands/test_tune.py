@@ -1,0 +1,108 @@
+"""``scan3d tune``: the capture assistant on the virtual rig, through ``appliance.cli.main``.
+
+It picks one exposure on the default scene and at most three on the dark-and-shiny scene (albedo patches
+0.03-0.95 and a glossy sphere whose highlight peaks at 8x the white level); the exposures it writes, rendered
+and decoded with ``scan3d decode``, reach issue 25's completeness. ``--apply`` goes through validation and an
+atomic write, keeping the file's comments.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+from appliance import cli
+from appliance.config import load_config
+from appliance.procedures.tune import with_exposures
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "tests" / "accuracy"))
+from hard_scenes import measure, scene_config, scene_text  # noqa: E402
+
+
+def _tune(*args: object) -> tuple[int, str]:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        rc = cli.main(["tune", *[str(a) for a in args]])
+    return rc, out.getvalue()
+
+
+def _choice(text: str) -> list[int]:
+    m = re.search(r"choice: sequence.exposures_us = \[([0-9, ]+)\]", text)
+    assert m, text
+    return [int(x) for x in m.group(1).split(",")]
+
+
+def test_default_scene_needs_one_exposure() -> None:
+    rc, text = _tune("--config", REPO / "config" / "appliance.yaml")
+    print(text)
+    assert rc == 0, text
+    assert _choice(text) == [10_000]
+    assert "cannot recover" in text and "expected scan time" in text
+
+
+@pytest.fixture(scope="module")
+def dark_shiny(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    folder = tmp_path_factory.mktemp("tune")
+    path = folder / "dark.yaml"
+    path.write_text("# the dark-and-shiny scene\n" + scene_text("dark_shiny"))
+    rc, text = _tune("--config", path, "--time-budget-ms", 4000, "--apply")
+    print(text)
+    assert rc == 0, text
+    exposures = load_config(path).sequence.exposures_us
+    stats = measure(scene_config("dark_shiny"), folder, "hdr", exposures)
+    print(stats.line())
+    return {"path": path, "text": text, "exposures": exposures, "stats": stats}
+
+
+def test_dark_and_shiny_gets_at_most_three_exposures_written_to_the_config(dark_shiny: dict[str, object]) -> None:
+    exposures = dark_shiny["exposures"]
+    assert isinstance(exposures, tuple) and 2 <= len(exposures) <= 3
+    assert list(exposures) == _choice(str(dark_shiny["text"]))
+    path = dark_shiny["path"]
+    assert isinstance(path, Path)
+    saved = path.read_text()
+    assert saved.startswith("# the dark-and-shiny scene\n") and "chosen by scan3d tune" in saved
+    assert "written: " in str(dark_shiny["text"])
+
+
+def test_the_chosen_exposures_reconstruct_the_dark_patches(dark_shiny: dict[str, object]) -> None:
+    s = dark_shiny["stats"]
+    assert s.completeness >= 0.97, s.line()  # type: ignore[attr-defined]
+    assert s.dark_completeness >= 0.95, s.line()  # type: ignore[attr-defined]
+
+
+@pytest.mark.xfail(strict=True, reason="issue 25 target not reached yet by the HDR fusion: with tune's 3 exposures "
+                   "(3536, 20000, 113137 us) RMS 0.229 mm (1.3x the default scene's 0.108 is 0.140), 1.1 % of the "
+                   "points > 1 mm and 1.27 % beyond 5 sigma, |err|/sigma RMS 1.96 (in a 4-exposure run these were "
+                   "mostly on the 0.03 and 0.05 patches); the 160000 us pass alone: RMS 0.125 mm, 0 % > 1 mm")
+def test_the_chosen_exposures_keep_accuracy_and_sigma(dark_shiny: dict[str, object]) -> None:
+    s = dark_shiny["stats"]
+    assert s.rms_mm <= 1.3 * 0.108, s.line()  # type: ignore[attr-defined]
+    assert s.over_5sigma <= 1e-3, s.line()  # type: ignore[attr-defined]
+    assert 0.7 <= s.z_rms <= 1.4, s.line()  # type: ignore[attr-defined]
+
+
+def test_a_bad_time_budget_is_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "dark.yaml"
+    path.write_text(scene_text("dark_shiny"))
+    rc, text = _tune("--config", path, "--time-budget-ms", -5)
+    assert rc == 2 and "Traceback" not in text
+    assert "--time-budget-ms = -5.0: must be a positive number of ms" in text
+
+
+def test_with_exposures_keeps_the_file_and_replaces_an_earlier_choice() -> None:
+    text = "serial: X  # keep\nsequence:\n  kind: gray_phase   # comment\n  axes: x\nvirtual_rig: {}\n"
+    once = with_exposures(text, (2500, 40000))
+    assert once.startswith("serial: X  # keep\nsequence:\n  exposures_us: [2500, 40000]")
+    assert "  kind: gray_phase   # comment\n" in once and once.endswith("virtual_rig: {}\n")
+    twice = with_exposures(once, (10000,))
+    assert twice.count("exposures_us") == 1 and "exposures_us: [10000]" in twice
+    assert with_exposures("serial: X\n", (5,)) == "serial: X\nsequence:\n  exposures_us: [5]\n"
+    flow = with_exposures("sequence: {kind: gray}\n", (7,))
+    assert "exposures_us:\n  - 7" in flow or "exposures_us: [7]" in flow
