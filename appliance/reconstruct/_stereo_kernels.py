@@ -726,3 +726,60 @@ def drop_unkept(xyz, sigma, keep):  # type: ignore[no-untyped-def]
                 sigma[r, c] = _NAN
         kept[r] = n
     return kept.sum()
+
+
+@njit(nogil=True, cache=True)
+def mark_codes(u, v, mask, grid, table):  # type: ignore[no-untyped-def]
+    """Count in ``table`` (ncv, ncu), uint8, up to 255, the pixels of every (u, v) code cell in the image.
+
+    ``grid`` = (origin u, 1 / step u, origin v, 1 / step v): cell = floor((code - origin) / step + 0.5).
+    """
+    ncv, ncu = table.shape[0], table.shape[1]
+    table[:, :] = 0
+    for r in range(u.shape[0]):
+        for c in range(u.shape[1]):
+            a, b = u[r, c], v[r, c]
+            if mask[r, c] and a == a and b == b:
+                iu = math.floor((a - grid[0]) * grid[1] + 0.5)
+                iv = math.floor((b - grid[2]) * grid[3] + 0.5)
+                if 0 <= iu < ncu and 0 <= iv < ncv and table[iv, iu] < 255:
+                    table[iv, iu] += 1
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def seen_by_both(u, v, mask, grid, table, reach_u, reach_v, least, seen):  # type: ignore[no-untyped-def]
+    """``seen`` = decoded here and a code cell within (reach_u, reach_v) cells decoded by at least ``least``
+    pixels of the other camera (``table`` of :func:`mark_codes`); returns how many pixels."""
+    h, w = u.shape[0], u.shape[1]
+    ncv, ncu = table.shape[0], table.shape[1]
+    per = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = np.int64(0)
+        for c in range(w):
+            a, b = u[r, c], v[r, c]
+            hit = False
+            if mask[r, c] and a == a and b == b:
+                iu = math.floor((a - grid[0]) * grid[1] + 0.5)
+                iv = math.floor((b - grid[2]) * grid[3] + 0.5)
+                for jv in range(max(iv - reach_v, 0), min(iv + reach_v + 1, ncv)):
+                    for ju in range(max(iu - reach_u, 0), min(iu + reach_u + 1, ncu)):
+                        if table[jv, ju] >= least:
+                            hit = True
+            seen[r, c] = hit
+            n += np.int64(hit)
+        per[r] = n
+    return per.sum()
+
+
+@njit(nogil=True, cache=True, parallel=True)
+def count_points_in(xyz, seen):  # type: ignore[no-untyped-def]
+    """How many pixels where ``seen`` holds a point (finite z)."""
+    h, w = seen.shape[0], seen.shape[1]
+    per = np.zeros(h, np.int64)
+    for r in prange(h):
+        n = np.int64(0)
+        for c in range(w):
+            if seen[r, c] and xyz[r, c, 2] == xyz[r, c, 2]:
+                n += 1
+        per[r] = n
+    return per.sum()

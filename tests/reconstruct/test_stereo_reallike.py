@@ -117,6 +117,11 @@ def test_real_like_capture_gets_a_point_for_every_pixel_both_cameras_see() -> No
           f"p99 {np.percentile(err, 99):.2f} mm; small holes {100 * small:.2f} %, peak {peak:.0f}")  # fmt: skip
     report = rec.stereo_report
     assert report is not None and "matched by code cells" in str(report["code"]), report
+    said = report["both_seen"]  # what the product tells a user, from the codes alone, against the truth
+    assert isinstance(said, dict), report
+    print(f"reported: {said}")
+    assert abs(said["pixels"] / both.sum() - 1.0) < 0.15, said  # codes say 12 % more pixels than the truth
+    assert abs(said["share"] - coverage) < 0.02, said
     assert coverage >= 0.97
     assert median <= 0.5  # half the real cameras' focal length: twice their depth error per px
     assert np.mean(err > 20.0) < 1e-3
