@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_common import REPO, median_ms, parallel_read_floor
 
-REPO = Path(__file__).resolve().parents[1]
 BATCH = 5
 """Captures in the batch decode (one process); the figure is the median of those after the first."""
 COARSE_CELL_PX = 8.0
@@ -44,14 +44,8 @@ print(json.dumps({"opencv_version": cv2.__version__, "opencv_decode_ms": statist
 """
 
 
-def _median_ms(fn: Any, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(times)
+def _ms(fn: Any, repeats: int) -> float:
+    return median_ms(fn, repeats)[0]
 
 
 def _error_stats(xyz: np.ndarray, truth: np.ndarray) -> tuple[int, float, float]:
@@ -100,16 +94,14 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
 
     maps = decode_both()
     # memory floors: one numpy pass reading both stacks' frames, and one writing an (H, W, 3) float32 cloud
-    t_read = _median_ms(lambda: [np.add.reduce(s, axis=0, dtype=np.uint16) for s in stacks.values()], repeats)
-    from bench import parallel_read_floor
-
+    t_read = _ms(lambda: [np.add.reduce(s, axis=0, dtype=np.uint16) for s in stacks.values()], repeats)
     read_all = parallel_read_floor()
-    t_read_par = _median_ms(lambda: [read_all(s) for s in stacks.values()], repeats)
+    t_read_par = _ms(lambda: [read_all(s) for s in stacks.values()], repeats)
     cloud = np.empty((*stacks["cam0"].shape[1:], 3), np.float32)
-    t_write = _median_ms(lambda: cloud.fill(1.0), repeats)
-    t_dec = _median_ms(decode_both, repeats)
-    t_tri = _median_ms(lambda: tri.triangulate(maps["cam0"], maps["cam1"]), repeats)
-    t_all = _median_ms(lambda: tri.triangulate(*decode_both().values()), repeats)
+    t_write = _ms(lambda: cloud.fill(1.0), repeats)
+    t_dec = _ms(decode_both, repeats)
+    t_tri = _ms(lambda: tri.triangulate(maps["cam0"], maps["cam1"]), repeats)
+    t_all = _ms(lambda: tri.triangulate(*decode_both().values()), repeats)
     # the same on one core: how the work scales (compute-bound work halves with the second core, a pass
     # limited by memory bandwidth does not)
     import numba
@@ -117,7 +109,7 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        t_all_1 = _median_ms(lambda: tri.triangulate(*decode_both().values()), max(3, repeats // 3))
+        t_all_1 = _ms(lambda: tri.triangulate(*decode_both().values()), max(3, repeats // 3))
     finally:
         numba.set_num_threads(threads)
     truth = rig.ground_truth("cam0").xyz
@@ -126,7 +118,7 @@ def bench_stereo(repeats: int) -> dict[str, Any]:
     # per-pixel work: decode, cell sums, each pixel's match), and what it costs in accuracy.
     coarse = StereoTriangulator(rig.cameras["cam0"], rig.cameras["cam1"])
     coarse.cell_min_px = COARSE_CELL_PX
-    t_coarse = _median_ms(lambda: coarse.triangulate(*decode_both().values()), repeats)
+    t_coarse = _ms(lambda: coarse.triangulate(*decode_both().values()), repeats)
     points, median_mm, p99_mm = _error_stats(tri.triangulate(maps["cam0"], maps["cam1"]), truth)
     _, coarse_median_mm, coarse_p99_mm = _error_stats(coarse.triangulate(maps["cam0"], maps["cam1"]), truth)
     res: dict[str, Any] = {
@@ -186,8 +178,8 @@ def _bench_load_jpeg(folder: Path, stacks: dict[str, np.ndarray], repeats: int) 
         for p, img in zip(paths[n], s, strict=True):
             cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     runs = max(3, repeats // 3)
-    one = _median_ms(lambda: [load_images(ps, threads=1) for ps in paths.values()], runs)
-    many = _median_ms(lambda: [load_images(ps) for ps in paths.values()], runs)
+    one = _ms(lambda: [load_images(ps, threads=1) for ps in paths.values()], runs)
+    many = _ms(lambda: [load_images(ps) for ps in paths.values()], runs)
     return {"load_frames": sum(map(len, paths.values())), "load_jpeg_1thread_ms": one, "load_jpeg_ms": many,
             "load_threads": len(os.sched_getaffinity(0))}  # fmt: skip
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import base64
 import html
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from appliance.calibration.intrinsics import CameraResult
-from appliance.calibration.stereo import StereoResult
+from appliance.calibration.stereo import StereoEntry
 from appliance.errors import OutputError
 
 if TYPE_CHECKING:
@@ -30,15 +29,6 @@ U8 = npt.NDArray[np.uint8]
 PLOT_WIDTH_PX = 800
 _VIEW_COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
                  (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]  # fmt: skip
-
-
-@dataclass(frozen=True)
-class StereoEntry:
-    """A stereo result with the names of its two devices."""
-
-    first: str
-    second: str
-    result: StereoResult
 
 
 def report_paths(calibration_path: Path) -> tuple[Path, Path]:

@@ -21,7 +21,6 @@ from appliance.calibration.boards import Detection
 from appliance.calibration.bundle import BundleResult, Observation, bundle_adjust
 from appliance.calibration.intrinsics import CameraResult, coverage_map
 from appliance.calibration.projector import ProcamView
-from appliance.calibration.report import StereoEntry
 from appliance.calibration.selection import (
     HELD_OUT_ITERATIONS,
     HELD_OUT_REL_TOL,
@@ -29,7 +28,7 @@ from appliance.calibration.selection import (
     pnp_error,
     select_model,
 )
-from appliance.calibration.stereo import StereoResult, stereo_calibrate
+from appliance.calibration.stereo import StereoEntry, StereoResult, stereo_calibrate
 from appliance.errors import CalibrationError
 from appliance.geometry.calibration_file import PROJECTOR_NAME
 from appliance.geometry.camera import CameraModel

@@ -54,6 +54,15 @@ class StereoResult:
         return float(np.linalg.norm(self.T))
 
 
+@dataclass(frozen=True)
+class StereoEntry:
+    """A stereo result with the names of its two devices."""
+
+    first: str
+    second: str
+    result: StereoResult
+
+
 def common_points(a: Detection, b: Detection) -> tuple[F64, F64, F64]:
     """Board points seen in both detections: object (N, 3) mm, image points in ``a`` and ``b`` (N, 2) px."""
     _, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)

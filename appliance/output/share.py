@@ -35,8 +35,6 @@ import hashlib
 import json
 import logging
 import os
-import re
-import shutil
 import threading
 import time
 from collections import deque
@@ -48,9 +46,17 @@ from typing import Any, TypeVar
 
 from appliance.config.schema import OutputConfig
 from appliance.errors import OutputError
-from appliance.output.atomic import TMP_PREFIX, fsync_dir, mkdir_synced, write_atomic, write_bytes_atomic
+from appliance.output.atomic import TMP_PREFIX, fsync_dir, mkdir_synced, write_bytes_atomic
 from appliance.output.scanfiles import FileContent, scan_file_contents
 from appliance.output.sidecar import ScanMetadata
+from appliance.output.spool import (
+    DAY,
+    ENTRY_FILE,
+    Spool,
+    SpoolEntryBroken,
+    SpoolFile,
+    dir_bytes,
+)
 from appliance.reconstruct.types import PointCloud
 
 log = logging.getLogger(__name__)
@@ -58,26 +64,19 @@ log = logging.getLogger(__name__)
 # Module-level so tests can fake a full disk: path -> os.statvfs_result-like (f_bavail, f_frsize).
 STATVFS: Callable[[str], Any] = os.statvfs
 
-ENTRY_FILE = "entry.json"
 JOURNAL_FILE = ".share-inflight.json"
-QUARANTINE_DIR = "quarantine"
 MB = 1024 * 1024
 CHUNK = 4 * MB  # one write to the share, one deadline
 FAILURE_HOLD_S = 30.0  # after a failed operation the share counts as away this long (s)
 MIN_FREE_INODES = 16  # fewer free inodes than this on the share (where it counts them): full
 STALE_TMP_S = 3600.0  # at start, temporary files this old in the newest day folders are removed (s)
 STATUS_WAIT_S = 0.5  # status waits this long for a probe, then answers from the last one (s)
-_DAY = re.compile(r"\d{4}-\d{2}-\d{2}")
 
 T = TypeVar("T")
 
 
 class ShareUnavailable(OutputError):
     """The share did not answer within ``output.share_timeout_s`` or an operation on it failed."""
-
-
-class SpoolEntryBroken(OutputError):
-    """A spool entry that cannot be moved for its own fault (quarantined)."""
 
 
 class _GateBusy(Exception):
@@ -116,27 +115,6 @@ def free_bytes(path: Path) -> int:
     """Bytes available to this user on the filesystem of ``path`` (via :data:`STATVFS`)."""
     st = STATVFS(str(path))
     return int(st.f_bavail) * int(st.f_frsize)
-
-
-def _dir_bytes(path: Path) -> int:
-    total = 0
-    try:
-        for p in path.iterdir():
-            try:
-                total += p.stat().st_size
-            except OSError:
-                pass
-    except OSError:
-        pass
-    return total
-
-
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _write_all(fd: int, data: memoryview) -> None:
@@ -268,25 +246,6 @@ def _unlink_if_there(path: Path) -> None:
         pass
 
 
-@dataclass(frozen=True)
-class _SpoolFile:
-    name: str
-    size: int
-    sha256: str
-
-
-@dataclass(frozen=True)
-class _Entry:
-    path: Path
-    day: str
-    scan_id: str
-    files: tuple[_SpoolFile, ...]
-
-    @property
-    def size(self) -> int:
-        return sum(f.size for f in self.files)
-
-
 class ShareWriter:
     """Writes scans to the share or the spool, moves the spool over, applies retention.
 
@@ -300,9 +259,7 @@ class ShareWriter:
     def __init__(self, cfg: OutputConfig) -> None:
         self.cfg = cfg
         self.directory = Path(cfg.directory)
-        self.spool = Path(cfg.spool_directory)
-        self.dropped = 0
-        self.quarantined = 0
+        self.spool = Spool(Path(cfg.spool_directory), cfg, lambda path: free_bytes(path))
         self.last_reason = ""
         self.gate = gate_for(self.directory, cfg.share_timeout_s)
         self.delivered: deque[str] = deque(maxlen=10_000)  # scan ids, in the order their sidecars appeared
@@ -395,22 +352,22 @@ class ShareWriter:
 
     def _journal(self) -> list[dict[str, str]]:
         try:
-            data = json.loads((self.spool / JOURNAL_FILE).read_text())
+            data = json.loads((self.spool.directory / JOURNAL_FILE).read_text())
             return [r for r in data if isinstance(r, dict) and {"folder", "scan_id"} <= r.keys()]
         except (OSError, ValueError, TypeError):
             return []
 
     def _set_journal(self, records: list[dict[str, str]]) -> None:
-        path = self.spool / JOURNAL_FILE
+        path = self.spool.directory / JOURNAL_FILE
         try:
             if records:
-                self.spool.mkdir(parents=True, exist_ok=True)
+                self.spool.directory.mkdir(parents=True, exist_ok=True)
                 write_bytes_atomic(path, json.dumps(records).encode())
             elif path.exists():
                 path.unlink()
-                fsync_dir(self.spool)
+                fsync_dir(self.spool.directory)
         except OSError as exc:
-            raise OutputError(f"spool {self.spool}: the share journal {JOURNAL_FILE} cannot be written "
+            raise OutputError(f"spool {self.spool.directory}: the share journal {JOURNAL_FILE} cannot be written "
                               f"({exc.strerror or exc}); check the local disk") from exc
 
     def _clean_share_leftovers(self) -> int:
@@ -447,7 +404,7 @@ class ShareWriter:
             self._set_journal(records)
         return removed
 
-    def _put_tmp(self, folder: Path, name: str, content: FileContent | _SpoolFile, src: Path | None) -> Path:
+    def _put_tmp(self, folder: Path, name: str, content: FileContent | SpoolFile, src: Path | None) -> Path:
         """Write one file to a temporary name in ``folder`` on the share and fsync it; returns that name.
 
         ``content`` in memory, or a spool file ``src`` checked against its size and SHA-256 while copied.
@@ -518,7 +475,7 @@ class ShareWriter:
                     self._op(f"closing {path.name}", partial(os.close, fd))
         return h.hexdigest() == sha256
 
-    def _deliver(self, day: str, scan_id: str, files: list[tuple[FileContent | _SpoolFile, Path | None]]
+    def _deliver(self, day: str, scan_id: str, files: list[tuple[FileContent | SpoolFile, Path | None]]
                  ) -> list[Path]:
         """Put one scan's files into ``share/day/``: all under temporary names, then the renames, the sidecar
         last. The journal notes the scan first; on any failure what became visible is removed again."""
@@ -531,7 +488,7 @@ class ShareWriter:
             placed: list[tuple[Path, Path | None]] = []  # (final, tmp or None when it is already there)
             for content, src in files:
                 dst = folder / content.name
-                if isinstance(content, _SpoolFile) and self._same_file(dst, content.size, content.sha256):
+                if isinstance(content, SpoolFile) and self._same_file(dst, content.size, content.sha256):
                     placed.append((dst, None))  # moved before (a crash after the rename): counts as moved
                     continue
                 placed.append((dst, self._put_tmp(folder, content.name, content, src)))
@@ -554,83 +511,33 @@ class ShareWriter:
         self.delivered.append(scan_id)
         return [dst for dst, _ in placed]
 
-    # --- spool -----------------------------------------------------------------------------------
+    # --- spool (appliance/output/spool.py) ---------------------------------------------------------
 
     def spool_problem(self, need_bytes: int) -> str:
         """Why the spool cannot take ``need_bytes`` now ('' when it can)."""
-        try:
-            self.spool.mkdir(parents=True, exist_ok=True)
-            free = free_bytes(self.spool)
-        except OSError as exc:
-            return f"spool {self.spool}: {exc.strerror or exc}"
-        if free < need_bytes + self.cfg.min_free_mb * MB:
-            return (f"spool {self.spool}: {free / MB:.0f} MB free, needs {need_bytes / MB:.0f} MB "
-                    "+ output.min_free_mb")
-        used = self.spool_bytes()
-        if used + need_bytes > self.cfg.spool_max_mb * MB:
-            return (f"spool {self.spool} holds {used / MB:.0f} MB of output.spool_max_mb = "
-                    f"{self.cfg.spool_max_mb:g} MB")
-        return ""
+        return self.spool.problem(need_bytes)
 
     def spool_entries(self) -> list[Path]:
         """Complete spooled scans, oldest first."""
-        try:
-            entries = [p for p in self.spool.iterdir()
-                       if p.is_dir() and not p.name.startswith(TMP_PREFIX) and p.name != QUARANTINE_DIR
-                       and (p / ENTRY_FILE).is_file()]
-        except OSError:
-            return []
-        return sorted(entries, key=lambda p: p.name)
+        return self.spool.entries()
 
     def spool_bytes(self) -> int:
         """Bytes held by the spool."""
-        return sum(_dir_bytes(e) for e in self.spool_entries())
+        return self.spool.bytes()
 
-    def _next_order(self) -> int:
-        heads = [p.name.split("-", 1)[0] for p in self.spool_entries()]
-        orders = [int(h) for h in heads if h.isdigit()]
-        return max(orders, default=0) + 1
+    def enforce_retention(self, now: float | None = None) -> list[str]:
+        """The spool's retention (:meth:`Spool.enforce_retention`): the entries dropped."""
+        return self.spool.enforce_retention(now)
 
-    def _quarantine(self, entry: Path, why: str) -> None:
-        qdir = self.spool / QUARANTINE_DIR
-        try:
-            qdir.mkdir(exist_ok=True)
-            os.replace(entry, qdir / entry.name)
-            fsync_dir(self.spool)
-            fsync_dir(qdir)
-        except OSError as exc:  # cannot even move it: drop it, the queue must go on
-            shutil.rmtree(entry, ignore_errors=True)
-            why += f"; could not be quarantined ({exc.strerror or exc}), removed"
-        self.quarantined += 1
-        log.warning("spool entry %s quarantined in %s: %s", entry.name, qdir, why)
+    @property
+    def dropped(self) -> int:
+        """Spooled scans dropped by retention since start."""
+        return self.spool.dropped
 
-    def _quarantine_strays(self) -> None:
-        """Folders in the spool that are neither temporary nor complete entries (no entry.json)."""
-        try:
-            strays = [p for p in self.spool.iterdir() if p.is_dir() and not p.name.startswith(TMP_PREFIX)
-                      and p.name != QUARANTINE_DIR and not (p / ENTRY_FILE).is_file()]
-        except OSError:
-            return
-        for p in strays:
-            self._quarantine(p, f"no {ENTRY_FILE} (written half-way?)")
-
-    def _read_entry(self, entry: Path) -> _Entry:
-        try:
-            info = json.loads((entry / ENTRY_FILE).read_text())
-            day, scan_id = str(info["day"]), str(info["scan_id"])
-            files = []
-            for f in info["files"]:
-                if isinstance(f, str):  # written before sizes and checksums were kept
-                    p = entry / f
-                    files.append(_SpoolFile(f, p.stat().st_size, _sha256_file(p)))
-                else:
-                    files.append(_SpoolFile(str(f["name"]), int(f["size"]), str(f["sha256"])))
-        except (OSError, ValueError, TypeError, KeyError, UnicodeDecodeError) as exc:
-            raise SpoolEntryBroken(f"{ENTRY_FILE} unreadable ({exc})") from exc
-        if not _DAY.fullmatch(day) or not files or any("/" in f.name or f.name.startswith(".") for f in files):
-            raise SpoolEntryBroken(f"{ENTRY_FILE} names day {day!r} and files {[f.name for f in files]}")
-        files.sort(key=lambda f: f.name.endswith(".json"))  # the sidecar last
-        return _Entry(entry, day, scan_id, tuple(files))
+    @property
+    def quarantined(self) -> int:
+        """Spool entries quarantined since start."""
+        return self.spool.quarantined
 
     def cleanup_incomplete(self) -> int:
         """At start: remove what a crash left half-written (spool and share) and quarantine broken entries.
@@ -640,13 +547,7 @@ class ShareWriter:
         int
             Temporary folders and files removed.
         """
-        removed = 0
-        if self.spool.is_dir():
-            for p in self.spool.iterdir():
-                if p.name.startswith(TMP_PREFIX):
-                    shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
-                    removed += 1
-            self._quarantine_strays()
+        removed = self.spool.remove_leftovers()
         try:
             removed += self._clean_share_leftovers()
             removed += self._op("sweeping old temporary files", self._sweep_stale_tmp)
@@ -659,7 +560,7 @@ class ShareWriter:
         without a journal, e.g. an older version; a write in progress, also another appliance's, is younger)."""
         if not self.directory.is_dir():
             return 0
-        days = sorted(n for n in os.listdir(self.directory) if _DAY.fullmatch(n))[-2:]
+        days = sorted(n for n in os.listdir(self.directory) if DAY.fullmatch(n))[-2:]
         removed = 0
         now = time.time()
         for day in days:
@@ -674,34 +575,6 @@ class ShareWriter:
                 fsync_dir(folder)
         return removed
 
-    def _write_spool(self, day: str, scan_id: str, contents: list[FileContent]) -> list[Path]:
-        self.spool.mkdir(parents=True, exist_ok=True)
-        name = f"{self._next_order():08d}-{scan_id}"
-        tmp = self.spool / f"{TMP_PREFIX}{name}"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir()
-        try:
-            files = []
-            for c in contents:
-                write_atomic(tmp / c.name, c.write_to)
-                files.append({"name": c.name, "size": c.size, "sha256": c.sha256()})
-            entry = {"day": day, "scan_id": scan_id, "files": files,
-                     "spooled_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-            write_bytes_atomic(tmp / ENTRY_FILE, json.dumps(entry).encode())  # fsyncs it and the folder
-            final = self.spool / name
-            os.replace(tmp, final)
-            fsync_dir(self.spool)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return [final / c.name for c in contents]
-
-    def _remove_entry(self, entry: Path) -> None:
-        gone = entry.with_name(f"{TMP_PREFIX}{entry.name}")  # never half-removed under its own name
-        os.replace(entry, gone)
-        fsync_dir(self.spool)
-        shutil.rmtree(gone, ignore_errors=True)
-
     def flush_spool(self) -> list[WriteOutcome]:
         """Move spooled scans to the share, oldest first, until the share refuses one.
 
@@ -711,12 +584,12 @@ class ShareWriter:
             The scans moved (location ``share``).
         """
         moved: list[WriteOutcome] = []
-        self._quarantine_strays()
+        self.spool.quarantine_strays()
         for path in self.spool_entries():
             try:
-                entry = self._read_entry(path)
+                entry = self.spool.read_entry(path)
             except SpoolEntryBroken as exc:
-                self._quarantine(path, str(exc))
+                self.spool.quarantine(path, str(exc))
                 continue
             problem = self.share_problem(entry.size)
             if problem:
@@ -727,58 +600,19 @@ class ShareWriter:
                 files = self._deliver(entry.day, entry.scan_id,
                                       [(f, entry.path / f.name) for f in entry.files])
             except SpoolEntryBroken as exc:
-                self._quarantine(path, str(exc))
+                self.spool.quarantine(path, str(exc))
                 continue
             except OutputError as exc:
                 self.last_reason = f"moving {path.name} to the share failed: {exc}"
                 log.warning("%s; it stays in the spool", self.last_reason)
                 break
             try:
-                self._remove_entry(path)
+                self.spool.remove_entry(path)
             except OSError as exc:  # on the share already; a later flush sees it there and removes it
                 log.warning("spool entry %s moved but not removed: %s", path.name, exc)
             log.info("spooled scan %s moved to the share", entry.scan_id)
             moved.append(WriteOutcome(entry.scan_id, "share", files))
         return moved
-
-    def enforce_retention(self, now: float | None = None) -> list[str]:
-        """Drop spooled scans older than ``spool_max_age_days``, then the oldest beyond ``spool_max_mb``.
-
-        Returns
-        -------
-        list of str
-            The entries dropped (each is logged as a warning).
-        """
-        now = time.time() if now is None else now
-        dropped: list[str] = []
-        entries = self.spool_entries()
-        max_age = self.cfg.spool_max_age_days * 86400.0
-        sizes = {e: _dir_bytes(e) for e in entries}
-        total = sum(sizes.values())
-        for e in entries:
-            try:
-                too_old = now - e.stat().st_mtime > max_age
-            except OSError:
-                continue
-            too_big = total > self.cfg.spool_max_mb * MB
-            if not (too_old or too_big):
-                continue
-            shutil.rmtree(e, ignore_errors=True)
-            total -= sizes[e]
-            dropped.append(e.name)
-            why = "older than output.spool_max_age_days" if too_old else "spool over output.spool_max_mb"
-            log.warning("spool retention dropped %s (%s)", e.name, why)
-        qdir = self.spool / QUARANTINE_DIR
-        try:
-            for q in qdir.iterdir():  # kept for a look, as long as spooled scans are
-                if now - q.stat().st_mtime > max_age:
-                    shutil.rmtree(q, ignore_errors=True)
-                    log.warning("spool retention dropped quarantined %s (older than output.spool_max_age_days)",
-                                q.name)
-        except OSError:
-            pass
-        self.dropped += len(dropped)
-        return dropped
 
     # --- one scan --------------------------------------------------------------------------------
 
@@ -817,11 +651,11 @@ class ShareWriter:
             raise OutputError(f"scan {meta.scan_id} cannot be stored: {reason}; {spool_problem}; "
                               "free space or bring the share back")
         try:
-            paths = self._write_spool(day, meta.scan_id, contents)
+            paths = self.spool.write(day, meta.scan_id, contents)
         except (OSError, OutputError) as exc:
-            raise OutputError(f"scan {meta.scan_id}: spool {self.spool} failed ({exc}); "
+            raise OutputError(f"scan {meta.scan_id}: spool {self.spool.directory} failed ({exc}); "
                               "check the disk") from exc
-        log.warning("scan %s spooled in %s: %s", meta.scan_id, self.spool, reason)
+        log.warning("scan %s spooled in %s: %s", meta.scan_id, self.spool.directory, reason)
         self.enforce_retention()
         return WriteOutcome(meta.scan_id, "spool", paths, reason)
 
@@ -829,17 +663,14 @@ class ShareWriter:
         """Share and spool state for ``scan3d status`` (any thread; never waits for the share)."""
         problem = self.share_problem(0, wait=False)
         entries = self.spool_entries()
-        try:
-            quarantined = len(list((self.spool / QUARANTINE_DIR).iterdir()))
-        except OSError:
-            quarantined = 0
+        quarantined = self.spool.quarantine_count()
         out: dict[str, Any] = {
             "directory": str(self.directory),
             "available": not problem,
             "problem": problem,
-            "spool_directory": str(self.spool),
+            "spool_directory": str(self.spool.directory),
             "spooled_scans": len(entries),
-            "spool_mb": round(sum(_dir_bytes(e) for e in entries) / MB, 2),
+            "spool_mb": round(sum(dir_bytes(e) for e in entries) / MB, 2),
             "spool_dropped": self.dropped,
             "spool_quarantined": quarantined,
         }

@@ -16,6 +16,7 @@ from share_watch import DirWatch
 from appliance.config.schema import OutputConfig
 from appliance.errors import OutputError
 from appliance.output import share as S
+from appliance.output import spool
 from appliance.output.atomic import TMP_PREFIX
 from appliance.output.ply import read_ply_vertices
 from appliance.output.sidecar import ScanMetadata
@@ -189,7 +190,7 @@ def test_retention_drops_old_and_oversize_entries(dirs: SimpleNamespace) -> None
         OutputConfig(
             directory=dirs.share,
             spool_directory=dirs.spool,
-            spool_max_mb=S._dir_bytes(entries[2]) * 1.5 / S.MB,
+            spool_max_mb=spool.dir_bytes(entries[2]) * 1.5 / S.MB,
         )
     )
     assert small.enforce_retention() == [entries[1].name]  # oldest first until under the limit
@@ -266,7 +267,7 @@ def test_spool_entry_already_on_the_share_counts_as_moved(dirs: SimpleNamespace)
     w, entries = spool_two_scans(dirs)
     folder = dirs.share / "2026-01-01"
     for p in entries[0].iterdir():
-        if p.name != S.ENTRY_FILE:
+        if p.name != spool.ENTRY_FILE:
             (folder / p.name).write_bytes(p.read_bytes())
     inodes = {p.name: p.stat().st_ino for p in folder.iterdir()}
     watch = DirWatch(folder)
@@ -296,21 +297,21 @@ def test_broken_spool_entry_is_quarantined_and_the_queue_goes_on(
     w, entries = spool_two_scans(dirs)
     sid = meta(1).scan_id
     if damage == "empty entry.json":
-        (entries[0] / S.ENTRY_FILE).write_bytes(b"")
+        (entries[0] / spool.ENTRY_FILE).write_bytes(b"")
     elif damage == "binary entry.json":
-        (entries[0] / S.ENTRY_FILE).write_bytes(b"\xff\xfe\x00garbage")
+        (entries[0] / spool.ENTRY_FILE).write_bytes(b"\xff\xfe\x00garbage")
     elif damage == "file changed":
         with open(entries[0] / f"{sid}.ply", "r+b") as f:
             f.seek(-4, os.SEEK_END)
             f.write(b"XXXX")
     else:
         (entries[0] / f"{sid}.png").unlink()
-    caplog.set_level("WARNING", logger="appliance.output.share")
+    caplog.set_level("WARNING", logger="appliance.output.spool")
     moved = w.flush_spool()
     assert [m.scan_id for m in moved] == [meta(2).scan_id]
     assert_complete_on_share(dirs, 2)
     assert w.spool_entries() == [] and w.quarantined == 1
-    assert (dirs.spool / S.QUARANTINE_DIR / entries[0].name).is_dir()
+    assert (dirs.spool / spool.QUARANTINE_DIR / entries[0].name).is_dir()
     lines = [r.getMessage() for r in caplog.records if "quarantined" in r.getMessage()]
     assert len(lines) == 1 and entries[0].name in lines[0] and "\n" not in lines[0]
     folder = dirs.share / "2026-01-01"
@@ -321,7 +322,7 @@ def test_broken_spool_entry_is_quarantined_and_the_queue_goes_on(
 
 def test_spool_folder_without_entry_json_is_quarantined_at_start(dirs: SimpleNamespace) -> None:
     w, entries = spool_two_scans(dirs)
-    (entries[0] / S.ENTRY_FILE).unlink()
+    (entries[0] / spool.ENTRY_FILE).unlink()
     assert w.cleanup_incomplete() == 0
     assert w.spool_entries() == [entries[1]] and w.quarantined == 1
     assert [m.scan_id for m in w.flush_spool()] == [meta(2).scan_id]
@@ -329,7 +330,7 @@ def test_spool_folder_without_entry_json_is_quarantined_at_start(dirs: SimpleNam
 
 def test_spool_entry_json_names_sizes_and_checksums(dirs: SimpleNamespace) -> None:
     _, entries = spool_two_scans(dirs)
-    info = json.loads((entries[0] / S.ENTRY_FILE).read_text())
+    info = json.loads((entries[0] / spool.ENTRY_FILE).read_text())
     assert info["day"] == "2026-01-01" and info["scan_id"] == meta(1).scan_id
     assert [f["name"] for f in info["files"]] == [f"{meta(1).scan_id}{s}" for s in (".ply", ".png", ".json")]
     import hashlib
