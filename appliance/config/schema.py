@@ -298,6 +298,11 @@ class ImagingConfig(_Strict):
         0.5, ge=0, le=20, description="Camera defocus (Gaussian sigma, camera px, at most 20)."
     )
     bit_depth: Literal[8, 12, 16] = Field(8, description="Camera bit depth; saturates at full scale.")
+    interreflection_samples: int = Field(
+        0, ge=0, le=64,
+        description="One-bounce diffuse interreflection between objects: hemisphere samples per pixel "
+        "(each a light layer; 0: off).",
+    )
     seed: int | None = Field(
         1, ge=0, le=2**63 - 1, description="Noise seed, a whole number >= 0 (None: different noise each scan)."
     )

@@ -236,7 +236,10 @@ class VirtualRig:
         mats = [o.material for o in self.scene.objects]
         spec_of = np.asarray([m.specular for m in mats] + [0.0])  # index -1 (no hit) -> 0
         shin_of = np.asarray([m.shininess for m in mats] + [1.0])
-        layers: list[Layer] = [(np.full((n, 2), np.nan), np.zeros(n, dtype=np.float32)) for _ in self.scene.mirrors]
+        n_bounce = self.imaging.interreflection_samples
+        layers: list[Layer] = [(np.full((n, 2), np.nan), np.zeros(n, dtype=np.float32))
+                               for _ in range(len(self.scene.mirrors) + n_bounce)]
+        bounce_rng = np.random.default_rng([7, self.camera_names().index(cam.name)])
         for r0 in range(0, h, CHUNK_ROWS):
             r1 = min(h, r0 + CHUNK_ROWS)
             s = slice(r0 * w, r1 * w)
@@ -279,8 +282,11 @@ class VirtualRig:
                 reflect = reflect + spec * lobe
             gain[s] = np.where(illum, self.imaging.projector_gain_dn * reflect * window, 0.0)
             ambient[s] = self.imaging.ambient_dn * albedo
-            for (luv, lgain), mirror in zip(layers, self.scene.mirrors, strict=True):
+            for (luv, lgain), mirror in zip(layers, self.scene.mirrors, strict=False):
                 self._mirror_light(cam, mirror, xyz, nrm, dirs, hits.object_id, luv[s], lgain[s], ambient[s])
+            if n_bounce:
+                self._bounce_light(xyz, nrm, albedo, hits.object_id, layers[len(self.scene.mirrors):], s,
+                                   bounce_rng)
             uv[s] = puv
             if full:
                 dev = np.empty((m, 3))
@@ -374,6 +380,49 @@ class VirtualRig:
             alb = self.scene.albedo(y, yid)
             ambient[sel] += np.float32(self.imaging.ambient_dn * refl) * alb.astype(np.float32)
             self._light_from(y, sel, refl * alb * cos_y * gain_dn, luv, lgain)
+
+    def _bounce_light(self, xyz: F64, nrm: F64, albedo: F64, oid: I32, layers: list[Layer], s: slice,
+                      rng: np.random.Generator) -> None:
+        """One-bounce diffuse interreflection on a chunk of pixels: one layer per hemisphere sample.
+
+        Sample k of a pixel at X casts a cosine-weighted direction from X; where it hits a point Y lit by the
+        projector, layer k carries Y's projector coordinates and the light ``gain * albedo_X * albedo_Y *
+        cos_Y / K`` (Lambertian; the cosine-weighted estimate of the irradiance at X from Y's radiance).
+        """
+        k_total = len(layers)
+        sel = np.flatnonzero(oid >= 0)
+        if sel.size == 0 or k_total == 0:
+            return
+        pc = self.projector.center
+        n = nrm[sel]
+        # an orthonormal frame around each normal
+        a = np.where((np.abs(n[:, 0]) < 0.9)[:, None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+        t1 = np.cross(n, a)
+        t1 /= np.linalg.norm(t1, axis=1)[:, None]
+        t2 = np.cross(n, t1)
+        for k, (luv, lgain) in enumerate(layers):
+            # stratified in the azimuth: sample k covers the k-th sector of every pixel's hemisphere
+            u1 = rng.random(sel.size)
+            phi = 2.0 * np.pi * (k + rng.random(sel.size)) / k_total
+            r = np.sqrt(u1)
+            d = (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2 + np.sqrt(1.0 - u1)[:, None] * n
+            start = xyz[sel] + SHADOW_OFFSET_MM * n
+            hit = self.scene.intersect(start, d, t_min=1e-6)
+            ok = hit.object_id >= 0
+            idx, y = sel[ok], start[ok] + hit.t[ok][:, None] * d[ok]
+            ny = hit.normal[ok]
+            ny = np.where((_dot(ny, d[ok]) > 0)[:, None], -ny, ny)
+            to_p = pc - y
+            dp = np.sqrt(_dot(to_p, to_p))
+            ly = to_p / dp[:, None]
+            cos_y = _dot(ny, ly)
+            front = cos_y > 0
+            idx, y, ny, ly, dp, cos_y, yid = (idx[front], y[front], ny[front], ly[front], dp[front], cos_y[front],
+                                              hit.object_id[ok][front])
+            free = ~self.scene.occluded(y + SHADOW_OFFSET_MM * ny, ly, dp, t_min=1e-6)
+            idx, y, cos_y, yid = idx[free], y[free], cos_y[free], yid[free]
+            g = self.imaging.projector_gain_dn * albedo[idx] * self.scene.albedo(y, yid) * cos_y / k_total
+            self._light_from(y, idx, g, luv[s], lgain[s])
 
     def _light_from(self, points: F64, sel: npt.NDArray[np.intp], gain: F64, luv: F64, lgain: F32) -> None:
         """Projector coordinates of world ``points`` and their light ``gain`` (DN) into rows ``sel``."""

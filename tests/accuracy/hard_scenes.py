@@ -41,7 +41,8 @@ virtual_rig:
     %(camera)s
   scene:
 %(scene)s
-  imaging: {ambient_dn: %(ambient)s, projector_gain_dn: %(gain)s, exposure_us: %(exposure)s, seed: 3}
+  imaging: {ambient_dn: %(ambient)s, projector_gain_dn: %(gain)s, exposure_us: %(exposure)s, seed: 3,
+            interreflection_samples: %(bounce)s}
 """
 
 #: the projector's white level on albedo 1 (DN, the default imaging.projector_gain_dn)
@@ -76,17 +77,18 @@ SCENES: dict[str, str] = {
 
 
 
-def scene_text(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0, gain_dn: float = WHITE_DN) -> str:
-    """The config text of one hard scene at an exposure (µs; the reference is 10 000), ambient light and white
-    level (DN at albedo 1)."""
+def scene_text(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0, gain_dn: float = WHITE_DN,
+               bounce: int = 0) -> str:
+    """The config text of one hard scene at an exposure (µs; the reference is 10 000), ambient light, white
+    level (DN at albedo 1) and diffuse interreflection samples (0: off)."""
     return _BASE % {"camera": CAMERA, "scene": SCENES[scene], "ambient": ambient_dn, "exposure": exposure_us,
-                    "gain": gain_dn}
+                    "gain": gain_dn, "bounce": bounce}
 
 
 def scene_config(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0,
-                 gain_dn: float = WHITE_DN) -> AppConfig:
+                 gain_dn: float = WHITE_DN, bounce: int = 0) -> AppConfig:
     """The parsed config of :func:`scene_text`."""
-    return parse_config(scene_text(scene, exposure_us, ambient_dn, gain_dn), f"{scene}.yaml")
+    return parse_config(scene_text(scene, exposure_us, ambient_dn, gain_dn, bounce), f"{scene}.yaml")
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
-"""Issue 25's hard scenes on the virtual rig, with exact truth: over-exposure, a bright hall, a diffuse and a
-mirror groove. Each is rendered (camera 480x384, the default sequence), reconstructed by ``scan3d decode`` and
-compared point by point with the truth: completeness of the lit pixels, share of points > 1 mm off, and the
-calibration of the per-point sigma (|error| / sigma RMS in 0.7-1.4, <= 0.1 % beyond 5 sigma).
+"""Issue 25's hard scenes on the virtual rig, with exact truth: over-exposure, a bright hall, a diffuse groove
+(one-bounce interreflection) and a mirror groove. Each is rendered (camera 480x384, the default sequence),
+reconstructed by ``scan3d decode`` and compared point by point with the truth: completeness of the lit
+pixels, share of points > 1 mm off, and the calibration of the per-point sigma (|error| / sigma RMS in
+0.7-1.4, <= 0.1 % beyond 5 sigma).
 
 Targets the decoder does not reach yet are strict xfails that state the numbers measured when they were written.
 The multi-exposure dark-and-shiny scene is in ``tests/commands/test_tune.py`` (with the exposures scan3d tune
@@ -51,9 +52,20 @@ def test_bright_hall_holds(folder: Path) -> None:
     _sigma_is_honest(s)
 
 
+def test_matte_groove_without_interreflection(folder: Path) -> None:
+    # the concave corner's geometry alone (interreflection off)
+    s = measure(scene_config("diffuse_groove"), folder, "dgroove0")
+    print(s.line())
+    assert s.completeness >= 0.97 and s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 25 target not reached yet: with one-bounce diffuse interreflection "
+                   "(8 samples; indirect / direct light median 17 %, p90 54 %) 0.75 % of the points > 1 mm and "
+                   "0.31 % beyond 5 sigma (|err|/sigma RMS 1.23), 97.7 % complete; without it 0 % and 0 %")
 def test_diffuse_groove_holds(folder: Path) -> None:
-    # a matte concave corner (the renderer has no diffuse interreflection yet: this checks the geometry)
-    s = measure(scene_config("diffuse_groove"), folder, "dgroove")
+    # a matte concave corner (albedo 0.9) whose faces light each other
+    s = measure(scene_config("diffuse_groove", bounce=8), folder, "dgroove")
     print(s.line())
     assert s.completeness >= 0.97 and s.over_1mm <= 1e-3, s.line()
     _sigma_is_honest(s)

@@ -144,3 +144,23 @@ def test_the_sim_camera_honours_an_exposure_set_between_passes() -> None:
                                atol=1)
     np.testing.assert_allclose(out[0][lit].astype(float), np.round(rig.render_clean(WhiteFrame(), "cam0")[lit]),
                                atol=1)
+
+
+def test_diffuse_interreflection_lights_a_concave_corner_and_nothing_else() -> None:
+    matte = GROOVE % {"mirror": 0.0}
+    off = _rig(matte)
+    on = _rig(matte, "read_noise_dn: 0, shot_noise: false, ambient_dn: 0, interreflection_samples: 8, seed: 1")
+    gt = off.ground_truth("cam0")
+    faces = gt.lit & (gt.object_id >= 0)
+    direct = off.render_clean(WhiteFrame(), "cam0", blur=False)[faces]
+    extra = on.render_clean(WhiteFrame(), "cam0", blur=False)[faces] - direct
+    ratio = extra / direct
+    # the faces (albedo 0.15 and 0.9) light each other: some indirect light everywhere, never more than direct
+    assert 0.02 < float(np.median(ratio)) < 0.5 and float(ratio.max()) < 1.0
+    # the indirect light on the matte face (albedo 0.9) comes from the dark one (0.15) and vice versa
+    right = (gt.object_id[faces] == 1)
+    assert float(np.median(ratio[right])) < float(np.median(ratio[~right]))
+    # a lone plane has nothing to bounce from
+    plane = _rig(PLANE, "read_noise_dn: 0, shot_noise: false, ambient_dn: 0, interreflection_samples: 4, seed: 1")
+    alone = _rig(PLANE).render_clean(WhiteFrame(), "cam0")
+    np.testing.assert_array_equal(plane.render_clean(WhiteFrame(), "cam0"), alone)
