@@ -193,6 +193,10 @@ class Material(_Strict):
         description="Mirror reflectance 0..1 (planar objects: a plane or a flat mesh): one-bounce reflections of "
         "the projector onto what the mirror faces, and of the scene into the camera.",
     )
+    subsurface_mm: float = Field(
+        0.0, ge=0, le=100,
+        description="Translucency: the pattern on the surface is blurred by a Gaussian of this sigma (mm).",
+    )
 
     @field_validator("patches")
     @classmethod

@@ -35,6 +35,13 @@ SHADOW_OFFSET_MM = 1e-4
 
 PROJECTOR_NAME = "projector"
 
+SUBSURFACE_TAPS = 7
+"""Shifted copies of the pattern that make up the blur of a translucent material."""
+# the taps: normal quantiles at (k + 0.5) / K, scaled to unit variance
+_q = np.array([-1.4652337926855228, -0.7916386077433745, -0.36610635680056974, 0.0, 0.36610635680056974,
+               0.7916386077433745, 1.4652337926855228])
+_SUBSURFACE_NODES = _q / np.sqrt(np.mean(_q**2))
+
 CHUNK_ROWS = 64
 """Camera rows cast into the scene at a time (bounds the temporaries of the geometry to a few MB)."""
 
@@ -237,8 +244,10 @@ class VirtualRig:
         spec_of = np.asarray([m.specular for m in mats] + [0.0])  # index -1 (no hit) -> 0
         shin_of = np.asarray([m.shininess for m in mats] + [1.0])
         n_bounce = self.imaging.interreflection_samples
+        sub_of = np.asarray([m.subsurface_mm for m in mats] + [0.0])
+        n_sub = SUBSURFACE_TAPS if sub_of.any() else 0
         layers: list[Layer] = [(np.full((n, 2), np.nan), np.zeros(n, dtype=np.float32))
-                               for _ in range(len(self.scene.mirrors) + n_bounce)]
+                               for _ in range(len(self.scene.mirrors) + n_bounce + n_sub)]
         bounce_rng = np.random.default_rng([7, self.camera_names().index(cam.name)])
         for r0 in range(0, h, CHUNK_ROWS):
             r1 = min(h, r0 + CHUNK_ROWS)
@@ -285,8 +294,18 @@ class VirtualRig:
             for (luv, lgain), mirror in zip(layers, self.scene.mirrors, strict=False):
                 self._mirror_light(cam, mirror, xyz, nrm, dirs, hits.object_id, luv[s], lgain[s], ambient[s])
             if n_bounce:
-                self._bounce_light(xyz, nrm, albedo, hits.object_id, layers[len(self.scene.mirrors):], s,
+                self._bounce_light(xyz, nrm, albedo, hits.object_id, layers[len(self.scene.mirrors):][:n_bounce], s,
                                    bounce_rng)
+            sub = sub_of[hits.object_id]
+            if n_sub and sub.any():
+                # translucency: the direct light moves into taps of projector coordinates shifted along both axes
+                # (a Gaussian of sigma subsurface_mm on the surface, in projector px at the point's distance)
+                blurred = np.flatnonzero(sub > 0)
+                sigma_px = sub[blurred] * proj.K[0, 0] / dist[blurred]
+                for tap, (luv, lgain) in zip(_SUBSURFACE_NODES, layers[-n_sub:], strict=True):
+                    luv[s][blurred] = puv[blurred] + (tap * sigma_px)[:, None]
+                    lgain[s][blurred] = gain[s][blurred] / n_sub
+                gain[s][blurred] = 0.0
             uv[s] = puv
             if full:
                 dev = np.empty((m, 3))

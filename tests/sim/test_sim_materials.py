@@ -164,3 +164,31 @@ def test_diffuse_interreflection_lights_a_concave_corner_and_nothing_else() -> N
     plane = _rig(PLANE, "read_noise_dn: 0, shot_noise: false, ambient_dn: 0, interreflection_samples: 4, seed: 1")
     alone = _rig(PLANE).render_clean(WhiteFrame(), "cam0")
     np.testing.assert_array_equal(plane.render_clean(WhiteFrame(), "cam0"), alone)
+
+
+def test_a_translucent_material_blurs_the_pattern_on_its_surface() -> None:
+    from appliance.patterns.sequence import PhaseFrame
+
+    clear = _rig(PLANE)
+    milky = _rig(PLANE[:-1] + ", material: {subsurface_mm: 1.0}}")
+    gt = clear.ground_truth("cam0")
+    lit = gt.lit
+    period = 16
+
+    def amplitude(rig: VirtualRig) -> np.ndarray:
+        s = [rig.render_clean(PhaseFrame(axis="x", period=period, step=k, steps=4), "cam0", blur=False)[lit]
+             for k in range(4)]
+        return np.hypot(s[0] - s[2], s[1] - s[3]) / 2.0
+
+    # a Gaussian blur of sigma 1 mm on the surface: sigma_px = 1 mm * focal / distance in projector px, and the
+    # fringe's amplitude falls by exp(-2 pi^2 sigma_px^2 / P^2) (the 7-tap blur within 10 %)
+    dist = np.linalg.norm(gt.xyz[lit] - clear.projector.center, axis=1)
+    sigma_px = 1.0 * clear.projector.K[0, 0] / dist
+    expected = np.exp(-2 * np.pi**2 * sigma_px**2 / period**2)
+    ratio = amplitude(milky) / amplitude(clear)
+    np.testing.assert_allclose(np.median(ratio), np.median(expected), rtol=0.1)
+    assert 0.3 < float(np.median(ratio)) < 0.8
+    # the white level is not changed by the blur
+    white = clear.render_clean(WhiteFrame(), "cam0")[lit]
+    np.testing.assert_allclose(milky.render_clean(WhiteFrame(), "cam0")[lit], white,
+                               rtol=1e-4, atol=1e-3)
