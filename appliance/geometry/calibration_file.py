@@ -20,6 +20,7 @@ Layout (every device named as in the configuration, the first camera is the worl
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from appliance.config.yamlfile import read_text_file
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 
@@ -35,6 +37,9 @@ PROJECTOR_NAME = "projector"
 """The device name of the projector in the calibration file and the configuration."""
 
 _HEADER = "%YAML:1.0"
+
+MAX_CALIBRATION_BYTES = 16 * 1024 * 1024
+"""Largest calibration file read (bytes)."""
 
 
 @dataclass
@@ -177,10 +182,13 @@ def read_calibration(
     import cv2
 
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise CalibrationError(f"{path}: calibration file not found; run the calibration or fix the path")
+    # a regular file of sane size only (a FIFO or a device would block or never end); OpenCV parses the text
+    text = read_text_file(path, what="calibration", error=CalibrationError, limit_bytes=MAX_CALIBRATION_BYTES,
+                          fix="run the calibration or fix the path")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except Exception as e:  # cv2.error, or SystemError wrapping it
         cause = e.__cause__ or e
         raise CalibrationError(
@@ -190,6 +198,9 @@ def read_calibration(
         raise CalibrationError(f"{path}: cannot be opened by cv2.FileStorage")
     try:
         root = fs.root()
+        if not root.isMap():
+            raise CalibrationError(f"{path}: holds no device maps (cam0:, projector:, ...): the file is empty or "
+                                   "not a calibration; run the calibration or restore the file")
         keys = set(root.keys())
         if SLMASTER_CAMERA_KEYS <= keys:
             return read_slmaster(path, root, projector_size)
@@ -199,10 +210,18 @@ def read_calibration(
             if not node.isMap():
                 continue  # other top-level entries (comments, dates) are not devices
             devices[name] = _read_device(path, name, node)
+    except cv2.error as e:  # OpenCV asserts on shapes it did not expect
+        raise CalibrationError(f"{path}: not a calibration OpenCV can read: {str(e).strip()[-160:]}") from e
     finally:
         fs.release()
     if not devices:
         raise CalibrationError(f"{path}: no device maps (cam0:, projector:, ...) at the top level")
+    proj = devices.get(PROJECTOR_NAME)
+    if proj is not None and projector_size is not None and (proj.width, proj.height) != tuple(projector_size):
+        w, h = projector_size
+        raise CalibrationError(f"{path}: the projector is calibrated at {proj.width}x{proj.height} but the capture's "
+                               f"projector is {w}x{h}; use the calibration of this projector (or fix the manifest's "
+                               "projector size)")
     if all(n == PROJECTOR_NAME for n in devices):
         raise CalibrationError(f"{path}: holds only the projector: at least one camera is needed")
     return Calibration(devices)
@@ -213,6 +232,13 @@ def _numbers(path: Path, name: str, key: str, node: Any) -> npt.NDArray[np.float
     where = f"{path}: {name}.{key}"
     if node.empty() or node.isNone():
         raise CalibrationError(f"{where}: missing; every device needs K, dist, size, R, T")
+    if node.isMap():  # an opencv-matrix: 8/16-bit types would have saturated the values
+        dt = node.getNode("dt").string() if not node.getNode("dt").empty() else "?"
+        if dt not in ("d", "f", "i"):
+            raise CalibrationError(f"{where}: matrix type dt: {dt}: must be d (float64) or f (float32); a "
+                                   "calibration's values do not fit small integer types")
+    elif node.isString():
+        raise CalibrationError(f"{where}: {node.string()!r}: must be a number or a matrix")
     try:
         if node.isSeq():
             vals = [node.at(i).real() for i in range(node.size())]
@@ -264,7 +290,14 @@ def _read_device(path: Path, name: str, node: Any) -> CameraModel:
         raise CalibrationError(f"{path}: {name}.R: not a rotation matrix (R R^T != I or det < 0)")
     t = get("T", (3,))
     rms_node = node.getNode("rms")
-    rms = float("nan") if rms_node.empty() else float(rms_node.real())
+    if rms_node.empty() or rms_node.isNone():
+        rms = float("nan")
+    elif not (rms_node.isReal() or rms_node.isInt()) or not (
+            math.isnan(rms_node.real()) or 0 <= rms_node.real() < 1e6):  # NaN: not stated
+        shown = rms_node.string() if rms_node.isString() else rms_node.real()
+        raise CalibrationError(f"{path}: {name}.rms = {shown!r}: must be a number >= 0 (px) or absent")
+    else:
+        rms = float(rms_node.real())
     try:
         return CameraModel(name, k, dist, int(size[0]), int(size[1]), r, t, rms)
     except CalibrationError as e:

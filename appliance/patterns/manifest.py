@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
+from appliance.config.yamlfile import DuplicateKeyError, parse_yaml, read_bytes_file, read_text_file, yaml_problem
 from appliance.errors import ManifestError, PatternError
 from appliance.patterns.sequence import (
     BlackFrame,
@@ -32,6 +33,9 @@ from appliance.patterns.sequence import (
 )
 
 FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+
+MAX_MANIFEST_BYTES = 4 * 1024 * 1024
+"""Largest manifest read (bytes): some 20 000 frames."""
 
 
 @dataclass(frozen=True)
@@ -139,14 +143,37 @@ def _read_image(p: Path, i: int, manifest: Path | str) -> npt.NDArray[Any]:
     """One frame as a 2-D 8 or 16 bit array (colour images are converted to grey)."""
     import cv2
 
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None:
+    if not p.exists():
         raise ManifestError(f"{manifest}: frame {i}: image {p} is missing or unreadable; check the path")
+    try:
+        data = read_bytes_file(p, what="frame image", error=ManifestError, limit_bytes=MAX_IMAGE_BYTES)
+    except ManifestError as exc:
+        raise ManifestError(f"{manifest}: frame {i}: {exc}") from exc
+    truncated = _truncated(data)
+    if truncated:
+        raise ManifestError(f"{manifest}: frame {i}: image {p} is truncated ({truncated}); copy the capture again")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    if img is None:
+        raise ManifestError(f"{manifest}: frame {i}: image {p} is empty or not an image OpenCV can decode; "
+                            "check the file")
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if img.dtype not in (np.uint8, np.uint16):
         raise ManifestError(f"{manifest}: frame {i}: image {p} has dtype {img.dtype}: must be 8 or 16 bit")
     return np.asarray(img)
+
+
+MAX_IMAGE_BYTES = 1024 * 1024 * 1024
+"""Largest frame image file read (bytes)."""
+
+
+def _truncated(data: bytes) -> str:
+    """Why an encoded JPEG or PNG ends early ('' when it looks whole; other formats are left to the decoder)."""
+    if data[:3] == b"\xff\xd8\xff" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        return "a JPEG without its end marker"
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-16:]:
+        return "a PNG without its IEND chunk"
+    return ""
 
 
 def load_images(
@@ -245,18 +272,19 @@ def frame_from_dict(d: Mapping[str, Any], where: str) -> Frame:
             _check_keys(d, _GRAY_KEYS, where)
             return GrayFrame(
                 axis=_axis(d, where),
-                bit=int(_need(d, "bit", where)),
-                inverted=bool(d.get("inverted", False)),
-                stripe=int(d.get("stripe", 1)),
+                bit=_whole(_need(d, "bit", where), "bit", where, 0, 30),
+                inverted=_flag(d.get("inverted", False), "inverted", where),
+                stripe=_whole(d.get("stripe", 1), "stripe", where, 1, 1 << 20),
             )
         if kind == "phase":
             _check_keys(d, _PHASE_KEYS, where)
+            steps = _whole(_need(d, "steps", where), "steps", where, 3, MAX_PHASE_STEPS)
             return PhaseFrame(
                 axis=_axis(d, where),
-                period=float(_need(d, "period", where)),
-                step=int(_need(d, "step", where)),
-                steps=int(_need(d, "steps", where)),
-                offset=float(d.get("offset", 0.0)),
+                period=_finite(_need(d, "period", where), "period", where, 1e6),
+                step=_whole(_need(d, "step", where), "step", where, 0, steps - 1),
+                steps=steps,
+                offset=_finite(d.get("offset", 0.0), "offset", where, 1e6),
             )
     except PatternError as exc:
         raise ManifestError(f"{where}: {exc}") from exc
@@ -293,6 +321,34 @@ def frame_exposure(d: Mapping[str, Any], where: str) -> tuple[float, float] | No
     return float(exp), float(inten)
 
 
+MAX_PHASE_STEPS = 256
+"""Most phase steps of one period a manifest may state."""
+
+
+def _whole(value: Any, key: str, where: str, lo: int, hi: int) -> int:
+    """A YAML integer in lo..hi (not a boolean, not a fraction, not a string)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ManifestError(f"{where}: {key} = {value!r}: must be a whole number from {lo} to {hi}")
+    if not lo <= value <= hi:
+        raise ManifestError(f"{where}: {key} = {value}: must be from {lo} to {hi}")
+    return int(value)
+
+
+def _finite(value: Any, key: str, where: str, limit: float) -> float:
+    """A YAML number of magnitude at most ``limit`` (not NaN, not infinite, not a boolean)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ManifestError(f"{where}: {key} = {value!r}: must be a finite number")
+    if abs(value) > limit:
+        raise ManifestError(f"{where}: {key} = {value!r}: must be within +-{limit:g}")
+    return float(value)
+
+
+def _flag(value: Any, key: str, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ManifestError(f"{where}: {key} = {value!r}: must be true or false")
+    return value
+
+
 def _need(d: Mapping[str, Any], key: str, where: str) -> Any:
     if key not in d:
         raise ManifestError(f"{where}: pattern {d['pattern']!r} needs the key {key!r}")
@@ -323,12 +379,17 @@ def read_manifest(path: str | Path) -> Manifest:
         When the file is missing, not YAML, or inconsistent (names the key and the fix).
     """
     path = Path(path)
+    text = read_text_file(path, what="manifest", error=ManifestError, limit_bytes=MAX_MANIFEST_BYTES)
     try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ManifestError(f"{path}: cannot be read ({exc.strerror}); check the path") from exc
+        doc, _ = parse_yaml(text)
+    except DuplicateKeyError as exc:
+        where, problem = yaml_problem(exc, str(path))
+        raise ManifestError(f"{where}: {problem}") from exc
     except yaml.YAMLError as exc:
-        raise ManifestError(f"{path}: not valid YAML: {exc}") from exc
+        where, problem = yaml_problem(exc, str(path))
+        raise ManifestError(f"{where}: not valid YAML: {problem}; check indentation and quoting") from exc
+    except RecursionError as exc:
+        raise ManifestError(f"{path}: not valid YAML: nested too deeply; a manifest is a few levels deep") from exc
     if not isinstance(doc, dict):
         raise ManifestError(f"{path}: must be a YAML mapping with projector, cameras and frames")
     unknown = set(doc) - {"projector", "cameras", "frames", "stacks", "bit_depth"}
@@ -346,6 +407,8 @@ def read_manifest(path: str | Path) -> Manifest:
     proj = doc.get("projector")
     if not isinstance(proj, dict) or "width" not in proj or "height" not in proj:
         raise ManifestError(f"{path}: projector: must be {{width: W, height: H}} in projector pixels")
+    proj_w = _whole(proj["width"], "projector.width", str(path), 1, 100_000)
+    proj_h = _whole(proj["height"], "projector.height", str(path), 1, 100_000)
     cameras = doc.get("cameras")
     if not isinstance(cameras, list) or not cameras or not all(isinstance(c, str) for c in cameras):
         raise ManifestError(f"{path}: cameras: must be a non-empty list of camera names")
@@ -369,7 +432,7 @@ def read_manifest(path: str | Path) -> Manifest:
                     raise ManifestError(f"{where}: images: no image for camera {c!r}")
                 images[c].append(root / str(imgs[c]))
     try:
-        seq = Sequence(int(proj["width"]), int(proj["height"]), tuple(frames))
+        seq = Sequence(proj_w, proj_h, tuple(frames))
     except PatternError as exc:
         raise ManifestError(f"{path}: {exc}") from exc
     exp = _exposures(exposures, path)

@@ -1,0 +1,212 @@
+"""Issue 28 through the commands a person runs: each bad manifest, calibration, frame or configuration is
+exit status 2 and exactly one line on stderr naming the file, no traceback, in time; nothing is written.
+
+The cases that used to hang (a FIFO or /dev/zero given as a file) run ``scan3d`` in a subprocess with a
+timeout, so a regression fails instead of hanging the suite.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import pytest
+import yaml
+
+from appliance import cli
+from appliance.config import parse_config
+from appliance.geometry.calibration_file import write_calibration
+from appliance.patterns.from_config import build_sequence
+from appliance.patterns.manifest import write_manifest
+from appliance.scan import virtual_calibration
+from appliance.sim.rig import VirtualRig
+
+REPO = Path(__file__).resolve().parents[2]
+
+RIG = """
+sequence: {kind: gray_phase, axes: x, periods_px: [16]}
+virtual_rig:
+  projector: {width: 160, height: 100, focal_px: 220, position_mm: [60, 0, 0], look_at_mm: [0, 0, 600]}
+  cameras:
+    cam0: {width: 120, height: 96, focal_px: 180, position_mm: [0, 0, 0], look_at_mm: [0, 0, 600]}
+"""
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A small good capture (PNG frames, manifest, calibration) that each case spoils a copy of."""
+    folder = tmp_path_factory.mktemp("bad_input")
+    cfg = parse_config(RIG, "rig.yaml")
+    rig = VirtualRig(cfg.virtual_rig)
+    seq = build_sequence(cfg.sequence, rig.projector.width, rig.projector.height)
+    stack = rig.render(seq, "cam0")
+    names = []
+    for i, img in enumerate(stack):
+        names.append(f"f{i:02d}.png")
+        cv2.imwrite(str(folder / names[-1]), img)
+    manifest = write_manifest(folder / "scan.yaml", seq, ["cam0"], images={"cam0": names})
+    calib = folder / "calibration.yaml"
+    write_calibration(calib, virtual_calibration(rig))
+    return {"folder": folder, "manifest": manifest, "calibration": calib}
+
+
+def _run(argv: list[str]) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        rc = cli.main(argv)
+    return rc, err.getvalue()
+
+
+def _one_line(rc: int, err: str, *words: str) -> None:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2, err
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def test_the_good_capture_decodes(capture: dict[str, Path], tmp_path: Path) -> None:
+    rc, err = _run(["decode", str(capture["manifest"]), "--calibration", str(capture["calibration"]),
+                    "--out", str(tmp_path / "cloud.ply")])
+    assert rc == 0, err
+    assert (tmp_path / "cloud.ply").stat().st_size > 1000
+
+
+# (case, how the manifest text is spoilt, words of the one line)
+MANIFEST_CASES: list[tuple[str, Callable[[str, dict[str, Path]], str | bytes], tuple[str, ...]]] = [  # type: ignore[type-arg]
+    ("binary", lambda t, c: b"\x00\x01\x02" * 100, ("binary data",)),
+    ("utf16", lambda t, c: t.encode("utf-16"), ("UTF-16",)),
+    ("deep", lambda t, c: "a: " + "[" * 3000 + "]" * 3000 + "\n", ("nested too deeply",)),
+    ("bit_inf", lambda t, c: t.replace("bit: 0", "bit: .inf", 1), ("bit = inf", "whole number")),
+    ("bit_true", lambda t, c: t.replace("bit: 0", "bit: true", 1), ("bit = True", "whole number")),
+    ("bit_fraction", lambda t, c: t.replace("bit: 0", "bit: 2.5", 1), ("bit = 2.5", "whole number")),
+    ("bit_twice", lambda t, c: t.replace("  bit: 0\n", "  bit: 0\n  bit: 1\n", 1), ("'bit' is given twice",)),
+    ("width_nan", lambda t, c: t.replace("width: 160", "width: .nan", 1), ("projector.width = nan",)),
+    ("offset_nan", lambda t, c: t.replace("  steps: 4\n", "  steps: 4\n  offset: .nan\n", 1),
+     ("offset = nan", "finite")),
+    ("steps_huge", lambda t, c: t.replace("steps: 4", "steps: 1000000000", 1), ("steps = 1000000000",)),
+    ("projector_16", lambda t, c: t.replace("width: 160", "width: 16", 1).replace("height: 100", "height: 16", 1),
+     ("calibrated at 160x100", "16x16")),
+    ("too_big", lambda t, c: t + "#" * (11 * 1024 * 1024), ("too large for a manifest",)),
+]
+
+
+@pytest.mark.parametrize(("case", "spoil", "words"), MANIFEST_CASES, ids=[c[0] for c in MANIFEST_CASES])
+def test_a_bad_manifest_is_one_line(capture: dict[str, Path], tmp_path: Path, case: str,
+                                    spoil: Callable[[str, dict[str, Path]], str | bytes],
+                                    words: tuple[str, ...]) -> None:
+    text = capture["manifest"].read_text()
+    bad = spoil(text, capture)
+    path = capture["folder"] / f"bad_{case}.yaml"
+    if isinstance(bad, bytes):
+        path.write_bytes(bad)
+    else:
+        assert bad != text, "the spoiling did not apply"
+        path.write_text(bad)
+    out = tmp_path / "out"
+    rc, err = _run(["decode", str(path), "--calibration", str(capture["calibration"]), "--out", str(out)])
+    # the projector's size is judged against the calibration, which the line names
+    _one_line(rc, err, str(capture["calibration"] if case == "projector_16" else path), *words)
+    assert not out.exists() or not any(out.iterdir())
+
+
+CALIBRATION_CASES: list[tuple[str, Callable[[str], str], tuple[str, ...]]] = [
+    ("only_header", lambda t: "%YAML:1.0\n", ("holds no device maps",)),
+    ("dt_u", lambda t: t.replace("dt: d", "dt: u", 1), ("dt: u", "float64")),
+    ("rms_bad", lambda t: t.replace("rms:", 'rms: "bad"\n   old_rms:', 1), ("rms = 'bad'",)),
+    ("no_camera", lambda t: t.replace("cam0:", "camX:", 1), ("cam0", "no entry")),
+]
+
+
+@pytest.mark.parametrize(("case", "spoil", "words"), CALIBRATION_CASES, ids=[c[0] for c in CALIBRATION_CASES])
+def test_a_bad_calibration_is_one_line(capture: dict[str, Path], tmp_path: Path, case: str,
+                                       spoil: Callable[[str], str], words: tuple[str, ...]) -> None:
+    text = capture["calibration"].read_text()
+    bad = spoil(text)
+    assert bad != text
+    path = tmp_path / "calibration.yaml"
+    path.write_text(bad)
+    out = tmp_path / "out"
+    rc, err = _run(["decode", str(capture["manifest"]), "--calibration", str(path), "--out", str(out)])
+    _one_line(rc, err, *words)
+    assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("cut", ["png", "jpeg", "empty"])
+def test_a_truncated_frame_is_refused_with_its_name(capture: dict[str, Path], tmp_path: Path, cut: str) -> None:
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    doc = yaml.safe_load(capture["manifest"].read_text())
+    for f in doc["frames"]:
+        src = capture["folder"] / f["images"]["cam0"]
+        (folder / src.name).write_bytes(src.read_bytes())
+    victim = folder / doc["frames"][3]["images"]["cam0"]
+    if cut == "jpeg":
+        img = cv2.imread(str(victim), cv2.IMREAD_UNCHANGED)
+        ok, enc = cv2.imencode(".jpg", img)
+        assert ok
+        victim = victim.with_suffix(".jpg")
+        victim.write_bytes(enc.tobytes()[: len(enc) * 3 // 4])
+        doc["frames"][3]["images"]["cam0"] = victim.name
+    elif cut == "png":
+        data = victim.read_bytes()
+        victim.write_bytes(data[: len(data) * 2 // 3])
+    else:
+        victim.write_bytes(b"")
+    manifest = folder / "scan.yaml"
+    manifest.write_text(yaml.safe_dump(doc, sort_keys=False))
+    rc, err = _run(["decode", str(manifest), "--calibration", str(capture["calibration"]),
+                    "--out", str(tmp_path / "out.ply")])
+    _one_line(rc, err, "frame 3", victim.name)
+    assert not (tmp_path / "out.ply").exists()
+
+
+CONFIG_CASES = [
+    ("duplicate", "reconstruction:\n  max_depth_mm: 900\nreconstruction:\n  min_depth_mm: 5\n",
+     ("'reconstruction' is given twice (lines 1 and 3)",)),
+    ("seed", "virtual_rig:\n  imaging: {seed: -1}\n", ("seed = -1",)),
+    ("blur_inf", "virtual_rig:\n  imaging: {camera_blur_px: .inf}\n", ("camera_blur_px = inf",)),
+    ("periods", "sequence: {periods_px: [1e30]}\n", ("periods_px",)),
+    ("camera_10k", "virtual_rig:\n  cameras:\n    cam0: {width: 10000, height: 10000, focal_px: 2000}\n",
+     ("100 Mpx",)),
+]
+
+
+@pytest.mark.parametrize(("case", "text", "words"), CONFIG_CASES, ids=[c[0] for c in CONFIG_CASES])
+def test_validate_config_refuses_in_one_line(tmp_path: Path, case: str, text: str, words: tuple[str, ...]) -> None:
+    path = tmp_path / "appliance.yaml"
+    path.write_text(text)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        rc = cli.main(["validate-config", str(path)])
+    text = out.getvalue()
+    assert rc == 1  # validate-config reports on stdout, exit 1
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in text, text
+    assert all(w in lines[0] for w in words), lines[0]
+
+
+def _scan3d(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "NUMBA_CACHE_DIR": os.environ.get("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))}
+    return subprocess.run([sys.executable, "-m", "appliance", *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=REPO, env=env, check=False)
+
+
+def test_files_that_never_end_do_not_hang_the_commands(capture: dict[str, Path], tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    for args in (["validate-config", str(fifo)],
+                 ["decode", str(fifo), "--calibration", str(capture["calibration"])],
+                 ["decode", str(capture["manifest"]), "--calibration", "/dev/zero"]):
+        done = _scan3d(*args)
+        said = done.stdout + done.stderr
+        lines = [ln for ln in said.splitlines() if ln.strip()]
+        assert done.returncode != 0 and len(lines) == 1, said
+        assert "not a regular file" in lines[0] and "Traceback" not in said, lines[0]
