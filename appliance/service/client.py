@@ -8,7 +8,7 @@ from typing import Any
 
 from appliance.config import load_config
 from appliance.config.schema import ServiceConfig
-from appliance.errors import ConfigError
+from appliance.errors import ApplianceError, ConfigError
 from appliance.service.control import request
 
 STATUS_TIMEOUT_S = 10.0
@@ -103,9 +103,22 @@ def status_command(config: Path | None, socket: Path | None, *, as_json: bool = 
     """Print the service's status (one screen, or JSON); exit 0 when it answered, 1 when in fault."""
     path = socket_for(config, socket)
     reply = request(path, {"cmd": "status"}, STATUS_TIMEOUT_S)
-    st = reply.get("status", {})
-    print(json.dumps(st, indent=2) if as_json else format_status(st))
+    st = reply.get("status")
+    if not isinstance(st, dict) or not isinstance(st.get("state"), str):
+        raise _not_the_protocol(path, reply)
+    try:
+        text = json.dumps(st, indent=2) if as_json else format_status(st)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise _not_the_protocol(path, reply) from exc
+    print(text)
     return 1 if st.get("state") == "fault" else 0
+
+
+def _not_the_protocol(path: Path, reply: dict[str, Any]) -> ApplianceError:
+    shown = repr(reply)
+    shown = shown if len(shown) <= 120 else shown[:117] + "..."
+    return ApplianceError(f"control socket {path}: the reply {shown} is not what scan3d's service answers; is "
+                          "another program (or another version of scan3d) listening there?")
 
 
 def trigger_command(config: Path | None, socket: Path | None, *, wait: bool = False) -> int:
@@ -116,16 +129,21 @@ def trigger_command(config: Path | None, socket: Path | None, *, wait: bool = Fa
     path = socket_for(config, socket)
     reply = request(path, {"cmd": "trigger", "wait": wait, "detail": "scan3d trigger"},
                     TRIGGER_WAIT_TIMEOUT_S if wait else STATUS_TIMEOUT_S)
-    if not reply.get("ok"):
-        print(f"scan3d trigger: {reply.get('error', reply.get('result', 'refused'))}")
+    if not isinstance(reply.get("ok"), bool):
+        raise _not_the_protocol(path, reply)
+    if not reply["ok"]:
+        print(f"scan3d trigger: {' '.join(str(reply.get('error', reply.get('result', 'refused'))).split())}"[:400])
         return 1
     scan = reply.get("scan")
     if scan is None:
         print(f"trigger {reply.get('result')}")
         return 0
-    t = scan.get("timings_ms", {})
-    print(f"scan {scan['scan_id']}: {scan['points']} points, {scan['location']}, "
-          f"trigger to file {_ms(t.get('trigger_to_file_ms'))} ms")
-    for f in scan.get("files", []):
-        print(f"  {f}")
+    try:
+        t = scan.get("timings_ms") or {}
+        lines = [f"scan {scan['scan_id']}: {int(scan['points'])} points, {scan['location']}, "
+                 f"trigger to file {_ms(t.get('trigger_to_file_ms'))} ms"]
+        lines.extend(f"  {f}" for f in scan.get("files", []))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise _not_the_protocol(path, reply) from exc
+    print("\n".join(lines))
     return 0

@@ -14,6 +14,7 @@ import logging
 import os
 import socket
 import stat
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -160,6 +161,10 @@ async def _socket_alive(path: Path) -> bool:
     return True
 
 
+MAX_REPLY = 8 * 1024 * 1024
+"""Longest reply a client reads (bytes)."""
+
+
 def request(path: Path, req: dict[str, Any], timeout_s: float = 10.0) -> dict[str, Any]:
     """Send one request to the control socket at ``path`` and return the reply (blocking; for clients).
 
@@ -168,6 +173,7 @@ def request(path: Path, req: dict[str, Any], timeout_s: float = 10.0) -> dict[st
     ApplianceError
         When nothing listens there or the reply is not JSON.
     """
+    deadline = time.monotonic() + timeout_s
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     s.settimeout(timeout_s)
     try:
@@ -178,16 +184,31 @@ def request(path: Path, req: dict[str, Any], timeout_s: float = 10.0) -> dict[st
                 f"control socket {path}: {exc.strerror or exc}; is the service running? "
                 "(systemctl status scan3d, or scan3d run)"
             ) from exc
-        s.sendall(json.dumps(req).encode() + b"\n")
+        try:
+            s.sendall(json.dumps(req).encode() + b"\n")
+        except OSError as exc:
+            raise ApplianceError(f"control socket {path}: the request could not be sent ({exc.strerror or exc}); "
+                                 "is the service running?") from exc
         buf = b""
         while not buf.endswith(b"\n"):
+            left = deadline - time.monotonic()  # one deadline for the whole reply, however it trickles in
+            if left <= 0:
+                raise ApplianceError(f"control socket {path}: no complete reply within {timeout_s:g} s; is "
+                                     "another program listening there?")
+            s.settimeout(left)
             try:
                 chunk = s.recv(65536)
             except TimeoutError as exc:
-                raise ApplianceError(f"control socket {path}: no reply within {timeout_s:g} s") from exc
+                raise ApplianceError(f"control socket {path}: no complete reply within {timeout_s:g} s"
+                                     + ("" if not buf else "; is another program listening there?")) from exc
+            except OSError as exc:
+                raise ApplianceError(f"control socket {path}: the reply broke off ({exc.strerror or exc})") from exc
             if not chunk:
                 break
             buf += chunk
+            if len(buf) > MAX_REPLY:
+                raise ApplianceError(f"control socket {path}: the reply is longer than {MAX_REPLY // 1024} KiB; "
+                                     "is another program listening there?")
     finally:
         s.close()
     try:
