@@ -228,6 +228,34 @@ def _readable_file(path: Path) -> str:
     return ""
 
 
+MAX_SOCKET_PATH = 107
+"""Longest unix socket path (bytes; sun_path holds 108 with the final NUL)."""
+
+
+def _folder_problem(folder: Path, writable: bool) -> str:
+    """'' when ``folder`` is a folder (writable, if asked) or can be made; else why not."""
+    text = str(folder)
+    if "\x00" in text:
+        return "holds a NUL character"
+    target = Path(os.path.abspath(text))
+    cur = target
+    while True:
+        try:
+            st = os.stat(cur)
+            break
+        except (FileNotFoundError, NotADirectoryError):
+            if cur == cur.parent:
+                return "cannot be created (no existing folder above it)"
+            cur = cur.parent
+        except OSError as exc:
+            return f"cannot be checked ({exc.strerror or exc})"
+    if not stat.S_ISDIR(st.st_mode):
+        return "is a file, not a folder" if cur == target else f"cannot be created: '{cur}' is a file, not a folder"
+    if writable and not os.access(cur, os.W_OK | os.X_OK):
+        return "is not writable" if cur == target else f"cannot be created: '{cur}' is not writable"
+    return ""
+
+
 def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
     """What can be checked about a valid configuration without hardware: the files it names and its folders.
 
@@ -242,8 +270,9 @@ def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
     -------
     list of str
         One ``file: key = value: problem; fix`` line per problem (empty when all is well): the calibration file
-        present and readable, every mesh of the virtual scene present, the spool folder neither the share nor
-        inside it (nor the share inside the spool).
+        present and readable, every mesh of the virtual scene present, the state, spool and socket folders
+        (or creatable, and writable), the share not a file, the control socket's path short enough for
+        a unix socket, the spool folder neither the share nor inside it (nor the share inside the spool).
     """
     problems = []
     if cfg.calibration_file is not None:
@@ -258,6 +287,23 @@ def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
             if why:
                 problems.append(f"{source}: virtual_rig.scene.{i}.path = '{path}': {why}; fix the path (relative "
                                 "to the configuration file)")
+    for key, folder, writable, fix in (
+            ("service.state_directory", cfg.service.state_directory, True, "the service keeps its counters and "
+             "calibration health there"),
+            ("output.spool_directory", cfg.output.spool_directory, True, "scans wait there while the share is away"),
+            ("output.directory", cfg.output.directory, False, "clouds are written there (a share that is away "
+             "is spooled for, a file in its place is not)"),
+            ("service.control_socket", cfg.service.control_socket.parent, True, "the control socket is made there")):
+        why = _folder_problem(folder, writable)
+        if why:
+            problems.append(f"{source}: {key} = '{folder}': {why}; {fix}")
+    sock = os.fsencode(str(cfg.service.control_socket))
+    if len(sock) > MAX_SOCKET_PATH:
+        problems.append(f"{source}: service.control_socket = '{cfg.service.control_socket}': {len(sock)} bytes is "
+                        f"longer than a unix socket path may be ({MAX_SOCKET_PATH}); use a shorter path such as "
+                        "/run/scan3d/control.sock")
+    if any("\x00" in str(p) for p in (cfg.output.directory, cfg.output.spool_directory)):
+        return problems
     share = Path(os.path.abspath(cfg.output.directory))
     spool = Path(os.path.abspath(cfg.output.spool_directory))
     if share == spool or share in spool.parents or spool in share.parents:

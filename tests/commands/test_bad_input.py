@@ -193,6 +193,30 @@ def test_validate_config_refuses_in_one_line(tmp_path: Path, case: str, text: st
     assert all(w in lines[0] for w in words), lines[0]
 
 
+@pytest.mark.parametrize("case", ["state_is_a_file", "socket_too_long", "share_is_a_file", "share_has_nul"])
+def test_validate_config_checks_what_the_service_needs(tmp_path: Path, case: str) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder\n")
+    service = {"state_directory": str(tmp_path / "state"), "control_socket": "/tmp/scan3d-test.sock"}
+    output = {"directory": str(tmp_path / "share"), "spool_directory": str(tmp_path / "spool")}
+    if case == "state_is_a_file":
+        service["state_directory"], words = str(blocker), "service.state_directory"
+    elif case == "socket_too_long":
+        service["control_socket"], words = str(tmp_path / ("s" * 120) / "c.sock"), "longer than a unix socket path"
+    elif case == "share_is_a_file":
+        output["directory"], words = str(blocker / "scans"), "is a file, not a folder"
+    else:
+        output["directory"], words = str(tmp_path / "sha\x00re"), "NUL"
+    path = tmp_path / "appliance.yaml"
+    path.write_text(yaml.safe_dump({"service": service, "output": output}))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        rc = cli.main(["validate-config", str(path)])
+    lines = [ln for ln in out.getvalue().splitlines() if ln.strip()]
+    assert rc == 1 and len(lines) == 1 and "Traceback" not in out.getvalue(), out.getvalue()
+    assert words in lines[0], lines[0]
+
+
 def _scan3d(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "NUMBA_CACHE_DIR": os.environ.get("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))}
     return subprocess.run([sys.executable, "-m", "appliance", *args], capture_output=True, text=True,
