@@ -192,3 +192,28 @@ def test_a_translucent_material_blurs_the_pattern_on_its_surface() -> None:
     white = clear.render_clean(WhiteFrame(), "cam0")[lit]
     np.testing.assert_allclose(milky.render_clean(WhiteFrame(), "cam0")[lit], white,
                                rtol=1e-4, atol=1e-3)
+
+
+def test_the_sim_projector_intensity_and_a_bad_exposure() -> None:
+    rig = _rig(PLANE, "read_noise_dn: 0, shot_noise: false, ambient_dn: 20, seed: 1")
+    world = SimWorld(rig)
+    cam = SimCamera("cam0", SimCameraConfig(), world)
+    proj = SimProjector(world)
+    out = np.zeros((1, 128, 160), np.uint8)
+
+    async def half_intensity() -> None:
+        await cam.open()
+        await proj.load(Sequence(1280, 800, (WhiteFrame(),)))
+        await proj.set_intensity(0.5)
+        await cam.arm(1, out)
+        await proj.start()
+        await cam.wait_frames(5.0)
+        with pytest.raises(ConfigError, match=r"exposure_us = 0\.0"):
+            await cam.set_exposure(0.0)
+        await cam.close()
+
+    asyncio.run(half_intensity())
+    lit = rig.ground_truth("cam0").lit
+    white = rig.render_clean(WhiteFrame(), "cam0")[lit].astype(np.float64)
+    black = rig.render_clean(BlackFrame(), "cam0")[lit].astype(np.float64)
+    np.testing.assert_allclose(out[0][lit].astype(float), np.round(black + 0.5 * (white - black)), atol=1)
