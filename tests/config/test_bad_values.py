@@ -97,3 +97,28 @@ def test_only_regular_files_of_sane_size_are_read(tmp_path: Path, kind: str) -> 
         load_config(path)
     msg = str(exc.value)
     assert msg.startswith(str(path)) and wanted in msg and "\n" not in msg, msg
+
+
+def test_the_config_watcher_rejects_a_fifo_without_blocking(tmp_path: Path) -> None:
+    import asyncio
+
+    from appliance.service.reload import ConfigWatcher
+
+    path = tmp_path / "appliance.yaml"
+    path.write_text("sequence: {steps: 4}\n")
+    applied: list[object] = []
+    rejected: list[str] = []
+
+    async def apply(cfg: object) -> None:
+        applied.append(cfg)
+
+    async def scenario() -> tuple[bool, str]:
+        watcher = ConfigWatcher(path, apply, rejected.append, poll_s=0)
+        assert (await watcher.reload("start"))[0]
+        path.unlink()
+        os.mkfifo(path)  # the file replaced by a FIFO nobody writes to
+        return await asyncio.wait_for(watcher.reload("file changed"), 10)
+
+    ok, msg = asyncio.run(scenario())
+    assert not ok and len(applied) == 1
+    assert rejected == [msg] and "is a FIFO (named pipe), not a regular file" in msg and "\n" not in msg
