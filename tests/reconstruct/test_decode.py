@@ -309,7 +309,7 @@ def test_integer_phase_sums_equal_float_sums_bit_for_bit(
 ) -> None:
     """8-bit frames sum their phase steps in int32 (units of the coefficient quantum); the maps must be those of
     the float64 sums, bit for bit (three- and four-step sets, offsets, two periods, with and without white)."""
-    dec = importlib.import_module("appliance.reconstruct.decode")  # the package's name 'decode' is the function
+    dec = importlib.import_module("appliance.reconstruct.decode_batch")  # where decode() looks _int_sums up
 
     t = plan_decode(seq).tables
     assert dec._int_sums(t, 255), name  # 8-bit: the integer path is the one taken
