@@ -36,6 +36,8 @@ def write_atomic(path: Path, writer: Callable[[BinaryIO], None]) -> Path:
     OutputError
         When the folder is missing, read-only or full (nothing is left behind).
     """
+    if "\x00" in str(path):
+        raise OutputError(f"{str(path)!r}: a file name cannot hold a NUL character; fix the path")
     tmp = path.with_name(f"{TMP_PREFIX}{path.name}.{os.getpid()}")
     try:
         with open(tmp, "wb") as f:
@@ -45,13 +47,20 @@ def write_atomic(path: Path, writer: Callable[[BinaryIO], None]) -> Path:
         os.replace(tmp, path)
         fsync_dir(path.parent)
     except OSError as exc:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
+        _remove(tmp)
         raise OutputError(f"{path}: cannot be written ({exc.strerror or exc}); check the folder exists, "
                           "is writable and has free space") from exc
+    except BaseException:  # the writer's own error: the old file stays, no temporary is left behind
+        _remove(tmp)
+        raise
     return path
+
+
+def _remove(tmp: Path) -> None:
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:  # a read-only folder: there is no temporary file to remove either
+        pass
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> Path:
