@@ -1,7 +1,8 @@
 """One scan: sequence -> hardware -> frames -> streaming decode -> triangulation -> cloud.
 
 :class:`Scanner` owns everything that lives across scans (frame buffers, streaming decoders, ray tables),
-so a scan allocates nothing per frame. It drives devices only through the hardware protocols.
+so a scan allocates nothing per frame. It drives devices only through the hardware protocols. From the
+decoded maps on, a scan runs the replay path's code (:mod:`appliance.replay`), as an offline decode does.
 """
 
 from __future__ import annotations
@@ -11,25 +12,28 @@ import dataclasses
 import mmap
 import re
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from appliance import replay
 from appliance.calibration.health import TrendStore
-from appliance.calibration.scan_health import assess_scan, trend_for
+from appliance.calibration.scan_health import trend_for
 from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
-from appliance.hardware.base import FrameArray, pulse_source
+from appliance.hardware.base import CameraInfo, FrameArray, pulse_source
 from appliance.hardware.registry import Rig, build_rig
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
-from appliance.reconstruct.pipeline import Reconstructor
-from appliance.reconstruct.types import DecodedMaps, PointCloud
+from appliance.reconstruct.pipeline import Reconstruction, Reconstructor, white_to_uint8
+from appliance.reconstruct.types import DecodedMaps
+from appliance.replay import ScanResult as ScanResult  # re-exported for callers
 
 # Module-level so tests can shorten it: extra time allowed per frame on top of the projector timing.
 FRAME_TIMEOUT_S = 5.0
@@ -57,24 +61,13 @@ def virtual_calibration(virtual: Any) -> Calibration:
     return Calibration(devices)
 
 
-@dataclass
-class ScanResult:
-    """The outcome of one scan."""
+class ScanPhase(Enum):
+    """What a scan is doing, as :class:`Scanner` reports it to its ``on_phase`` callback."""
 
-    cloud: PointCloud
-    maps: dict[str, DecodedMaps]
-    white: dict[str, npt.NDArray[np.uint8]]
-    timings_ms: dict[str, float]
-    shapes: dict[str, tuple[int, int]]
-    frames: dict[str, FrameArray] = field(default_factory=dict)
-    stages: list[dict[str, Any]] = field(default_factory=list)
-    """Per camera, what each reconstruction stage rejected (:class:`~appliance.reconstruct.types.StageCounts`)."""
-    warnings: list[str] = field(default_factory=list)
-    """Plain-words warnings of the reconstruction."""
-    calibration_health: dict[str, Any] = field(default_factory=dict)
-    """This scan's calibration health (:func:`appliance.calibration.scan_health.assess_scan`)."""
-    stereo: dict[str, Any] | None = None
-    """What the camera-camera matcher did (modes ``stereo`` and ``both``)."""
+    CAPTURED = "captured"
+    """Every camera has all its frames; the last decodes and the reconstruction follow."""
+    RECONSTRUCTING = "reconstructing"
+    """The decoded maps are being turned into the cloud."""
 
 
 class FrameMemory:
@@ -125,9 +118,19 @@ class Scanner:
         frame's memory goes back to the system once the decoder is done with it, so a camera holds about the
         white frame and the frames in flight instead of its whole sequence (27 MB for 22 frames of
         1280x1024), and ``ScanResult.frames`` is empty.
+    on_phase : callable, optional
+        Called on the event loop with each :class:`ScanPhase` a scan enters (the service's status).
     """
 
-    def __init__(self, cfg: AppConfig, rig: Rig, calibration: Calibration, *, keep_frames: bool = True) -> None:
+    def __init__(
+        self,
+        cfg: AppConfig,
+        rig: Rig,
+        calibration: Calibration,
+        *,
+        keep_frames: bool = True,
+        on_phase: Callable[[ScanPhase], None] | None = None,
+    ) -> None:
         self.cfg = cfg
         self.rig = rig
         self.calibration = calibration
@@ -159,12 +162,16 @@ class Scanner:
         self._executors: dict[str, ThreadPoolExecutor] = {}
         self._opened = False
         self.scans_done = 0
+        self.on_phase = on_phase
+        self.camera_info: dict[str, CameraInfo] = {}
+        """What each camera said when it was opened (model, serial, size, pixel format)."""
 
     async def open(self) -> None:
         """Open every device, allocate the buffers and load the sequence into the projector."""
         n = len(self.sequence)
         for name, cam in self.rig.cameras.items():
             info = await cam.open()
+            self.camera_info[name] = info
             shape = (info.height, info.width)
             model = self.calibration.devices[name]
             if (model.width, model.height) != (info.width, info.height):
@@ -173,25 +180,29 @@ class Scanner:
                     f"{model.width}x{model.height}; set the camera's resolution or recalibrate"
                 )
             bits = pixel_format_bits(info.pixel_format)
-            dtype = np.uint8 if bits == 8 else np.uint16
             if name not in self._buffers or self._buffers[name].shape != (n, *shape) or self._bits.get(name) != bits:
-                if self.keep_frames:
-                    buf: FrameArray = np.zeros((n, *shape), dtype)  # type: ignore[assignment]
-                else:
-                    mem = FrameMemory((n, *shape), np.dtype(dtype))
-                    self._releasable[name] = mem
-                    buf = mem.frames
-                self._unreleased[name] = set()
-                self._buffers[name] = buf
-                self._bits[name] = bits
-                # thresholds in the camera's own scale (Mono12: 0..4095 in uint16)
-                params = dataclasses.replace(self.params, max_value=float((1 << bits) - 1))
-                # the frames stay in this buffer for the whole scan: the decoder keeps references, not copies
-                self._decoders[name] = StreamingDecoder(self.sequence, shape, dtype, params, borrow_frames=True)
-                self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
+                # frame buffers and decoder state, ~100-400 MB of fresh memory: allocated off the event loop
+                await asyncio.to_thread(self._allocate, name, (n, *shape), bits)
         await self.rig.projector.open()
         await self.rig.projector.load(self.sequence)
         self._opened = True
+
+    def _allocate(self, name: str, shape: tuple[int, int, int], bits: int) -> None:
+        dtype = np.uint8 if bits == 8 else np.uint16
+        if self.keep_frames:
+            buf: FrameArray = np.zeros(shape, dtype)  # type: ignore[assignment]
+        else:
+            mem = FrameMemory(shape, np.dtype(dtype))
+            self._releasable[name] = mem
+            buf = mem.frames
+        self._unreleased[name] = set()
+        self._buffers[name] = buf
+        self._bits[name] = bits
+        # thresholds in the camera's own scale (Mono12: 0..4095 in uint16)
+        params = dataclasses.replace(self.params, max_value=float((1 << bits) - 1))
+        # the frames stay in this buffer for the whole scan: the decoder keeps references, not copies
+        self._decoders[name] = StreamingDecoder(self.sequence, shape[1:], dtype, params, borrow_frames=True)
+        self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
 
     async def warm_up(self) -> None:
         """Compile (or load from cache) every numba kernel a scan uses, before the first real scan.
@@ -227,6 +238,10 @@ class Scanner:
         )
         white: dict[str, npt.NDArray[np.generic]] = {n: self._white_u8(self._buffers[n], n) for n in names}
         await loop.run_in_executor(None, self.reconstructor.run, dict(zip(names, finished, strict=True)), white)
+
+    def _phase(self, phase: ScanPhase) -> None:
+        if self.on_phase is not None:
+            self.on_phase(phase)
 
     async def scan(self) -> ScanResult:
         """Run one scan and reconstruct it.
@@ -274,8 +289,13 @@ class Scanner:
             for i in range(n if software else 0):
                 await asyncio.gather(*(c.trigger(i) for c in software))
             timeout = FRAME_TIMEOUT_S + n * FRAME_TIMEOUT_PER_FRAME_S
+
+            async def captured(name: str, cam: Any) -> None:
+                await cam.wait_frames(timeout)
+                timings[f"capture_{name}_ms"] = (time.perf_counter() - t0) * 1e3
+
             results = await asyncio.gather(
-                *(cam.wait_frames(timeout) for cam in self.rig.cameras.values()), return_exceptions=True
+                *(captured(name, cam) for name, cam in self.rig.cameras.items()), return_exceptions=True
             )
             errors = [r for r in results if isinstance(r, BaseException)]
             if errors:
@@ -294,26 +314,30 @@ class Scanner:
             await asyncio.shield(self._settle(pushes))
             raise
         timings["capture_ms"] = (time.perf_counter() - t0) * 1e3
+        self._phase(ScanPhase.CAPTURED)
         t1 = time.perf_counter()
+
+        def finish(name: str, dec: StreamingDecoder) -> DecodedMaps:
+            maps = dec.finish()
+            timings[f"decode_finish_{name}_ms"] = (time.perf_counter() - t1) * 1e3
+            return maps
+
         finished = await asyncio.gather(
-            *(loop.run_in_executor(self._executors[name], dec.finish) for name, dec in self._decoders.items())
+            *(loop.run_in_executor(self._executors[name], finish, name, dec) for name, dec in self._decoders.items())
         )
         maps = dict(zip(self._decoders, finished, strict=True))
         timings["decode_finish_ms"] = (time.perf_counter() - t1) * 1e3
         white = {name: self._white_u8(buf, name) for name, buf in self._buffers.items()}
+        self._phase(ScanPhase.RECONSTRUCTING)
         t2 = time.perf_counter()
-        white_any: dict[str, npt.NDArray[np.generic]] = dict(white)
-        cloud, rtimes, health = await loop.run_in_executor(None, self._reconstruct, maps, white_any)
-        timings.update(rtimes)
+        rec, health = await loop.run_in_executor(None, self._reconstruct, maps, white)
+        timings.update(rec.timings_ms)
         timings["reconstruct_ms"] = (time.perf_counter() - t2) * 1e3
         timings["scan_ms"] = (time.perf_counter() - t0) * 1e3
         self.scans_done += 1
         shapes = {name: (int(b.shape[1]), int(b.shape[2])) for name, b in self._buffers.items()}
-        rec = self.reconstructor
         frames = dict(self._buffers) if self.keep_frames else {}
-        return ScanResult(cloud, maps, white, timings, shapes, frames,
-                          [st.as_dict() for st in rec.stages], list(rec.warnings), health,
-                          rec.stereo_report)  # fmt: skip
+        return ScanResult(rec, maps, white, timings, shapes, dict(health), frames)
 
     def _push(self, name: str, index: int, frame: FrameArray) -> None:
         """Push frame ``index`` of camera ``name`` into its decoder (in its decode thread); without
@@ -331,26 +355,19 @@ class Scanner:
             pending.discard(i)
 
     def _reconstruct(
-        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]]
-    ) -> tuple[PointCloud, dict[str, float], dict[str, Any]]:
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.uint8]]
+    ) -> tuple[Reconstruction, dict[str, object]]:
         """Reconstruct (in a worker thread), then judge the scan's residuals and record their trend."""
-        cloud, rtimes = self.reconstructor.run(maps, white)
-        t = time.perf_counter()
         if self._trend is None:
             self._trend = trend_for(self.cfg.service.state_directory)
-        health = assess_scan(self.reconstructor.residuals, self.calibration, self._trend,
-                             self.cfg.calibration.health_tolerance_px)  # fmt: skip
-        rtimes["health_ms"] = (time.perf_counter() - t) * 1e3
-        return cloud, rtimes, health
+        return replay.reconstruct(self.reconstructor, maps, white, self._trend,
+                                  self.cfg.calibration.health_tolerance_px)  # fmt: skip
 
     def _white_u8(self, buf: FrameArray, name: str) -> npt.NDArray[np.uint8]:
         if self._white_index is None:
             return np.zeros(buf.shape[1:], np.uint8)
-        w = buf[self._white_index]
-        if w.dtype == np.uint8:
-            return np.asarray(w, dtype=np.uint8)
-        shift = self._bits.get(name, 16) - 8  # the camera's significant bits, not the container's
-        return np.asarray(np.minimum(w >> shift, 255), dtype=np.uint8)
+        # the camera's significant bits, not the container's
+        return white_to_uint8(buf[self._white_index], self._bits.get(name, 16))
 
     @staticmethod
     async def _settle(pushes: list[asyncio.Future[None]]) -> None:
@@ -388,8 +405,11 @@ async def scan_once(cfg: AppConfig, rig: Rig | None = None) -> tuple[ScanResult,
     Returns the result and the (closed) scanner, for its sequence and parameters; ``scanner.rig.virtual`` is
     the virtual rig's ground truth when the rig is simulated.
     """
-    rig = rig if rig is not None else build_rig(cfg)
-    scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
+    def prepare(rig: Rig | None) -> Scanner:  # renders the virtual rig, builds ray tables: not on the loop
+        rig = rig if rig is not None else build_rig(cfg)
+        return Scanner(cfg, rig, load_calibration_for(cfg, rig))
+
+    scanner = await asyncio.to_thread(prepare, rig)
     try:
         return await scanner.scan(), scanner
     finally:
@@ -405,37 +425,3 @@ def load_calibration_for(cfg: AppConfig, rig: Rig) -> Calibration:
     if rig.virtual is None:
         raise ScanError("no calibration_file configured and no virtual rig; set calibration_file")
     return virtual_calibration(rig.virtual)
-
-
-def scan_metadata(
-    scan_id: str, started_utc: str, cfg: AppConfig, scanner: Scanner, result: ScanResult
-) -> Any:
-    """The sidecar content of one scan."""
-    from appliance.output.sidecar import ScanMetadata
-
-    names = list(cfg.cameras)
-    per_cam = {
-        name: {
-            "decoded_pixels": int(result.maps[name].mask.sum()),
-            "points": int(np.sum(result.cloud.camera == i)),
-        }
-        for i, name in enumerate(names)
-    }
-    return ScanMetadata(
-        scan_id=scan_id,
-        time_utc=started_utc,
-        sequence={
-            "description": scanner.sequence.describe(),
-            "frames": len(scanner.sequence),
-            "projector": [scanner.sequence.width, scanner.sequence.height],
-        },
-        calibration_hash=scanner.calibration.hash(),
-        counts={"points": len(result.cloud), "cameras": per_cam},
-        timings_ms=dict(result.timings_ms),
-        appliance_serial=cfg.serial,
-        cameras=names,
-        stages=list(result.stages),
-        warnings=list(result.warnings),
-        calibration_health=dict(result.calibration_health),
-        extra={"stereo": result.stereo} if result.stereo else {},
-    )

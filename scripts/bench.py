@@ -91,7 +91,7 @@ def bench_reference(repeats: int) -> dict[str, Any]:
     t_floor2, _ = median_ms(floor_sum, repeats)
     read_all = parallel_read_floor()
     t_floor_par, _ = median_ms(lambda: [read_all(s) for s in stacks.values()], repeats)
-    cloud, _ = recon.run(maps, white)
+    cloud = recon.run(maps, white).cloud
     return {
         "frames_per_camera": len(seq),
         "shape": list(stacks["cam0"].shape),

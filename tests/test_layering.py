@@ -20,7 +20,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     # layer: the module prefixes that belong to it (longest prefix wins)
     "cli": ("appliance.cli", "appliance.__main__", "appliance.commands", "appliance.fleet"),
     "service": ("appliance.service",),
-    "scan": ("appliance.scan", "appliance.procedures"),
+    "scan": ("appliance.scan", "appliance.replay", "appliance.procedures"),
     "output": ("appliance.output",),
     "fakes": ("appliance.fakes",),
     "hardware": ("appliance.hardware",),

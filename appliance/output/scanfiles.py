@@ -85,6 +85,7 @@ def scan_file_contents(
     *,
     normals: bool = False,
     preview: bool = True,
+    comments: list[str] | None = None,
 ) -> list[FileContent]:
     """Render the files of one scan in memory: cloud, preview (when ``preview``), sidecar last.
 
@@ -98,6 +99,8 @@ def scan_file_contents(
         (H, W) of each camera (px), for the preview's tiles.
     normals, preview : bool
         Normals in the PLY; a preview PNG.
+    comments : list of str, optional
+        The PLY header's comments (default: the scan id and ``units mm``).
 
     Returns
     -------
@@ -108,7 +111,7 @@ def scan_file_contents(
     sid = meta.scan_id
     camera_field = bool(len(cloud)) and bool((cloud.camera != cloud.camera[0]).any())
     dtype = vertex_dtype(cloud, camera_field=camera_field, normals=normals)
-    header = ply_bytes_header(cloud, dtype, [f"scan3d scan {sid}", "units mm"])
+    header = ply_bytes_header(cloud, dtype, [f"scan3d scan {sid}", "units mm"] if comments is None else comments)
     out = [FileContent(f"{sid}.ply", (header, PackedRecords(cloud, dtype)))]
     meta.files = {"cloud": f"{sid}.ply", "sidecar": f"{sid}.json"}
     if preview:

@@ -17,7 +17,7 @@ from appliance.reconstruct.defaults import default_depth_range_mm
 
 
 def depth_range_from_geometry(
-    calibration: Calibration, mode: Literal["auto", "projector", "stereo"] = "auto"
+    calibration: Calibration, mode: Literal["auto", "projector", "stereo", "both"] = "auto"
 ) -> tuple[float, float]:
     """Depth range (mm, camera frame) in which the calibrated rig can triangulate.
 
@@ -25,9 +25,10 @@ def depth_range_from_geometry(
     ----------
     calibration : Calibration
         Cameras (and projector) with their poses.
-    mode : {'auto', 'projector', 'stereo'}
+    mode : {'auto', 'projector', 'stereo', 'both'}
         Which pairs count: ``'projector'`` every camera with the projector, ``'stereo'`` the first camera
-        with the second, ``'auto'`` the projector pairs when there is a projector, else the stereo pair.
+        with the second, ``'both'`` all of those (the union of their ranges), ``'auto'`` the projector pairs
+        when there is a projector, else the stereo pair.
 
     Returns
     -------
@@ -42,6 +43,10 @@ def depth_range_from_geometry(
     """
     cams = calibration.cameras
     proj = calibration.projector
+    if mode == "both":
+        near_p, far_p = depth_range_from_geometry(calibration, "projector")
+        near_s, far_s = depth_range_from_geometry(calibration, "stereo")
+        return min(near_p, near_s), max(far_p, far_s)
     if mode == "auto":
         mode = "projector" if proj is not None else "stereo"
     if mode == "projector":

@@ -5,13 +5,16 @@ Camera-projector reconstruction goes through one depth pass per camera
 error of every point, the depth range, the sigma filter and the neighbour filter, whose jump limit follows
 from each point's expected error and pixel footprint, so that one default holds at 0.3 m and at 4 m.
 Each stage's rejections are counted (:class:`~appliance.reconstruct.types.StageCounts`), and a stage that
-rejects most of its candidates is said in plain words (:attr:`Reconstructor.warnings`).
+rejects most of its candidates is said in plain words. :meth:`Reconstructor.run` returns everything one scan
+produced as one frozen :class:`Reconstruction` record; the reconstructor keeps only its tables and buffers.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -40,17 +43,84 @@ FIXED_JUMP_MM = 2.0
 """Jump limit (plus two footprints) where no per-point error is known (stereo, or no sequence given)."""
 
 
+MODES = ("projector", "stereo", "both")
+"""Reconstruction modes: camera-projector, camera-camera, or both fused."""
+
+
+def white_to_uint8(img: npt.NDArray[np.generic], bits: int | None = None) -> npt.NDArray[np.uint8]:
+    """A grey image in the sensor's digital numbers -> 0..255, the one conversion of every path.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W) or (H, W, 3)
+        Grey (or colour, averaged) image; uint8, uint16 or float (DN).
+    bits : int, optional
+        Significant bits of the sensor (full scale ``2**bits - 1`` becomes 255). Default: 8 for uint8 and
+        float images, 16 for uint16.
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint8
+        ``round(img * 255 / (2**bits - 1))``, clipped to 0..255.
+    """
+    if img.ndim == 3:
+        img = img.mean(axis=2, dtype=np.float32)
+    if bits is None:
+        bits = 16 if img.dtype == np.uint16 else 8
+    if img.dtype == np.uint8 and bits == 8:
+        return np.ascontiguousarray(img, np.uint8)
+    scale = 255.0 / float((1 << bits) - 1)
+    return np.asarray(np.clip(np.asarray(img, np.float32) * scale + 0.5, 0, 255), np.uint8)
+
+
 def _as_uint8(img: npt.NDArray[np.generic], shape: tuple[int, int], name: str) -> npt.NDArray[np.uint8]:
-    """Grey image -> uint8 (uint16 keeps its high byte, floats are clipped to 0..255)."""
     if img.shape[:2] != shape:
         raise ScanError(f"white image of {name}: shape {img.shape}: must be {shape} (H, W)")
-    if img.ndim == 3:
-        img = img.mean(axis=2)
-    if img.dtype == np.uint8:
-        return np.ascontiguousarray(img, np.uint8)
-    if img.dtype == np.uint16:
-        return (np.asarray(img) >> 8).astype(np.uint8)
-    return np.clip(np.asarray(img, np.float32), 0, 255).astype(np.uint8)
+    return white_to_uint8(img)
+
+
+def available_modes(calibration: Calibration, cameras: Iterable[str] | None = None) -> tuple[str, ...]:
+    """The reconstruction modes a calibration supports for ``cameras`` (default: all its cameras).
+
+    A projector allows ``'projector'``; two cameras allow ``'stereo'``; both allow ``'both'``.
+    """
+    names = calibration.camera_names if cameras is None else [c for c in cameras if c in calibration.devices
+                                                               and c in calibration.camera_names]  # fmt: skip
+    has_projector = calibration.projector is not None
+    return tuple(m for m, ok in (("projector", has_projector), ("stereo", len(names) >= 2),
+                                 ("both", has_projector and len(names) >= 2)) if ok)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """Everything one :meth:`Reconstructor.run` produced (the reconstructor keeps none of it).
+
+    Attributes
+    ----------
+    cloud : PointCloud
+        Points of every output camera, world frame (mm).
+    timings_ms : dict of str to float
+        ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``.
+    stages : tuple of StageCounts
+        Per output camera, what each stage rejected.
+    warnings : tuple of str
+        Plain-words warnings (see :func:`stage_warnings`, the matcher's and the fusion's).
+    residuals : tuple of Residual
+        The calibration-health inputs: residuals wherever the scan was overdetermined (both projector axes,
+        two cameras with rows coded, two cameras and a projector).
+    fusion : dict of str to int
+        Mode ``'both'``: reference-camera pixels by source (see ``fuse_depths``); else empty.
+    stereo : dict, optional
+        What the camera-camera matcher did, stage by stage (modes ``'stereo'`` and ``'both'``).
+    """
+
+    cloud: PointCloud
+    timings_ms: dict[str, float]
+    stages: tuple[StageCounts, ...] = ()
+    warnings: tuple[str, ...] = ()
+    residuals: tuple[Residual, ...] = ()
+    fusion: dict[str, int] = field(default_factory=dict)
+    stereo: dict[str, object] | None = None
 
 
 def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> list[str]:
@@ -152,9 +222,10 @@ class Reconstructor:
         self.noise = noise
         self._proj_tri: dict[str, ProjectorTriangulator] = {}
         self._stereo: StereoTriangulator | None = None
+        modes = available_modes(calibration)
         if cfg.mode in ("projector", "both"):
             projector = calibration.projector
-            if projector is None:
+            if projector is None or "projector" not in modes:
                 raise CalibrationError(
                     f"reconstruction.mode = {cfg.mode}: the calibration has no 'projector'; "
                     "calibrate it or use mode stereo"
@@ -163,7 +234,7 @@ class Reconstructor:
                 self._proj_tri[n] = ProjectorTriangulator(calibration.devices[n], projector, axes)
             self.outputs = list(names)
         if cfg.mode in ("stereo", "both"):
-            if len(names) < 2:
+            if "stereo" not in modes:
                 raise CalibrationError(
                     f"reconstruction.mode = {cfg.mode}: needs two cameras, the calibration has {names}"
                 )
@@ -190,10 +261,6 @@ class Reconstructor:
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
         self._normals: dict[str, F32] = {}
         self._jump: dict[str, tuple[float, float, float]] = {}
-        self.stages: list[StageCounts] = []
-        """Per camera counts of the last :meth:`run` (mode ``'projector'``)."""
-        self.warnings: list[str] = []
-        """Plain-words warnings of the last :meth:`run` (see :func:`stage_warnings`)."""
         for n in self.outputs:
             cam = calibration.devices[n]
             # (constant mm, pixel footprints, sigmas) of each point's jump limit
@@ -217,18 +284,13 @@ class Reconstructor:
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
             if cfg.normals:
                 self._normals[n] = np.empty((cam.height, cam.width, 3), np.float32)
-        self.residuals: list[Residual] = []
-        """Residuals of the last :meth:`run` wherever the scan was overdetermined (both projector axes,
-        two cameras with rows coded, two cameras and a projector): the calibration's health in this scan."""
-        self.fusion: dict[str, int] = {}
-        """Mode ``'both'``: reference-camera pixels by source of the last :meth:`run` (see ``fuse_depths``)."""
         if cfg.mode == "both":  # the reference camera's camera-camera estimate, fused into its depth map
             cam = calibration.devices[names[0]]
             self._xyz[names[0]] = np.empty((cam.height, cam.width, 3), np.float32)
             self._scratch[names[0]] = np.empty((cam.height, cam.width), np.bool_)
             self._zs = np.empty((cam.height, cam.width), np.float32)
 
-    def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> None:
+    def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> dict[str, int]:
         """Mode ``'both'``: camera-camera on the reference camera, fused with its camera-projector depth by
         inverse-variance weighting; pixels where the two disagree beyond 3 sigma are left out (counted)."""
         assert self._stereo is not None
@@ -252,11 +314,9 @@ class Reconstructor:
         counts = self._counts[n0]
         counts[0] = 0
         counts[1:] = np.count_nonzero(np.isfinite(fused.depth), axis=1)
-        self.fusion = fused.counts()
+        return fused.counts()
 
-    @property
-    def stereo_report(self) -> dict[str, object] | None:
-        """What the camera-camera matcher did in the last :meth:`run`, stage by stage (mode ``'stereo'``)."""
+    def _stereo_report(self) -> dict[str, object] | None:
         return None if self._stereo is None else self._stereo.report.as_dict()
 
     def organised(self, name: str) -> F32:
@@ -280,7 +340,7 @@ class Reconstructor:
 
     def run(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None = None
-    ) -> tuple[PointCloud, dict[str, float]]:
+    ) -> Reconstruction:
         """Reconstruct one scan.
 
         Parameters
@@ -293,12 +353,10 @@ class Reconstructor:
 
         Returns
         -------
-        cloud : PointCloud
-            Points of every output camera, world frame (mm), with their source pixel, camera index and
-            ``sigma_mm``. :attr:`stages` and :attr:`warnings` describe what each stage rejected.
-        timings : dict of str to float
-            ``triangulate_ms``, ``filter_ms``, ``cloud_ms``, ``total_ms``. In mode ``'projector'`` the
-            filters run inside triangulation (``filter_ms`` is the normals' time, or 0).
+        Reconstruction
+            The cloud (every output camera, world frame, mm, with source pixel, camera index and ``sigma_mm``),
+            the timings (in mode ``'projector'`` the filters run inside triangulation: ``filter_ms`` is the
+            normals' time, or 0), what each stage rejected, the warnings and the residuals.
         """
         needed = list(self.outputs)
         if self._stereo is not None:
@@ -312,7 +370,7 @@ class Reconstructor:
 
     def _run_stereo(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
-    ) -> tuple[PointCloud, dict[str, float]]:
+    ) -> Reconstruction:
         cfg = self.cfg
         assert self._stereo is not None
         t0 = time.perf_counter()
@@ -342,20 +400,20 @@ class Reconstructor:
         rep = self._stereo.report
         h, w = xyz.shape[:2]
         # geometry: matched (the matcher's own stages are in stereo_report); depth range is inside the matcher
-        self.stages = [StageCounts(n0, h * w, rep.candidates, matched, matched, with_nb, kept)]
-        self.warnings = list(rep.warnings) + stage_warnings(self.stages, cfg)
-        self.residuals = list(self._stereo.residuals)
+        stages = (StageCounts(n0, h * w, rep.candidates, matched, matched, with_nb, kept),)
+        warnings = (*rep.warnings, *stage_warnings(list(stages), cfg))
         timings = {
             "triangulate_ms": 1e3 * (t1 - t0),
             "filter_ms": 1e3 * (t2 - t1),
             "cloud_ms": 1e3 * (t3 - t2),
             "total_ms": 1e3 * (t3 - t0),
         }
-        return cloud, timings
+        return Reconstruction(cloud, timings, stages, warnings, tuple(self._stereo.residuals), {},
+                              self._stereo_report())  # fmt: skip
 
     def _run_depth(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
-    ) -> tuple[PointCloud, dict[str, float]]:
+    ) -> Reconstruction:
         """Depth, sigma and filters per camera (one pass), then every kept point into one cloud (one pass)."""
         cfg = self.cfg
         max_sigma = math.inf if cfg.max_sigma_mm is None else cfg.max_sigma_mm
@@ -368,29 +426,27 @@ class Reconstructor:
                 sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
                 stats=self._stats[n], spans=self._spans[n],
             )  # fmt: skip
-        if self._stereo is not None:
-            self._fuse_stereo(maps)
+        fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
         stages = []
         for n in self.outputs:
             s = self._stats[n].sum(axis=0)
             h, w = self._depth[n].shape
             stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[2]), int(s[3]), int(s[4])))
-        self.stages = stages
-        self.warnings = stage_warnings(stages, cfg)
-        self.residuals = list(self._stereo.residuals) if self._stereo is not None else []
+        warnings = stage_warnings(stages, cfg)
+        residuals = list(self._stereo.residuals) if self._stereo is not None else []
         if self.axes == "xy" and self.calibration.projector is not None:
             for n, tri in self._proj_tri.items():
                 res = ray_ray_residual(self._depth[n], maps[n].u, maps[n].v, tri.rays.normalized,
                                        self.calibration.devices[n], self.calibration.projector)  # fmt: skip
                 if res is not None:
-                    self.residuals.append(res)
+                    residuals.append(res)
         if self._stereo is not None:
-            self.warnings = list(self._stereo.report.warnings) + self.warnings
-            disagree = self.fusion.get("disagree", 0)
-            both = disagree + self.fusion.get("fused", 0)
+            warnings = list(self._stereo.report.warnings) + warnings
+            disagree = fusion.get("disagree", 0)
+            both = disagree + fusion.get("fused", 0)
             if both and disagree > 0.05 * both:
-                self.warnings.append(
+                warnings.append(
                     f"{100.0 * disagree / both:.0f} % of the pixels both camera-projector and camera-camera "
                     "reconstruct disagree by more than 3 sigma (left out): the calibration may no longer fit "
                     "the rig; run scan3d verify or recalibrate"
@@ -411,8 +467,10 @@ class Reconstructor:
             t2 = time.perf_counter()
             cloud = clouds[0] if len(clouds) == 1 else PointCloud.concatenate(clouds)
             t3 = time.perf_counter()
-            return cloud, {"triangulate_ms": 1e3 * (t1 - t0), "filter_ms": 1e3 * (t2 - t1),
-                           "cloud_ms": 1e3 * (t3 - t2), "total_ms": 1e3 * (t3 - t0)}  # fmt: skip
+            timings = {"triangulate_ms": 1e3 * (t1 - t0), "filter_ms": 1e3 * (t2 - t1),
+                       "cloud_ms": 1e3 * (t3 - t2), "total_ms": 1e3 * (t3 - t0)}  # fmt: skip
+            return Reconstruction(cloud, timings, tuple(stages), tuple(warnings), tuple(residuals), fusion,
+                                  self._stereo_report())  # fmt: skip
         sizes = [int(self._counts[n].sum()) for n in self.outputs]
         total = sum(sizes)
         xyz, row, col, cam, inten8, qual, sig = self._pool.arrays(
@@ -436,4 +494,5 @@ class Reconstructor:
             "cloud_ms": 1e3 * (t2 - t1),
             "total_ms": 1e3 * (t2 - t0),
         }
-        return cloud, timings
+        return Reconstruction(cloud, timings, tuple(stages), tuple(warnings), tuple(residuals), fusion,
+                              self._stereo_report())

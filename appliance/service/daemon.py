@@ -46,7 +46,7 @@ from appliance.service.memory import rss_mb, tune_malloc
 from appliance.service.notify import SdNotifier
 from appliance.service.publish import Publisher
 from appliance.service.reload import ConfigWatcher
-from appliance.service.rig import RigManager, WatchedCamera, current_threading_layer, select_threading_layer
+from appliance.service.rig import RigManager, current_threading_layer, select_threading_layer
 from appliance.service.state import Phase, ScanRecord, State, StatusBoard
 from appliance.service.writing import STATE_FILE, ScanOutput
 
@@ -381,16 +381,14 @@ class Service:
 
     # --- hardware --------------------------------------------------------------------------------
 
-    def _make_scanner(self, cfg: AppConfig) -> tuple[Rig, Scanner, dict[str, WatchedCamera]]:
+    def _make_scanner(self, cfg: AppConfig) -> tuple[Rig, Scanner]:
         """Build (not open) the rig and its scanner; runs in a thread. Tests replace it with fakes."""
         from appliance.hardware.registry import build_rig
         from appliance.scan import Scanner, load_calibration_for
 
         rig = build_rig(cfg)
         calibration = load_calibration_for(cfg, rig)
-        watched = {n: WatchedCamera(c, self.hardware.on_camera_captured) for n, c in rig.cameras.items()}
-        rig.cameras = dict(watched)
-        return rig, Scanner(cfg, rig, calibration, keep_frames=False), watched
+        return rig, Scanner(cfg, rig, calibration, keep_frames=False, on_phase=self.hardware.on_scan_phase)
 
     # --- configuration ---------------------------------------------------------------------------
 

@@ -14,11 +14,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from appliance import replay
 from appliance.errors import ApplianceError, OutputError, ScanError
 from appliance.hardware.base import TriggerEvent
 from appliance.output.scanfiles import make_scan_id
 from appliance.output.share import WriteOutcome, estimate_scan_bytes
-from appliance.scan import scan_metadata
 from appliance.service import memory
 from appliance.service.state import ScanRecord, State
 
@@ -194,7 +194,6 @@ class ScanJobs:
             b.add_scan(rec)
             return rec
         scan_id = self.scan_id = make_scan_id(cfg.serial, await out.next_number(), started)
-        svc.hardware.captured_count = 0
         b.set_state(State.SCANNING, scan_id)
         try:
             result = await asyncio.wait_for(scanner.scan(), cfg.service.scan_timeout_s)
@@ -211,7 +210,8 @@ class ScanJobs:
                 svc.hardware.changed.set()  # devices in an unknown state: reconnect
             return rec
         b.set_state(State.WRITING, scan_id)
-        meta = scan_metadata(scan_id, started.isoformat(), cfg, scanner, result)
+        meta = replay.scan_metadata(scan_id, started.isoformat(), scanner.sequence, scanner.calibration,
+                                    list(cfg.cameras), result, serial=cfg.serial)  # fmt: skip
         meta.extra["trigger"] = {"source": event.source, "detail": event.detail}
         t_w = time.perf_counter()
         writer = out.writer
@@ -268,8 +268,10 @@ class ScanJobs:
             log.info("scan %s: error against ground truth: %s", scan_id, report.line())
 
 
-def _health_summary(health: dict[str, Any]) -> dict[str, Any]:
+def _health_summary(health: dict[str, object]) -> dict[str, Any]:
     """A scan's calibration health without the per-check detail beyond its figures (kept in the status)."""
     keep = ("status", "kind", "devices", "residual_px", "residual_mm", "reference_px", "limit_px", "n_samples")
+    checks = health.get("checks", [])
     return {"status": health.get("status", ""), "reason": health.get("reason", ""),
-            "checks": [{k: c.get(k) for k in keep} for c in health.get("checks", [])]} if health else {}
+            "checks": [{k: c.get(k) for k in keep} for c in checks if isinstance(c, dict)]
+            if isinstance(checks, list) else []} if health else {}  # fmt: skip

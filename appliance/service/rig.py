@@ -13,11 +13,11 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from appliance.errors import ApplianceError
-from appliance.hardware.base import Camera, CameraInfo, FrameCallback
 from appliance.service import memory
 from appliance.service.state import DeviceStatus, Phase, State
 
 if TYPE_CHECKING:
+    from appliance.scan import ScanPhase
     from appliance.service.daemon import Service
 
 log = logging.getLogger(__name__)
@@ -68,47 +68,12 @@ def threading_layer_problem() -> str:
             "unset NUMBA_THREADING_LAYER (or set it to omp or tbb) and install libgomp1 (apt) or tbb (pip)")
 
 
-class WatchedCamera:
-    """Wraps a camera: remembers what it said at open and reports when its frames are all in."""
-
-    def __init__(self, cam: Camera, on_captured: Callable[[], None]) -> None:
-        self.cam = cam
-        self.name = cam.name
-        self.info: CameraInfo | None = None
-        self._on_captured = on_captured
-
-    @property
-    def needs_software_trigger(self) -> bool:
-        """Whether the scan fires each frame of this camera itself (as the wrapped camera says)."""
-        return self.cam.needs_software_trigger
-
-    async def trigger(self, index: int) -> None:
-        await self.cam.trigger(index)
-
-    async def open(self) -> CameraInfo:
-        self.info = await self.cam.open()
-        return self.info
-
-    async def arm(self, n_frames: int, out: Any, on_frame: FrameCallback | None = None) -> None:
-        await self.cam.arm(n_frames, out, on_frame)
-
-    async def wait_frames(self, timeout_s: float) -> None:
-        try:
-            await self.cam.wait_frames(timeout_s)
-        finally:
-            self._on_captured()
-
-    async def close(self) -> None:
-        await self.cam.close()
-
-
 class RigManager:
     """Connects the rig of one service and keeps it connected."""
 
     def __init__(self, svc: Service) -> None:
         self.svc = svc
         self.changed = asyncio.Event()  # set: close and rebuild the rig (new configuration, lost devices)
-        self.captured_count = 0
         self.connected = False  # connected and warm
         self._trigger_task: asyncio.Task[None] | None = None
 
@@ -129,11 +94,11 @@ class RigManager:
         """``idle`` when every device is fine, else ``fault``."""
         return State.IDLE if all(d.ok for d in self.svc.board.devices.values()) else State.FAULT
 
-    def on_camera_captured(self) -> None:
-        """A camera has all its frames: once all have, the scan is ``processing``."""
-        self.captured_count += 1
+    def on_scan_phase(self, phase: ScanPhase) -> None:
+        """The scanner's phases (on the event loop): once every camera has its frames, the scan is
+        ``processing``."""
         b = self.svc.board
-        if b.state == State.SCANNING and self.captured_count >= len(self.svc.cfg.cameras):
+        if phase.value == "captured" and b.state == State.SCANNING:
             b.set_state(State.PROCESSING, b.detail)
 
     async def connect(self) -> None:
@@ -142,7 +107,7 @@ class RigManager:
         loop = asyncio.get_running_loop()
         cfg = svc.cfg
         svc.board.set_state(State.STARTING, "connecting hardware", Phase.CONNECT)
-        rig, scanner, watched = await loop.run_in_executor(None, svc._make_scanner, cfg)
+        rig, scanner = await loop.run_in_executor(None, svc._make_scanner, cfg)
         svc.rig = rig
         svc.board.sequence = scanner.sequence.describe()
         try:
@@ -152,7 +117,7 @@ class RigManager:
                 await scanner.close()
             raise
         for n in cfg.cameras:
-            info = watched[n].info if n in watched else None
+            info = scanner.camera_info.get(n)
             detail = (f"{info.model} {info.serial}, {info.width}x{info.height} {info.pixel_format}"
                       if info is not None else "open")
             svc.board.devices[f"camera:{n}"] = DeviceStatus("camera", n, cfg.cameras[n].type, True, detail)
@@ -171,7 +136,6 @@ class RigManager:
         problem = threading_layer_problem()
         if problem:
             raise FatalError(problem)
-        self.captured_count = 0
         await asyncio.to_thread(memory.trim)  # the warm-up's temporaries
         log.info("kernels warm in %.1f s", time.perf_counter() - t)
 

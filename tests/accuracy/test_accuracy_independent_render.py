@@ -173,7 +173,7 @@ def test_independent_render_reconstructs_the_analytic_scene(axes: str) -> None:
     cfg = ReconstructionConfig(min_depth_mm=300, max_depth_mm=1000, camera_read_noise_dn=READ_NOISE_DN,
                                camera_electrons_per_dn=ELECTRONS_PER_DN)  # fmt: skip
     rec = Reconstructor(_calibration(), axes, cfg, sequence=seq)
-    cloud, _ = rec.run({"cam0": maps}, {"cam0": frames[0]})
+    cloud = rec.run({"cam0": maps}, {"cam0": frames[0]}).cloud
     x, _, lit, _, _ = _scene()
     truth = x[cloud.row, cloud.col]
     assert np.isfinite(truth).all()  # every point is on the plane or the sphere

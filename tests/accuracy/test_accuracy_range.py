@@ -23,7 +23,7 @@ from appliance.config.schema import (
 )
 from appliance.patterns.sequence import Sequence, gray_phase_sequence
 from appliance.reconstruct.decode import DecodeParams, decode
-from appliance.reconstruct.pipeline import Reconstructor
+from appliance.reconstruct.pipeline import Reconstruction, Reconstructor
 from appliance.reconstruct.types import DecodedMaps, PointCloud
 from appliance.scan import virtual_calibration
 from appliance.sim.accuracy import AccuracyReport, compare_to_ground_truth
@@ -48,11 +48,11 @@ def _scan(z0: float) -> tuple[VirtualRig, Sequence, DecodedMaps, np.ndarray]:  #
     return rig, seq, decode(frames, seq, DecodeParams()), frames[0]
 
 
-def _reconstruct(z0: float, jump_mm: float | None) -> tuple[PointCloud, AccuracyReport, Reconstructor]:
+def _reconstruct(z0: float, jump_mm: float | None) -> tuple[PointCloud, AccuracyReport, Reconstruction]:
     rig, seq, maps, white = _scan(z0)
     cfg = ReconstructionConfig(min_depth_mm=0.5 * z0, max_depth_mm=2.0 * z0, max_neighbour_jump_mm=jump_mm)
-    rec = Reconstructor(virtual_calibration(rig), "x", cfg, sequence=seq)
-    cloud, _ = rec.run({"cam0": maps}, {"cam0": white})
+    rec = Reconstructor(virtual_calibration(rig), "x", cfg, sequence=seq).run({"cam0": maps}, {"cam0": white})
+    cloud = rec.cloud
     return cloud, compare_to_ground_truth(cloud, rig, ["cam0"]), rec
 
 
@@ -61,7 +61,7 @@ def test_default_jump_limits_hold_near_and_far(z0: float) -> None:
     cloud, rep, rec = _reconstruct(z0, None)
     print(f"{z0:.0f} mm: {rep.line()}")
     assert rep.completeness >= 0.98
-    assert rec.warnings == []
+    assert not rec.warnings
     rig = _scan(z0)[0]
     err = np.linalg.norm(cloud.xyz - rig.ground_truth("cam0").xyz[cloud.row, cloud.col], axis=1)
     assert cloud.sigma_mm is not None

@@ -18,7 +18,7 @@ import pytest
 from plyfile import PlyData
 
 from appliance import cli
-from appliance.commands import choose_decode_mode
+from appliance.replay import choose_decode_mode
 from appliance.config import parse_config
 from appliance.config.schema import ReconstructionConfig
 from appliance.errors import ConfigError

@@ -100,7 +100,9 @@ def test_reconstructor_fused_path_and_pooled_clouds() -> None:
     maps = {n: codes(proj, truth[n], "x") for n in calib.camera_names}
     white = {n: np.full((1024, 1280), 77, np.uint8) for n in calib.camera_names}
     rec = Reconstructor(calib, "x", ReconstructionConfig(min_depth_mm=400, max_depth_mm=800))
-    cloud, timings = rec.run(maps, white)
+    out = rec.run(maps, white)
+    cloud, timings = out.cloud, out.timings_ms
+    del out  # the record holds nothing the reconstructor reuses; the cloud is kept below
     assert timings["triangulate_ms"] > 0 and timings["filter_ms"] == 0.0
     assert sorted(set(cloud.camera.tolist())) == [0, 1]
     for i, name in enumerate(calib.camera_names):
@@ -114,7 +116,7 @@ def test_reconstructor_fused_path_and_pooled_clouds() -> None:
     assert np.all(cloud.intensity == 77)
     # a cloud the caller keeps is never reused; a dropped one is
     kept = {f: getattr(cloud, f).copy() for f in ("xyz", "row", "col", "camera", "intensity", "quality")}
-    other, _ = rec.run(maps, None)
+    other = rec.run(maps, None).cloud
     assert np.all(other.intensity == 0)
     for f, before in kept.items():
         np.testing.assert_array_equal(getattr(cloud, f), before)
@@ -126,14 +128,14 @@ def test_reconstructor_fused_path_and_pooled_clouds() -> None:
     tracemalloc.start()
     try:
         for k in range(3):
-            again, _ = rec.run(maps, None if k % 2 else white)
+            again = rec.run(maps, None if k % 2 else white).cloud
             assert np.all(again.intensity == (0 if k % 2 else 77))
             del again
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
     assert peak < cloud.xyz.nbytes / 4, f"{peak / 1e6:.1f} MB allocated by runs after dropped clouds"
-    again, _ = rec.run(maps, white)
+    again = rec.run(maps, white).cloud
     assert len(again) == len(cloud)
     np.testing.assert_array_equal(again.row, cloud.row)
     np.testing.assert_array_equal(again.intensity, cloud.intensity)

@@ -22,7 +22,7 @@ from appliance.patterns.sequence import Sequence, gray_code_sequence, gray_phase
 from appliance.reconstruct.decode import DecodeParams, decode
 from appliance.reconstruct.fuse import fuse_depths
 from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
-from appliance.reconstruct.pipeline import Reconstructor, stage_warnings
+from appliance.reconstruct.pipeline import Reconstruction, Reconstructor, stage_warnings
 from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
 from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
 from appliance.scan import virtual_calibration
@@ -43,11 +43,11 @@ def _render(
     return rig, seq, maps, frames[0]  # frame 0 is the white frame
 
 
-def _reconstruct(read_noise_dn: float, kind: str = "phase", **cfg: object) -> tuple[PointCloud, F64, Reconstructor]:
+def _reconstruct(read_noise_dn: float, kind: str = "phase", **cfg: object) -> tuple[PointCloud, F64, Reconstruction]:
     rig, seq, maps, white = _render(read_noise_dn, kind)
     rc = ReconstructionConfig(min_depth_mm=300, max_depth_mm=900, camera_read_noise_dn=read_noise_dn, **cfg)  # type: ignore[arg-type]
-    rec = Reconstructor(virtual_calibration(rig), "x", rc, sequence=seq)
-    cloud, _ = rec.run({"cam0": maps}, {"cam0": white})
+    rec = Reconstructor(virtual_calibration(rig), "x", rc, sequence=seq).run({"cam0": maps}, {"cam0": white})
+    cloud = rec.cloud
     truth = rig.ground_truth("cam0").xyz[cloud.row, cloud.col]
     assert np.isfinite(truth).all()  # no point off the objects
     err = np.linalg.norm(cloud.xyz.astype(np.float64) - truth, axis=1)

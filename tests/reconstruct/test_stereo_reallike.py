@@ -105,7 +105,8 @@ def test_real_like_capture_gets_a_point_for_every_pixel_both_cameras_see() -> No
             assert grid is not None and grid.quantised and grid.step == 1.0, (name, grid)
     cfg = ReconstructionConfig(mode="stereo", min_depth_mm=2000.0, max_depth_mm=5000.0)
     rec = Reconstructor(Calibration({"cam0": rig.cameras["cam0"], "cam1": rig.cameras["cam1"]}), "xy", cfg, seq)
-    cloud, _ = rec.run(maps)
+    out = rec.run(maps)
+    cloud = out.cloud
     truth = rig.ground_truth("cam0").xyz
     both = rendered._seen_by_both(rig, maps)
     got = np.zeros_like(both)
@@ -115,7 +116,7 @@ def test_real_like_capture_gets_a_point_for_every_pixel_both_cameras_see() -> No
     small, peak = _hole_pattern(both & ~got, both)
     print(f"real-like: coverage {100 * coverage:.2f} % of {both.sum()} both-seen pixels, median {median:.3f} mm, "
           f"p99 {np.percentile(err, 99):.2f} mm; small holes {100 * small:.2f} %, peak {peak:.0f}")  # fmt: skip
-    report = rec.stereo_report
+    report = out.stereo
     assert report is not None and "matched by code cells" in str(report["code"]), report
     said = report["both_seen"]  # what the product tells a user, from the codes alone, against the truth
     assert isinstance(said, dict), report

@@ -195,14 +195,14 @@ def test_mode_both_fuses_by_sigma_and_flags_disagreement() -> None:
     alone = {}
     for mode in ("projector", "stereo"):
         rec = Reconstructor(exact, "x", cfg.model_copy(update={"mode": mode}), seq)
-        err, _ = _reference_errors(rec.run(maps)[0], truth)
+        err, _ = _reference_errors(rec.run(maps).cloud, truth)
         alone[mode] = float(np.median(err))
-    rec = Reconstructor(exact, "x", cfg, seq)
-    cloud, _ = rec.run(maps)
+    out = Reconstructor(exact, "x", cfg, seq).run(maps)
+    cloud = out.cloud
     err, sigma = _reference_errors(cloud, truth)
-    fused = rec.fusion["fused"]
-    print(f"alone {alone}, both: median {np.median(err):.3f} mm, {rec.fusion}")
-    assert fused > 0.8 * len(err) and rec.fusion["disagree"] < 0.01 * fused
+    fused = out.fusion["fused"]
+    print(f"alone {alone}, both: median {np.median(err):.3f} mm, {out.fusion}")
+    assert fused > 0.8 * len(err) and out.fusion["disagree"] < 0.01 * fused
     assert np.median(err) < alone["projector"]  # the longer camera-camera baseline helps ...
     assert 0.7 <= np.sqrt(np.mean((err / sigma) ** 2)) <= 1.4  # ... and the fused sigma says how much
     assert set(np.unique(cloud.camera)) == {0, 1}  # cam1 keeps its camera-projector points
@@ -212,7 +212,6 @@ def test_mode_both_fuses_by_sigma_and_flags_disagreement() -> None:
     c1 = rig.cameras["cam1"]
     bad = Calibration({"cam0": rig.cameras["cam0"], "cam1": CameraModel("cam1", k, c1.dist, c1.width, c1.height,
                                                                          c1.R, c1.T, 0.3), "projector": rig.projector})
-    rec = Reconstructor(bad, "x", cfg, seq)
-    rec.run(maps)
-    assert rec.fusion["disagree"] > 0.5 * (rec.fusion["disagree"] + rec.fusion["fused"])
-    assert any("disagree by more than 3 sigma" in w and "recalibrate" in w for w in rec.warnings)
+    out = Reconstructor(bad, "x", cfg, seq).run(maps)
+    assert out.fusion["disagree"] > 0.5 * (out.fusion["disagree"] + out.fusion["fused"])
+    assert any("disagree by more than 3 sigma" in w and "recalibrate" in w for w in out.warnings)

@@ -261,7 +261,9 @@ def test_reconstructor(mode: str) -> None:
     white = {n: np.full((1024, 1280), 1234, np.uint16) for n in calib.camera_names}
     cfg = ReconstructionConfig(mode=mode, min_depth_mm=400, max_depth_mm=800, normals=True)  # type: ignore[arg-type]
     rec = Reconstructor(calib, "x", cfg)
-    cloud, timings = rec.run(maps, white)
+    out = rec.run(maps, white)
+    cloud, timings = out.cloud, out.timings_ms
+    del out
     assert set(timings) >= {"triangulate_ms", "filter_ms"} and all(v >= 0 for v in timings.values())
     cams = [0, 1] if mode == "projector" else [0]
     assert sorted(set(cloud.camera.tolist())) == cams
@@ -271,11 +273,12 @@ def test_reconstructor(mode: str) -> None:
         tol = EXACT_TOL_MM if mode == "projector" else 0.05
         assert np.max(np.linalg.norm(cloud.xyz[sel] - t, axis=1)) < tol
         assert sel.sum() > 0.9 * maps[calib.camera_names[i]].mask.sum()
-    assert np.all(cloud.intensity == 1234 >> 8)
+    grey = round(1234 * 255 / 65535)  # uint16 without stated bits: full scale 65535 -> 255, rounded
+    assert np.all(cloud.intensity == grey)
     assert cloud.normal is not None and cloud.normal.shape == (len(cloud), 3)
-    again, _ = rec.run(maps, None)  # buffers are reused, clouds are not
+    again = rec.run(maps, None).cloud  # buffers are reused, clouds are not
     assert len(again) == len(cloud) and np.all(again.intensity == 0)
-    assert np.all(cloud.intensity == 1234 >> 8)
+    assert np.all(cloud.intensity == grey)
 
 
 def test_reconstructor_needs_a_projector() -> None:

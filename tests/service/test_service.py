@@ -25,7 +25,9 @@ from appliance.hardware.base import TriggerEvent
 from appliance.output import share as S
 from appliance.output.atomic import TMP_PREFIX
 from appliance.patterns.sequence import gray_code_sequence
-from appliance.reconstruct.types import PointCloud
+from appliance.reconstruct.pipeline import Reconstruction
+from appliance.reconstruct.types import DecodedMaps, PointCloud
+from appliance.replay import ScanResult
 from appliance.service import daemon as D
 from appliance.service import publish as publish_mod
 from appliance.service import rig as rig_mod
@@ -80,6 +82,7 @@ class FakeScanner:
             devices={"cam0": SimpleNamespace(width=32, height=24)}, hash=lambda: "fakecal"
         )
         self.scans = 0
+        self.camera_info: dict[str, Any] = {}
 
     async def open(self) -> None:
         if self.plan.open_failures > 0:
@@ -114,16 +117,10 @@ class FakeScanner:
             np.ones(n, np.float32),
         )
         broken = getattr(self.plan, "broken_result", False)  # e.g. a backend that lost a camera's maps
-        return SimpleNamespace(
-            cloud=cloud,
-            maps={} if broken else {"cam0": SimpleNamespace(mask=np.ones((24, 32), bool))},
-            timings_ms={"scan_ms": 1e3 * self.plan.scan_s, "capture_ms": 1.0, "reconstruct_ms": 1.0},
-            shapes={"cam0": (24, 32)},
-            stages=[],
-            warnings=[],
-            calibration_health={},
-            stereo=None,
-        )
+        nan = np.full((24, 32), np.nan, np.float32)
+        maps = {} if broken else {"cam0": DecodedMaps(nan, nan, np.ones((24, 32), bool), np.ones((24, 32), np.float32))}
+        timings = {"scan_ms": 1e3 * self.plan.scan_s, "capture_ms": 1.0, "reconstruct_ms": 1.0}
+        return ScanResult(Reconstruction(cloud, {}), maps, {}, timings, {"cam0": (24, 32)})
 
     async def close(self) -> None:
         self.plan.closed += 1
@@ -148,9 +145,9 @@ class FakeService(D.Service):
         self.plan = plan
         self.trigger = FakeTrigger()
 
-    def _make_scanner(self, cfg: Any) -> tuple[Any, Any, dict[str, Any]]:
+    def _make_scanner(self, cfg: Any) -> tuple[Any, Any]:
         rig = SimpleNamespace(cameras={}, projector=None, trigger=self.trigger, virtual=None)
-        return rig, FakeScanner(self.plan), {}
+        return rig, FakeScanner(self.plan)
 
 
 # --- helpers ---------------------------------------------------------------------------------------------
