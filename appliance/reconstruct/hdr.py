@@ -23,7 +23,8 @@ import numpy.typing as npt
 from appliance.errors import DecodeError, PatternError
 from appliance.patterns.sequence import Sequence as PatternSequence
 from appliance.reconstruct import _hdr_kernels as _k
-from appliance.reconstruct.decode import DecodeParams, decode, plan_decode
+from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, empty_maps, plan_decode
+from appliance.reconstruct.decode_plan import DecodePlan
 from appliance.reconstruct.types import DecodedMaps, Reason
 
 
@@ -149,17 +150,9 @@ def decode_passes(
     PatternError
         A pass whose frames cannot be decoded on their own (names the pass).
     """
-    keys = [(float(e), float(i)) for e, i in exposures]
-    light = [(e if e > 0 else 1.0) * i for e, i in keys]
-    passes = exposure_passes(keys, light)
+    passes, plans = _pass_plans(sequence, exposures)
     decoded = []
-    for lv, idx in passes:
-        sub = PatternSequence(sequence.width, sequence.height, tuple(sequence.frames[i] for i in idx))
-        try:
-            plan = plan_decode(sub)
-        except PatternError as exc:
-            e, i = keys[idx[0]]
-            raise PatternError(f"exposure pass exposure_us={e:g} intensity={i:g} (light {lv:g}): {exc}") from exc
+    for (_lv, idx), plan in zip(passes, plans, strict=True):
         sub_frames = cast("npt.NDArray[np.uint8] | npt.NDArray[np.uint16]", np.ascontiguousarray(frames[idx]))
         m = decode(sub_frames, plan, params)
         decoded.append(_owned(m))
@@ -173,3 +166,107 @@ def _owned(m: DecodedMaps) -> DecodedMaps:
         m.u.copy(), m.v.copy(), m.mask.copy(), m.quality.copy(), list(m.ignored),
         None if m.levels is None else m.levels.copy(), None if m.reason is None else m.reason.copy(),
     )  # fmt: skip
+
+
+def _pass_plans(
+    sequence: PatternSequence, exposures: Sequence[tuple[float, float]]
+) -> tuple[list[tuple[float, list[int]]], list[DecodePlan]]:
+    """The exposure passes of a capture (darkest first, see :func:`exposure_passes`) and each pass's plan."""
+    if len(exposures) != len(sequence):
+        raise DecodeError(f"exposure passes: {len(exposures)} exposures for {len(sequence)} frames: one per frame")
+    keys = [(float(e), float(i)) for e, i in exposures]
+    light = [(e if e > 0 else 1.0) * i for e, i in keys]
+    passes = exposure_passes(keys, light)
+    plans = []
+    for lv, idx in passes:
+        sub = PatternSequence(sequence.width, sequence.height, tuple(sequence.frames[i] for i in idx))
+        try:
+            plans.append(plan_decode(sub))
+        except PatternError as exc:
+            e, i = keys[idx[0]]
+            raise PatternError(f"exposure pass exposure_us={e:g} intensity={i:g} (light {lv:g}): {exc}") from exc
+    return passes, plans
+
+
+class HdrStreamingDecoder:
+    """Decode a multi-exposure capture as its frames arrive; :meth:`finish` equals :func:`decode_passes`.
+
+    Each exposure pass has its own :class:`~appliance.reconstruct.decode.StreamingDecoder` (per-pixel sums and
+    codes, allocated here, reused after :meth:`reset`); a pushed frame updates its pass's state and is not kept
+    (unless ``borrow_frames``), so the memory is that of one decoder per pass, not of the frames. The fusion
+    (:func:`fuse_exposures`) runs once, in :meth:`finish`.
+
+    Parameters
+    ----------
+    sequence : Sequence
+        Every frame of every pass, in capture order.
+    exposures : sequence of (float, float)
+        Per frame its ``(exposure_us, intensity)``; a pass is the frames sharing one pair.
+    shape : tuple of int
+        (H, W) of the camera images.
+    dtype : numpy dtype
+        ``np.uint8`` or ``np.uint16``.
+    params : DecodeParams
+        Thresholds (the same for every pass).
+    borrow_frames : bool
+        See :class:`~appliance.reconstruct.decode.StreamingDecoder`.
+    """
+
+    def __init__(
+        self,
+        sequence: PatternSequence,
+        exposures: Sequence[tuple[float, float]],
+        shape: tuple[int, int],
+        dtype: npt.DTypeLike = np.uint8,
+        params: DecodeParams | None = None,
+        *,
+        borrow_frames: bool = False,
+    ) -> None:
+        prm = DecodeParams() if params is None else params
+        self.passes, plans = _pass_plans(sequence, exposures)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self._decoders = [StreamingDecoder(p, self.shape, dtype, prm, borrow_frames=borrow_frames) for p in plans]
+        self._route: list[tuple[int, int]] = [(-1, -1)] * len(sequence)
+        for k, (_lv, idx) in enumerate(self.passes):
+            for j, i in enumerate(idx):
+                self._route[i] = (k, j)
+        self._out = [empty_maps(self.shape) for _ in plans]
+        self.choice: npt.NDArray[np.uint8] | None = None
+
+    def reset(self) -> None:
+        """Forget the frames pushed so far; buffers are kept for the next scan."""
+        for d in self._decoders:
+            d.reset()
+        self.choice = None
+
+    def push(self, index: int, frame: npt.NDArray[np.generic]) -> None:
+        """Add frame ``index`` of the whole capture (any order); raises like ``StreamingDecoder.push``."""
+        if not 0 <= index < len(self._route):
+            raise DecodeError(f"HDR streaming decoder: frame index {index}: must be in 0..{len(self._route) - 1}")
+        k, j = self._route[index]
+        self._decoders[k].push(j, frame)
+
+    @property
+    def missing(self) -> list[int]:
+        """Indices (of the whole capture) of the frames the decoder still needs."""
+        return sorted(self.passes[k][1][j] for k, d in enumerate(self._decoders) for j in d.missing)
+
+    def finish(self) -> DecodedMaps:
+        """Finish every pass and fuse them per pixel (:func:`fuse_exposures`); ``choice`` then names the pass
+        of each pixel (use :func:`pick_per_pixel` for its grey value).
+
+        Raises
+        ------
+        DecodeError
+            When frames of some pass were not pushed.
+        """
+        missing = self.missing
+        if missing:
+            raise DecodeError(
+                f"HDR streaming decoder: {len(missing)} frame(s) not pushed (first: {missing[:12]}); push every "
+                "frame of every exposure pass before finish()"
+            )
+        done = [d.finish(out=o) for d, o in zip(self._decoders, self._out, strict=True)]
+        fused, self.choice = fuse_exposures(done)
+        return fused
+
