@@ -710,6 +710,51 @@ def isolated_keep_sigma(xyz, sigma, min_nb, const_mm, k_sigma, k_footprint, inv_
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def agree_keep_sigma(xyz, sigma, max_disagree, min_agree, const_mm, k_sigma, k_footprint, inv_f, max_sigma, keep):  # type: ignore[no-untyped-def]
+    """Keep a point whose valid 8-neighbours agree with it: at most ``max_disagree`` lie beyond the jump limit
+    of the pair and at least ``min_agree`` within it; missing neighbours count neither way (a hole does not
+    grow), and sigma <= max_sigma.
+
+    The limit of a pair is ``const_mm + k_sigma * hypot(sigma, sigma_nb) + k_footprint * z / f`` (``inv_f`` =
+    1 / f px; NaN sigmas add nothing).
+    """
+    h, w = xyz.shape[0], xyz.shape[1]
+    for r in prange(h):
+        for c in range(w):
+            keep[r, c] = False
+            z = np.float64(xyz[r, c, 2])
+            s = np.float64(sigma[r, c])
+            if z != z or (s == s and not s <= max_sigma):
+                continue
+            s2 = s * s if s == s else 0.0
+            base = const_mm + k_footprint * abs(z) * inv_f
+            agree = 0
+            disagree = 0
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= h:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
+                        continue
+                    zn = np.float64(xyz[rr, cc, 2])
+                    if zn != zn:
+                        continue
+                    sn = np.float64(sigma[rr, cc])
+                    lim = base + k_sigma * math.sqrt(s2 + (sn * sn if sn == sn else 0.0))
+                    ex = np.float64(xyz[rr, cc, 0]) - np.float64(xyz[r, c, 0])
+                    ey = np.float64(xyz[rr, cc, 1]) - np.float64(xyz[r, c, 1])
+                    ez = zn - z
+                    if ex * ex + ey * ey + ez * ez < lim * lim:
+                        agree += 1
+                    else:
+                        disagree += 1
+            keep[r, c] = agree >= min_agree and disagree <= max_disagree
+    return keep
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def drop_unkept(xyz, sigma, keep):  # type: ignore[no-untyped-def]
     """NaN the points and sigmas where ``keep`` is False (in place); returns how many pixels are kept."""
     h, w = keep.shape[0], keep.shape[1]

@@ -87,6 +87,8 @@ DRIFT_REFUSE_MIN_PX = 5.0
 """... and never below this many rectified px: a bumped camera or warm-up moves the lines by a few px, which
 the plane fit corrects to well under a millimetre."""
 DRIFT_POLICIES = ("correct", "refuse")
+NEIGHBOURS_AGREE = 2
+"""The neighbour filter keeps a point only with this many valid neighbours within its jump limit."""
 SEEN_MIN_PX = 1
 """A code cell counts as seen by the other camera when that many of its pixels decode it (2 would drop lone
 wrong codes, but also the many cells a foreshortened view samples with one pixel: 19 % fewer on the real-like
@@ -777,16 +779,23 @@ class StereoTriangulator:
         k_footprint: float,
         scratch: npt.NDArray[np.bool_],
     ) -> int:
-        """Remove points of the last :meth:`triangulate` with too few near neighbours, in place.
+        """Remove points of the last :meth:`triangulate` that their neighbours do not agree with, in place.
+
+        Agreement is judged by the points' sigmas, and a missing neighbour counts neither way: a point is kept
+        when at most ``8 - min_neighbours`` of its valid neighbours lie beyond the pair's jump limit (with 8: none;
+        a mixed pixel on a depth edge goes) and at least ``min(min_neighbours, NEIGHBOURS_AGREE)`` lie within it
+        (a lone point goes). So a hole in the matches does not grow by a pixel all round, as it did when a
+        point needed 8 valid near neighbours.
 
         Parameters
         ----------
         xyz : ndarray, shape (H0, W0, 3), float32
             The organised cloud the last :meth:`triangulate` wrote.
         min_neighbours : int
-            Keep a point when this many of its 8 neighbours lie within its jump limit (0..8).
+            0..8; 0 keeps every point.
         const_mm, k_sigma, k_footprint : float
-            A point's jump limit: ``const_mm + k_sigma * sigma + k_footprint * z / f`` (mm; f of cam0, px).
+            The jump limit of a point and its neighbour: ``const_mm + k_sigma * hypot(sigma, sigma_nb) +
+            k_footprint * z / f`` (mm; f of cam0, px).
         scratch : ndarray, shape (H0, W0), bool
             Work buffer.
 
@@ -795,8 +804,8 @@ class StereoTriangulator:
         int
             Points kept.
         """
-        C.isolated_keep_sigma(xyz, self.sigma, min_neighbours, const_mm, k_sigma, k_footprint,
-                              1.0 / float(self.cam0.K[0, 0]), math.inf, scratch)  # fmt: skip
+        C.agree_keep_sigma(xyz, self.sigma, 8 - min_neighbours, min(min_neighbours, NEIGHBOURS_AGREE), const_mm,
+                           k_sigma, k_footprint, 1.0 / float(self.cam0.K[0, 0]), math.inf, scratch)  # fmt: skip
         return self._apply(xyz, scratch)
 
     def filter_sigma(self, xyz: F32, max_sigma_mm: float, scratch: npt.NDArray[np.bool_]) -> int:
