@@ -67,6 +67,24 @@ ONLY_IMPORTED_BY: dict[str, set[str]] = {
 EVENT_LOOP_STARTERS = ("asyncio.run", "run_until_complete")
 EVENT_LOOP_OWNERS = ("appliance/service/", "appliance/cli.py")
 
+# Inside service/, one part (the daemon) owns the rig, the scanner and the other parts; every other part gets the
+# status board and a small protocol of what it may call (as faces.ServiceView does), never the daemon itself.
+DAEMON_MODULE = "appliance.service.daemon"
+DAEMON_IMPORTERS_ALLOWED = {
+    "appliance.cli",  # `scan3d run` starts the daemon
+    "appliance.service.bench",  # the service bench runs a whole daemon and measures it; it is no part of one
+}
+# Service parts that still take the whole daemon (issue 26 item 4 moves each to its own protocol; remove an entry
+# when its module no longer imports the daemon: the stale check then keeps it fixed).
+KNOWN_DAEMON_IMPORTERS = {
+    "appliance.service.handlers",
+    "appliance.service.health",
+    "appliance.service.jobs",
+    "appliance.service.publish",
+    "appliance.service.rig",
+    "appliance.service.writing",
+}
+
 # Known, to be moved (each in a file another change owns; remove the entry when it is fixed, the test
 # then keeps it fixed). (importer, imported module)
 KNOWN_EDGES: set[tuple[str, str]] = set()
@@ -248,3 +266,36 @@ def test_checker_reads_function_level_and_relative_imports(tmp_path: Path, monke
                                                       ("appliance.scan", 4)]
     assert len(violations(edges)) == 3
     assert loop_starters() == ["appliance/geometry/loop.py:4: asyncio.run"]
+
+
+def daemon_importers(edges: list[Edge]) -> list[str]:
+    """Modules other than the daemon that import it (``Service`` or the module), one line each."""
+    return sorted({f"{e.importer}:{e.line}" for e in edges
+                   if (e.imported == DAEMON_MODULE or e.imported.startswith(DAEMON_MODULE + "."))
+                   and e.importer != DAEMON_MODULE and e.importer not in DAEMON_IMPORTERS_ALLOWED})  # fmt: skip
+
+
+def test_no_service_part_takes_the_whole_daemon() -> None:
+    """A service part gets the status board and a small protocol, never ``daemon.Service`` (TYPE_CHECKING too)."""
+    found = daemon_importers(all_edges())
+    new = [f for f in found if f.split(":")[0] not in KNOWN_DAEMON_IMPORTERS]
+    assert not new, "service modules importing the daemon (give them a protocol, as faces.ServiceView):\n" + \
+        "\n".join(new)
+    stale = KNOWN_DAEMON_IMPORTERS - {f.split(":")[0] for f in found}
+    assert not stale, f"no longer import the daemon, remove from KNOWN_DAEMON_IMPORTERS: {sorted(stale)}"
+
+
+@pytest.mark.parametrize(
+    ("importer", "imported", "caught"),
+    [
+        ("appliance.service.mqtt", "appliance.service.daemon", True),
+        ("appliance.service.faces", "appliance.service.daemon.Service", True),
+        ("appliance.service.jobs", "appliance.service.daemon", False),  # known, listed
+        ("appliance.cli", "appliance.service.daemon", False),
+        ("appliance.service.daemon", "appliance.service.jobs", False),
+    ],
+)
+def test_daemon_rule_checker(importer: str, imported: str, caught: bool) -> None:
+    found = [f for f in daemon_importers([Edge(importer, imported, 1)])
+             if f.split(":")[0] not in KNOWN_DAEMON_IMPORTERS]  # fmt: skip
+    assert bool(found) is caught
