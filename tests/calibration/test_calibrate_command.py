@@ -21,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_calibration_boards import procam_white_detections
-from test_calibration_projector import PROCAM, procam_manifests
+from procam_helpers import PROCAM, procam_manifests, procam_white_detections
 
 from appliance.calibration.boards import BoardSpec, Detection
 from appliance.calibration.intrinsics import CameraResult, calibrate_camera

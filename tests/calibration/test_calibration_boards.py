@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from procam_helpers import PROCAM, procam_white_detections
 
-from appliance.calibration.boards import BoardSpec, Detection, board_from_args, detect, render_board
+from appliance.calibration.boards import BoardSpec, board_from_args, detect, render_board
 from appliance.errors import CalibrationError
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CHARUCO = DATA / "charuco_sample"
-PROCAM = DATA / "procam_graycode_calib"
 
 CHARUCO_SPEC = BoardSpec(
     type="charuco", cols=5, rows=7, square_mm=40, marker_mm=20, dictionary="DICT_6X6_250"
@@ -53,16 +52,6 @@ def test_charuco_occluded_view_gives_visible_corners_only() -> None:
     err = np.linalg.norm(pred - occ.image_points, axis=1)
     assert err.max() < 1.5, f"corner ids {occ.ids[err >= 1.5]} are off by {err[err >= 1.5]} px"
     np.testing.assert_allclose(occ.object_points, CHARUCO_SPEC.object_points()[occ.ids])
-
-
-@functools.cache
-def procam_white_detections() -> tuple[Detection | None, ...]:
-    """The board in the 5 procam white frames (detected once per test session; other tests reuse it)."""
-    spec = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
-    return tuple(
-        detect(cv2.imread(str(PROCAM / f"capture_{pose}" / "graycode_40.png"), cv2.IMREAD_GRAYSCALE), spec)
-        for pose in range(5)
-    )
 
 
 def test_chessboard_on_procam_white_frames() -> None:

@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
-from test_calibration_boards import procam_white_detections
+from procam_helpers import PROCAM, procam_white_detections
 
 from appliance.calibration.boards import BoardSpec, Detection
 from appliance.calibration.intrinsics import calibrate_camera, coverage_map, model_flags
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 
-PROCAM = Path(__file__).resolve().parents[3] / "shared" / "data" / "procam_graycode_calib"
 SPEC = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
 
 

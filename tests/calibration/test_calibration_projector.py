@@ -5,11 +5,9 @@ The calibrate commands on the same captures are tested in test_calibrate_command
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
+from procam_helpers import PROCAM, procam_manifests
 
 from appliance.calibration.boards import BoardSpec, Detection
 from appliance.calibration.projector import (
@@ -19,29 +17,10 @@ from appliance.calibration.projector import (
     projector_detection,
 )
 from appliance.patterns import (
-    BlackFrame,
-    Sequence,
-    WhiteFrame,
-    gray_code_frames,
     read_manifest,
-    write_manifest,
 )
 
-PROCAM = Path(__file__).resolve().parents[3] / "shared" / "data" / "procam_graycode_calib"
 SPEC = BoardSpec(type="chessboard", cols=9, rows=7, square_mm=75)
-
-
-def procam_manifests(folder: Path) -> list[Path]:
-    """One manifest per procam pose, pointing at the shared images (frame order of the README)."""
-    seq = Sequence(1024, 768, gray_code_frames(1024, "x", bits=10) + gray_code_frames(768, "y", bits=10)
-                   + (WhiteFrame(), BlackFrame()))  # fmt: skip
-    out = []
-    for pose in range(5):
-        imgs = [
-            os.path.relpath(PROCAM / f"capture_{pose}" / f"graycode_{i:02d}.png", folder) for i in range(42)
-        ]
-        out.append(write_manifest(folder / f"pose{pose}.yaml", seq, ["cam0"], images={"cam0": imgs}))
-    return out
 
 
 @pytest.fixture(scope="module")

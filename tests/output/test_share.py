@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scan_builders import SHAPES, cloud, meta
 from share_watch import DirWatch
 
 from appliance.config.schema import OutputConfig
@@ -19,39 +20,11 @@ from appliance.output import share as S
 from appliance.output import spool
 from appliance.output.atomic import TMP_PREFIX
 from appliance.output.ply import read_ply_vertices
-from appliance.output.sidecar import ScanMetadata
-from appliance.reconstruct.types import PointCloud
-
-SHAPES = [(24, 32)]
-
-
-def cloud(n: int = 50, seed: int = 0) -> PointCloud:
-    rng = np.random.default_rng(seed)
-    rows, cols = rng.integers(0, 24, n).astype(np.int32), rng.integers(0, 32, n).astype(np.int32)
-    return PointCloud(
-        rng.uniform(-50, 50, (n, 3)).astype(np.float32) + np.float32([0, 0, 600]),
-        rows,
-        cols,
-        np.zeros(n, np.uint8),
-        rng.integers(0, 255, n).astype(np.uint8),
-        rng.uniform(0, 50, n).astype(np.float32),
-    )
 
 
 def xyz(path: Path) -> np.ndarray:
     v = read_ply_vertices(path)
     return np.stack([v["x"], v["y"], v["z"]], axis=1)
-
-
-def meta(i: int) -> ScanMetadata:
-    return ScanMetadata(
-        scan_id=f"20260101-000000-T-{i:06d}",
-        time_utc="2026-01-01T00:00:00+00:00",
-        sequence={},
-        calibration_hash="x",
-        counts={"points": 50},
-        timings_ms={},
-    )
 
 
 @pytest.fixture

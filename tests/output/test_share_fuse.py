@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scan_builders import SHAPES, cloud, meta
 from share_watch import DirWatch
-from test_share import SHAPES, cloud, meta
 
 from appliance.config.schema import OutputConfig
 from appliance.output import share as S

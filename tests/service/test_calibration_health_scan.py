@@ -17,9 +17,9 @@ import json
 from pathlib import Path
 from typing import Any
 
+import e2e_helpers as e2e
 import numpy as np
 import pytest
-import test_service_e2e as e2e
 import yaml
 
 from appliance import cli
@@ -31,6 +31,7 @@ from appliance.patterns.manifest import write_manifest
 from appliance.scan import virtual_calibration
 from appliance.service import daemon as D
 from appliance.service.client import request
+from appliance.service.state import State
 from appliance.sim.rig import VirtualRig
 
 RIG: dict[str, Any] = {
@@ -134,7 +135,7 @@ def test_service_reports_health_in_sidecar_status_and_txt(rig_files: dict[str, P
         config.write_text(yaml.safe_dump(doc, sort_keys=False))
         reply = await asyncio.to_thread(request, svc.socket_path, {"cmd": "reload"}, 60)
         assert reply.get("ok"), reply
-        await e2e.await_for(lambda: svc.board.state == e2e.State.IDLE, 60)
+        await e2e.await_for(lambda: svc.board.state == State.IDLE, 60)
         seen["after"] = [(await e2e.scan_once(svc))["calibration_health"]["status"] for _ in range(3)]
         seen["status_bad"] = await asyncio.to_thread(_status, svc)
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import e2e_helpers as e2e
 import pytest
-import test_service_e2e as e2e
 
 from appliance.hardware import sim
 from appliance.service import daemon as D

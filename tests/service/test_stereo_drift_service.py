@@ -13,8 +13,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import e2e_helpers as e2e
 import pytest
-import test_service_e2e as e2e
 import yaml
 
 from appliance.config import parse_config
