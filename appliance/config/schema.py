@@ -100,7 +100,9 @@ class ReconstructionConfig(_Strict):
         8,
         ge=0,
         le=8,
-        description="Keep a point when this many of its 8 neighbours are valid and near (8 drops mixed edge pixels).",
+        description="Keep a point when this many of its 8 neighbours are valid and near (8 drops mixed edge pixels); "
+        "camera-camera: when no more than 8 minus this many of its valid neighbours disagree (beyond the pair's "
+        "sigmas) and 2 agree, missing neighbours counting neither way (holes do not grow).",
     )
     max_neighbour_jump_mm: float | None = Field(
         None,
