@@ -82,12 +82,14 @@ def reconstruction_settings(path: Path) -> ReconstructionConfig:
         model_config = ConfigDict(extra="ignore")
         reconstruction: ReconstructionConfig = ReconstructionConfig()
 
+    from appliance.config.loader import MAX_CONFIG_BYTES
+    from appliance.config.yamlfile import parse_yaml, read_text_file
+
+    text = read_text_file(path, what="configuration", error=ConfigError, limit_bytes=MAX_CONFIG_BYTES,
+                          fix="check --config")
     try:
-        text = Path(path).read_text(encoding="utf-8")
-        root, doc = yaml.compose(text), yaml.safe_load(text)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot be read ({exc.strerror}); check --config") from exc
-    except (UnicodeDecodeError, yaml.YAMLError) as exc:
+        doc, root = parse_yaml(text)
+    except (yaml.YAMLError, RecursionError) as exc:
         raise ConfigError(f"{path}: not a YAML text file ({' '.join(str(exc).split())[:200]})") from exc
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: not a YAML mapping; give a file with a 'reconstruction:' section")
@@ -149,9 +151,10 @@ def _decode_one(
                 arrays[f"{cam}_levels"] = m.levels  # Gray bits dropped per axis (finest resolvable bit)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(path, allow_pickle=False, **arrays)
         except OSError as exc:
-            raise OutputError(f"{path}: the maps cannot be written ({exc.strerror}); check the folder") from exc
+            raise OutputError(f"{path.parent}: cannot be created ({exc.strerror}); check --maps") from exc
+        # through the atomic writer: a full disk keeps an existing file whole
+        write_atomic(path, lambda f: np.savez_compressed(f, allow_pickle=False, **arrays))
         written["maps"] = str(path)
         print(f"{tag}maps: {path}")
     per_cam: dict[str, dict[str, object]] = {cam: {"stripe_widths": st} if st else {} for cam, st in stripes.items()}
@@ -259,6 +262,14 @@ def decode_manifests(
         raise ConfigError("decode: --report writes the sidecar of one capture; give one manifest (or no --report)")
     if is_batch and out is not None and out.suffix.lower() == ".ply":
         raise ConfigError(f"decode: --out {out}: several manifests need a folder (one <stem>.ply each)")
+    if is_batch and (out is not None or maps_out is not None):
+        by_stem: dict[str, Path] = {}
+        for m in manifests:
+            other = by_stem.setdefault(m.stem, m)
+            if other != m:
+                raise ConfigError(f"decode: {other} and {m} would both write {m.stem}.ply/.npz into the --out/--maps "
+                                  "folder, the second replacing the first; give the captures different names or "
+                                  "decode them one at a time")
     _note_compiling("decode")
     from appliance.replay import ReplayBatch
 
@@ -304,6 +315,7 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
     rig = build_rig(cfg)
     calibration = load_calibration_for(cfg, rig)
     scanner = Scanner(cfg, rig, calibration)
+    failed = 0
     try:
         t = time.perf_counter()
         _note_compiling("scan")
@@ -326,8 +338,14 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
             meta.timings_ms["write_ms"] = 0.0
             contents = result_files(meta, result, normals=cfg.output.normals and result.cloud.normal is not None,
                                     preview=cfg.output.preview)  # fmt: skip
-            folder.mkdir(parents=True, exist_ok=True)
-            paths = [write_atomic(folder / c.name, c.write_to) for c in contents]  # the sidecar last
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                paths = [write_atomic(folder / c.name, c.write_to) for c in contents]  # the sidecar last
+            except (OSError, OutputError) as exc:  # the scan is not lost: the spool keeps it, as in the service
+                paths = _spool_scan(cfg, f"{started:%Y-%m-%d}", scan_id, contents)
+                print(f"scan3d scan: {folder}: cannot be written ({exc}); scan {scan_id} kept in the spool "
+                      f"{paths[0].parent} (scan3d run delivers it to the share)", file=sys.stderr)
+                failed += 1
             tm = result.timings_ms
             print(f"scan {scan_id}: {len(result.cloud)} points in {tm['scan_ms']:.0f} ms "
                   f"(capture+decode {tm['capture_ms']:.0f} ms, reconstruct {tm['reconstruct_ms']:.0f} ms, "
@@ -337,13 +355,36 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
                 print(f"  error against ground truth: {report.line()}")
     finally:
         await scanner.close()
-    return 0
+    return 2 if failed else 0
+
+
+def _spool_scan(cfg: AppConfig, day: str, scan_id: str, contents: list[Any]) -> list[Path]:
+    """Keep one scan's files in the service's spool (``output.spool_directory``); its paths."""
+    import shutil
+
+    from appliance.output.spool import Spool
+
+    spool = Spool(Path(cfg.output.spool_directory), cfg.output, lambda p: shutil.disk_usage(p).free)
+    try:
+        return spool.write(day, scan_id, contents)
+    except OSError as exc:
+        raise OutputError(f"scan {scan_id}: neither the output folder nor the spool {spool.directory} can be "
+                          f"written ({exc.strerror or exc}); the scan is lost: free space or fix the folders") from exc
 
 
 async def scan_command(config: Path, out: Path | None, count: int, compare: bool) -> int:
     """Run ``count`` scans on the configured rig and write their files (``cli.py`` runs the coroutine)."""
+    if count < 1:
+        raise ConfigError(f"scan: --count {count}: must be at least 1 (scans)")
     cfg = await asyncio.to_thread(load_config, config)
-    return await _scan_async(cfg, out or cfg.output.directory, count, compare)
+    from appliance.config.loader import folder_problem
+
+    out_dir = out or cfg.output.directory
+    why = folder_problem(out_dir, True)  # before the capture, so no scan is made that cannot be written
+    if why:
+        where = "--out" if out is not None else "output.directory"
+        raise OutputError(f"scan: {where} {str(out_dir)!r}: {why}; give a writable folder")
+    return await _scan_async(cfg, out_dir, count, compare)
 
 
 def validate_config(path: Path) -> int:

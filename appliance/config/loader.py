@@ -232,8 +232,21 @@ MAX_SOCKET_PATH = 107
 """Longest unix socket path (bytes; sun_path holds 108 with the final NUL)."""
 
 
-def _folder_problem(folder: Path, writable: bool) -> str:
-    """'' when ``folder`` is a folder (writable, if asked) or can be made; else why not."""
+def folder_problem(folder: Path, writable: bool) -> str:
+    """'' when ``folder`` is a folder (writable, if asked) or can be made; else why not.
+
+    Parameters
+    ----------
+    folder : Path
+        The folder.
+    writable : bool
+        Whether it (or the folder it would be made in) must be writable.
+
+    Returns
+    -------
+    str
+        Empty when all is well, else the reason (``"is a file, not a folder"``, ...).
+    """
     text = str(folder)
     if "\x00" in text:
         return "holds a NUL character"
@@ -294,7 +307,7 @@ def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
             ("output.directory", cfg.output.directory, False, "clouds are written there (a share that is away "
              "is spooled for, a file in its place is not)"),
             ("service.control_socket", cfg.service.control_socket.parent, True, "the control socket is made there")):
-        why = _folder_problem(folder, writable)
+        why = folder_problem(folder, writable)
         if why:
             problems.append(f"{source}: {key} = '{folder}': {why}; {fix}")
     sock = os.fsencode(str(cfg.service.control_socket))

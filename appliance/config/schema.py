@@ -634,7 +634,11 @@ def _default_camera_backends() -> dict[str, CameraConfig]:
 class AppConfig(_Strict):
     """The whole configuration file."""
 
-    serial: str = Field("SIM-0001", description="Appliance serial number (in mDNS and sidecars).")
+    serial: str = Field(
+        "SIM-0001", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+        description="Appliance serial number (in mDNS, topics, sidecars and file names): letters, digits, '.', "
+        "'_' and '-', at most 64.",
+    )
     cameras: dict[str, CameraConfig] = Field(
         default_factory=_default_camera_backends,
         min_length=1,

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 import yaml
 
@@ -234,3 +235,79 @@ def test_files_that_never_end_do_not_hang_the_commands(capture: dict[str, Path],
         lines = [ln for ln in said.splitlines() if ln.strip()]
         assert done.returncode != 0 and len(lines) == 1, said
         assert "not a regular file" in lines[0] and "Traceback" not in said, lines[0]
+
+
+def test_a_batch_whose_outputs_would_collide_is_refused_before_any_work(capture: dict[str, Path],
+                                                                        tmp_path: Path) -> None:
+    twins = []
+    for sub in ("a", "b"):
+        (tmp_path / sub).mkdir()
+        twins.append(tmp_path / sub / "scan.yaml")
+        twins[-1].write_text(capture["manifest"].read_text().replace("{cam0: f", "{cam0: ../../" +
+                                                                     capture["folder"].name + "/f"))
+    out = tmp_path / "out"
+    rc, err = _run(["decode", *map(str, twins), "--calibration", str(capture["calibration"]), "--out", str(out)])
+    _one_line(rc, err, str(twins[0]), str(twins[1]), "scan.ply")
+    assert not out.exists()
+
+
+def test_maps_on_a_full_disk_keep_the_old_file(capture: dict[str, Path], tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    maps = tmp_path / "x.npz"
+    maps.write_bytes(b"the maps of yesterday")
+    real = np.savez_compressed
+
+    def full_disk(f: object, **arrays: object) -> None:
+        real(io.BytesIO(), **arrays)  # type: ignore[arg-type]
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", full_disk)
+    rc, err = _run(["decode", str(capture["manifest"]), "--maps", str(maps)])
+    _one_line(rc, err, str(maps), "No space left on device")
+    assert maps.read_bytes() == b"the maps of yesterday"
+    assert [p.name for p in tmp_path.iterdir()] == ["x.npz"]
+
+
+SMALL_RIG = RIG + "output: {preview: false}\n"
+
+
+@pytest.mark.parametrize("case", ["count_0", "out_is_a_file", "out_has_nul", "out_under_a_file"])
+def test_scan_checks_its_output_before_it_captures(tmp_path: Path, case: str) -> None:
+    config = tmp_path / "rig.yaml"
+    config.write_text(SMALL_RIG)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    argv = ["scan", "--config", str(config), "--no-compare", "--out", str(tmp_path / "scans")]
+    words = {"count_0": "--count 0", "out_is_a_file": "is a file, not a folder",
+             "out_has_nul": "NUL", "out_under_a_file": "is a file, not a folder"}[case]
+    if case == "count_0":
+        argv += ["--count", "0"]
+    else:
+        argv[-1] = {"out_is_a_file": str(blocker), "out_has_nul": str(tmp_path / "sc\x00ans"),
+                    "out_under_a_file": str(blocker / "scans")}[case]
+    rc, err = _run(argv)
+    _one_line(rc, err, words)
+
+
+@pytest.mark.slow  # a whole scan in a fresh process (numba kernels loaded or compiled): 10-100 s here
+def test_a_scan_that_cannot_be_written_is_spooled(tmp_path: Path) -> None:
+    import datetime as dt
+
+    config = tmp_path / "rig.yaml"
+    config.write_text(SMALL_RIG.replace("output: {preview: false}",
+                                        f"output: {{preview: false, spool_directory: '{tmp_path / 'spool'}'}}"))
+    scans = tmp_path / "scans"
+    scans.mkdir()  # the output folder passes the check before the capture ...
+    today = dt.datetime.now(dt.UTC).date()
+    for day in (today, today + dt.timedelta(days=1)):
+        (scans / f"{day:%Y-%m-%d}").write_text("a file where the day's folder goes\n")  # ... its day folder fails
+    # a subprocess: the loop guard of the suite is not what this test is about
+    done = _scan3d("scan", "--config", str(config), "--no-compare", "--out", str(scans), timeout=300)
+    lines = [ln for ln in done.stderr.splitlines() if ln.strip() and "compiling the numba" not in ln]
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "kept in the spool" in lines[0], lines[0]
+    entries = [p for p in (tmp_path / "spool").iterdir() if not p.name.startswith(".")]
+    assert len(entries) == 1
+    assert sorted(p.suffix for p in entries[0].iterdir()) == [".json", ".json", ".ply"]
