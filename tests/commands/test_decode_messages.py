@@ -84,6 +84,9 @@ def test_exact_calibration_decodes_without_warnings(capture: dict[str, Path]) ->
     assert rep["warnings"] == [], rep["warnings"]
     assert rep["counts"]["points"] > 0.8 * rep["counts"]["cameras"]["cam0"]["decoded_pixels"]
     assert rep["calibration_health"]["status"] == "ok"
+    both = rep["extra"]["stereo"]["both_seen"]  # the share of what both cameras see that got a point
+    assert both["pixels"] > 0.5 * rep["counts"]["cameras"]["cam0"]["decoded_pixels"], both
+    assert 0.95 <= both["share"] <= 1.0 and both["reconstructed"] <= both["pixels"], both
 
 
 def test_drifted_calibration_is_corrected_and_said(capture: dict[str, Path]) -> None:
