@@ -5,13 +5,13 @@ from __future__ import annotations
 import importlib.machinery
 import importlib.util
 import os
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from loopguard import THREAD_GRACE_S, slow_callbacks
+from loopguard import guard
+
+pytest_plugins = ("pytester",)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -38,19 +38,20 @@ def without_pygame(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(importlib.util, "find_spec", find_spec)
 
 
-@pytest.fixture
-def loop_guard(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """Fail the test when one event-loop callback computes or blocks on the loop for too long (see
-    :func:`slow_callbacks`), or when a thread the test started is still running :data:`THREAD_GRACE_S` after
-    it. Warm numba's kernels before the measured part: the first call of a kernel compiles or loads it.
+@pytest.fixture(autouse=True)
+def _guard_every_event_loop(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """The loop guard around every test (:func:`loopguard.guard`), so a test that runs an event loop (``asyncio.run``,
+    a service, a client) cannot run it unguarded: it fails when one event-loop callback computes or blocks on the
+    loop for too long, or when the test ran a loop and a thread it started is still running
+    :data:`loopguard.THREAD_GRACE_S` after it. Autouse rather than a check that asks each test to opt in: the
+    guard costs nothing where no loop runs, and a new async test is guarded without anyone remembering to.
+    Warm numba's kernels before the measured part: the first call of a kernel compiles or loads it.
     """
-    before = set(threading.enumerate())
-    with slow_callbacks(monkeypatch) as slow:
+    with guard(monkeypatch, check_threads="loop_guard" in request.fixturenames):
         yield
-    end = time.monotonic() + THREAD_GRACE_S
-    leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
-    while leaked and time.monotonic() < end:
-        time.sleep(0.05)
-        leaked = [t for t in leaked if t.is_alive()]
-    assert not slow, "the event loop was blocked: " + "; ".join(slow[:5])
-    assert not leaked, f"threads left running after the test: {[t.name for t in leaked]}"
+
+
+@pytest.fixture
+def loop_guard() -> None:
+    """The thread rule of the loop guard even for a test that runs no event loop itself (the guard runs around
+    every test; see :func:`_guard_every_event_loop`)."""

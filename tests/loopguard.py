@@ -1,5 +1,7 @@
 """The event-loop guard of the test suite: times every event-loop callback (CPU and blocked wall time) so a test
-fails when the loop computes or blocks for too long. Used by the ``loop_guard`` fixture of ``tests/conftest.py``.
+fails when the loop computes or blocks for too long, and when a test that ran an event loop leaves a thread
+running. ``tests/conftest.py`` runs it around every test (:func:`guard`, autouse), so no test that runs a loop
+(``asyncio.run``, a service, a client) can run it unguarded.
 """
 
 from __future__ import annotations
@@ -31,8 +33,10 @@ BLOCKED_CALLBACK_S = 0.25
 THREAD_GRACE_S = 5.0
 # A garbage collection that the interpreter happens to start inside a callback is the heap's cost, not the
 # callback's (in the test process the heap holds every module and fixture of the whole suite, gigabytes):
-# its time is taken out of the callback's figures. Collections inside one callback longer than this (s, wall)
-# still fail.
+# its time is taken out of the callback's figures. Young collections (generations 0 and 1: the objects made
+# lately) inside one callback longer than this (s, wall) still fail; a full collection walks the whole
+# process's heap, partly cold, and took 2.6-4.7 s in the full suite's process: the suite's size, not the
+# callback's.
 GC_PAUSE_S = 0.25
 
 
@@ -62,6 +66,7 @@ class _GcClock(_ThreadClock):
     def __init__(self) -> None:
         super().__init__()
         self._start: dict[int, tuple[float, float]] = {}
+        self.young = _ThreadClock()  # generations 0 and 1 only
 
     def __call__(self, phase: str, info: dict[str, int]) -> None:
         tid = threading.get_ident()
@@ -71,7 +76,10 @@ class _GcClock(_ThreadClock):
         begun = self._start.pop(tid, None)
         if begun is None:
             return
-        self.add(tid, time.thread_time() - begun[0], time.perf_counter() - begun[1])
+        cpu, wall = time.thread_time() - begun[0], time.perf_counter() - begun[1]
+        self.add(tid, cpu, wall)
+        if info.get("generation", 2) < 2:
+            self.young.add(tid, cpu, wall)
 
 
 class _HarnessLogClock(_ThreadClock):
@@ -102,6 +110,12 @@ class _HarnessLogClock(_ThreadClock):
         return handle
 
 
+# The originals, taken at import: a guard opened inside another (the guard's own tests) replaces the outer one
+# for its block instead of timing each callback twice.
+_REAL_HANDLE_RUN = asyncio.events.Handle._run
+_REAL_LOG_HANDLE = logging.Handler.handle
+
+
 def _run_delay_s() -> float:
     """Time this thread has spent runnable but waiting for a CPU (s), from the scheduler's statistics."""
     try:
@@ -112,43 +126,47 @@ def _run_delay_s() -> float:
 
 
 @contextlib.contextmanager
-def slow_callbacks(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
+def slow_callbacks(monkeypatch: pytest.MonkeyPatch, ran: list[int] | None = None) -> Iterator[list[str]]:
     """Within the block, every event-loop callback (a task step included) that computes on the loop for more
     than :data:`SLOW_CALLBACK_S` or blocks it for more than :data:`BLOCKED_CALLBACK_S` is described in the list
-    it gives.
+    it gives; ``ran[0]``, where given, counts the callbacks run.
 
     Computing is the loop thread's CPU time; blocking is wall time less the time the thread waited for a CPU
     (other processes on a busy machine), both less the garbage collections run meanwhile on the loop thread
-    (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of them in one callback counts on its own) and less the
+    (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of young ones in one callback counts on its own) and less the
     time pytest's own log handlers took (:class:`_HarnessLogClock`). asyncio's debug mode would measure plain
     wall time and add its own bookkeeping to every callback, which alone pushes task steps past 20 ms on a
     loaded machine.
     """
     slow: list[str] = []
-    real_run = asyncio.events.Handle._run
+    real_run = _REAL_HANDLE_RUN
+    counter = ran if ran is not None else [0]
     gc_clock = _GcClock()
     log_clock = _HarnessLogClock(gc_clock)
 
     def timed_run(handle: asyncio.events.Handle) -> None:
+        counter[0] += 1
         tid = threading.get_ident()
         t0, c0, d0 = time.perf_counter(), time.thread_time(), _run_delay_s()
-        gc0, log0 = gc_clock.totals(tid), log_clock.totals(tid)
+        gc0, young0, log0 = gc_clock.totals(tid), gc_clock.young.totals(tid), log_clock.totals(tid)
         try:
             real_run(handle)
         finally:
             gc_cpu, gc_wall = gc_clock.since(tid, gc0)
+            young_wall = gc_clock.young.since(tid, young0)[1]
             log_cpu, log_wall = log_clock.since(tid, log0)
             cpu = time.thread_time() - c0 - gc_cpu - log_cpu
             held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall - log_wall
-            if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S or gc_wall > GC_PAUSE_S:
+            if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S or young_wall > GC_PAUSE_S:
                 slow.append(
-                    f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held "
-                    f"(garbage collection {gc_wall * 1e3:.0f} ms not counted), in {_describe(handle)}"
+                    f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held (garbage collection {gc_wall * 1e3:.0f} ms, "
+                    f"{gc_cpu * 1e3:.0f} ms CPU, not counted; {young_wall * 1e3:.0f} ms of it young), "
+                    f"in {_describe(handle)}"
                 )
 
     with monkeypatch.context() as patch:
         patch.setattr(asyncio.events.Handle, "_run", timed_run)
-        patch.setattr(logging.Handler, "handle", log_clock.wrap(logging.Handler.handle))
+        patch.setattr(logging.Handler, "handle", log_clock.wrap(_REAL_LOG_HANDLE))
         gc.callbacks.append(gc_clock)
         try:
             yield slow
@@ -163,5 +181,34 @@ def _describe(handle: asyncio.events.Handle) -> str:
         coro = task.get_coro()
         frame = getattr(coro, "cr_frame", None)
         where = f" at {frame.f_code.co_filename.rsplit('/', 1)[-1]}:{frame.f_lineno}" if frame is not None else ""
-        return f"task {task.get_name()} ({getattr(coro, '__qualname__', coro)}{where})"
+        inner: list[str] = []  # where the step ended, innermost last: the await chain below the task
+        awaited = getattr(coro, "cr_await", None)
+        while awaited is not None and getattr(awaited, "cr_frame", None) is not None and len(inner) < 6:
+            f = awaited.cr_frame
+            inner.append(f"{f.f_code.co_qualname} at {f.f_code.co_filename.rsplit('/', 1)[-1]}:{f.f_lineno}")
+            awaited = getattr(awaited, "cr_await", None)
+        chain = f", awaiting {' > '.join(inner)}" if inner else ""
+        return f"task {task.get_name()} ({getattr(coro, '__qualname__', coro)}{where}{chain})"
     return repr(handle)[:200]
+
+
+@contextlib.contextmanager
+def guard(monkeypatch: pytest.MonkeyPatch, *, check_threads: bool = False) -> Iterator[None]:
+    """Run the block under the loop guard; on leaving, fail (``AssertionError``) when a loop callback in it was
+    slow (:func:`slow_callbacks`), or when it ran an event loop (or ``check_threads``) and a thread it started
+    is still running :data:`THREAD_GRACE_S` later. A block that runs no event loop is not held to the thread
+    rule: thread pools of sync code are not this guard's business.
+    """
+    before = set(threading.enumerate())
+    ran = [0]
+    with slow_callbacks(monkeypatch, ran) as slow:
+        yield
+    assert not slow, "the event loop was blocked: " + "; ".join(slow[:5])
+    if not (ran[0] or check_threads):
+        return
+    end = time.monotonic() + THREAD_GRACE_S
+    leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+    while leaked and time.monotonic() < end:
+        time.sleep(0.05)
+        leaked = [t for t in leaked if t.is_alive()]
+    assert not leaked, f"threads left running after the test: {[t.name for t in leaked]}"

@@ -561,7 +561,7 @@ class LightCrafter4500:
         With the video source, the packed images are then converted for the display; their size must be the
         display's mode exactly (each colour bit is a pattern bit plane: nothing may rescale them).
         """
-        packing = self._plan(sequence)
+        packing = await asyncio.to_thread(self._plan, sequence)  # renders every pattern: not on the loop
         screen = self._screen
         if screen is not None and packing.images:
             height, width = packing.images[0].shape[:2]

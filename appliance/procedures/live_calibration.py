@@ -110,15 +110,18 @@ class LiveCalibration:
         if self.rig.virtual is not None:
             from appliance.calibration.virtual import VirtualBoard
 
-            self._virtual_board = VirtualBoard(self.rig.virtual, self.board, max(self.poses_hint, 1))
+            # board poses and renderings, sequences and buffers are computed in threads, not on the loop
+            self._virtual_board = await asyncio.to_thread(
+                VirtualBoard, self.rig.virtual, self.board, max(self.poses_hint, 1)
+            )
         proj_size = await self._projector_size()
-        self.sequence = calibration_sequence(self.cfg.sequence, *proj_size)
+        self.sequence = await asyncio.to_thread(calibration_sequence, self.cfg.sequence, *proj_size)
         n = len(self.sequence)
         for name, cam in self.rig.cameras.items():
             info = await cam.open()
             self._sizes[name] = (info.width, info.height)
             dtype = np.uint8 if info.pixel_format == "Mono8" else np.uint16
-            self._buffers[name] = np.zeros((n, info.height, info.width), dtype)  # type: ignore[assignment]
+            self._buffers[name] = await asyncio.to_thread(np.zeros, (n, info.height, info.width), dtype)
         await self.rig.projector.open()
         await self.rig.projector.load(self.sequence)
         await self.rig.trigger.open()
@@ -349,7 +352,7 @@ async def calibrate_live(
     """
     from appliance.config.loader import load_config
 
-    cfg = load_config(config) if config is not None else AppConfig()
+    cfg = await asyncio.to_thread(load_config, config) if config is not None else AppConfig()
     target = out or cfg.calibration_file or Path("calibration.yaml")
     if poses is not None and poses < 3:
         raise CalibrationError(f"calibrate --live --poses {poses}: need >= 3 poses (better >= 10)")
@@ -359,7 +362,7 @@ async def calibrate_live(
 async def _live(cfg: AppConfig, poses: int | None, out: Path, stdin: TextIO, save_frames: Path | None) -> int:
     from appliance.hardware.registry import build_rig
 
-    rig = build_rig(cfg)
+    rig = await asyncio.to_thread(build_rig, cfg)  # the virtual rig renders its scene: not on the loop
     session = LiveCalibration(cfg, rig, poses_hint=poses or cfg.calibration.poses_wanted, save_frames=save_frames)
     loop = asyncio.get_running_loop()
     await session.open()
@@ -374,7 +377,7 @@ async def _live(cfg: AppConfig, poses: int | None, out: Path, stdin: TextIO, sav
             for _ in range(poses):
                 cap = await session.capture()
                 print(cap.line(n_points))
-                print(session.progress())
+                print(await asyncio.to_thread(session.progress))  # coverage maps: not on the loop
         else:
             print("move the board, then press the button or Enter to capture a pose; "
                   "'c' + Enter calibrates, 'q' + Enter quits")  # fmt: skip
@@ -395,7 +398,7 @@ async def _live(cfg: AppConfig, poses: int | None, out: Path, stdin: TextIO, sav
                     return 1
                 cap = await session.capture()
                 print(cap.line(n_points))
-                print(session.progress())
+                print(await asyncio.to_thread(session.progress))  # coverage maps: not on the loop
         if session.good_poses() < 3:
             raise CalibrationError(
                 f"calibrate --live: the board was found with projector coordinates in only "

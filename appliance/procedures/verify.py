@@ -10,7 +10,7 @@ import asyncio
 import json
 import sys
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 import numpy as np
 import numpy.typing as npt
@@ -58,19 +58,26 @@ async def scan_positions(
 
     art = cfg.calibration.artefact
     todo = positions if positions is not None else art.positions
-    rig = build_rig(cfg)
+    def prepare() -> Scanner:  # renders the virtual rig, builds ray tables: not on the event loop
+        rig = build_rig(cfg)
+        return Scanner(cfg, rig, calibration if calibration is not None else load_calibration_for(cfg, rig))
+
     loop = asyncio.get_running_loop()
-    calib = calibration if calibration is not None else load_calibration_for(cfg, rig)
-    scanner = Scanner(cfg, rig, calib)
+    scanner = await loop.run_in_executor(None, prepare)
+    rig = scanner.rig
     clouds: list[F64] = []
     try:
         for k, pos in enumerate(todo):
             here = placed(art, pos)
-            if rig.virtual is not None:
+            virtual = rig.virtual
+            if virtual is not None:
                 from appliance.sim.scene import Scene
 
-                rig.virtual.set_scene(Scene(artefact_scene(here)))
-                await loop.run_in_executor(None, rig.virtual.prepare)
+                def place(virtual: Any = virtual, here: Any = here) -> None:
+                    virtual.set_scene(Scene(artefact_scene(here)))
+                    virtual.prepare()
+
+                await loop.run_in_executor(None, place)
             else:
                 print(f"put the artefact at position {k + 1} of {len(todo)} (offset {tuple(pos.offset_mm)} mm, "
                       f"turned {pos.rotation_deg:+.0f} deg about z), then press Enter")  # fmt: skip
@@ -80,7 +87,7 @@ async def scan_positions(
                         f"verify: end of input before position {k + 1} of {len(todo)}; nothing was judged"
                     )
             result = await scanner.scan()
-            clouds.append(np.asarray(result.cloud.xyz, np.float64))
+            clouds.append(await loop.run_in_executor(None, np.asarray, result.cloud.xyz, np.float64))
     finally:
         await scanner.close()
     return clouds

@@ -227,7 +227,7 @@ def test_frames_arrive_bit_exact_in_order(
             for _ in range(2):  # a second scan starts again at frame 0
                 out, order = await capture(cam, len(frames), (480, 640), dtype)
                 assert order == list(range(len(frames)))
-                np.testing.assert_array_equal(out, frames)
+                await asyncio.to_thread(np.testing.assert_array_equal, out, frames)  # 50+ ms: not on the loop
         finally:
             await cam.close()
 
@@ -618,7 +618,7 @@ def test_open_by_serial_and_discover_inside_the_namespace(lab: fake_gige.Loopbac
         assert await asyncio.to_thread(os.readlink, "/proc/thread-self/ns/net") != host_ns
         procs.tool(addr(lab, 1))  # serial TOOLFAKE
         await asyncio.sleep(0.3)
-        found = discover_aravis()
+        found = await asyncio.to_thread(discover_aravis)  # waits for answers: not on the loop
         assert any("serial TOOLFAKE" in d and addr(lab, 1) in d for d in found), found
         cam = camera("left", None, serial="TOOLFAKE")
         try:

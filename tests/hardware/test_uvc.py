@@ -164,6 +164,7 @@ def test_unopenable_device_and_wrong_buffer() -> None:
     cam = UvcCamera("web", UvcCameraConfig(), capture_factory=lambda _dev: dead)
     with pytest.raises(CameraError, match="cannot be opened"):
         asyncio.run(cam.open())
+    asyncio.run(cam.close())  # as the scanner does: the camera's thread ends
 
     cam2 = UvcCamera(
         "web", UvcCameraConfig(), capture_factory=lambda _dev: FakeCapture(world), sleep=world.sleep

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from pathlib import Path
 
 import pytest
 from loopguard import BLOCKED_CALLBACK_S, SLOW_CALLBACK_S, slow_callbacks
@@ -61,3 +62,48 @@ def test_cheap_callbacks_on_an_idle_loop_and_awaits_are_not_reported(monkeypatch
         asyncio.run(main())
     assert len(state["log"]) == 3
     assert slow == []
+
+
+def test_every_test_that_runs_a_loop_is_guarded_without_asking(
+    pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A test file that never names the guard: the test whose loop blocks fails, the one that leaves a thread
+    running after its loop fails, the cheap one and the sync one that leaves a thread behind pass (the suite's
+    own conftest, run in a fresh pytest)."""
+    tests_dir = Path(__file__).resolve().parents[1]
+    shorter_grace = "\nimport loopguard\nloopguard.THREAD_GRACE_S = 0.5\n"
+    pytester.makeconftest((tests_dir / "conftest.py").read_text() + shorter_grace)
+    pytester.makepyfile(
+        test_unguarded=f"""
+        import asyncio, threading, time
+
+        def test_blocks_its_loop():
+            async def main():
+                time.sleep({1.5 * BLOCKED_CALLBACK_S})
+            asyncio.run(main())
+
+        def test_leaves_a_thread_after_its_loop():
+            stop = threading.Event()
+            async def main():
+                threading.Thread(target=stop.wait, args=(30,), name="left-behind", daemon=True).start()
+            asyncio.run(main())
+
+        def test_cheap_loop():
+            async def main():
+                await asyncio.sleep(0.01)
+            asyncio.run(main())
+
+        def test_sync_code_with_a_thread():
+            threading.Thread(target=time.sleep, args=(0.5,), daemon=True).start()
+        """
+    )
+    monkeypatch.setenv("PYTHONPATH", str(tests_dir))
+    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-p", "no:dash", "-o", "timeout=120")
+    result.assert_outcomes(passed=4, errors=2)  # each test's body passes; the guard fails it after
+    result.stdout.fnmatch_lines(
+        [
+            "ERROR test_unguarded.py::test_blocks_its_loop - AssertionError: the event loo*",
+            "ERROR test_unguarded.py::test_leaves_a_thread_after_its_loop - AssertionError*",
+        ]
+    )
+    assert "threads left running after the test: ['left-behind']" in result.stdout.str()

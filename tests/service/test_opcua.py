@@ -178,8 +178,25 @@ def test_a_trigger_through_each_face_shows_on_every_face(tmp_path: Path) -> None
         broker.kill()
 
 
+def self_signed(key_file: Path, cert_file: Path, app_uri: str, use: Any, common_name: str) -> None:
+    """A new RSA key and a self-signed OPC UA application certificate for it (up to a second of CPU, holding the
+    interpreter lock: call it before the event loop starts)."""
+    from asyncua.crypto.cert_gen import (
+        dump_private_key_as_pem,
+        generate_private_key,
+        generate_self_signed_app_certificate,
+    )
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    key = generate_private_key()
+    key_file.write_bytes(dump_private_key_as_pem(key))
+    names: list[x509.GeneralName] = [x509.UniformResourceIdentifier(app_uri), x509.DNSName("127.0.0.1")]
+    cert = generate_self_signed_app_certificate(key, app_uri, {"commonName": common_name}, names, extended=use)
+    cert_file.write_bytes(cert.public_bytes(encoding=Encoding.DER))
+
+
 def test_encrypted_endpoint_only(tmp_path: Path) -> None:
-    from asyncua.crypto.cert_gen import setup_self_signed_certificate
     from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
     from cryptography.x509.oid import ExtendedKeyUsageOID
 
@@ -189,11 +206,11 @@ def test_encrypted_endpoint_only(tmp_path: Path) -> None:
     client_key, client_cert = tmp_path / "client-key.pem", tmp_path / "client-cert.der"
     client_uri = "urn:scan3d:test:plc"
 
+    # before the loop: RSA key generation holds the interpreter lock for up to a second, even in a thread
+    self_signed(server_key, server_cert, f"{NAMESPACE}:SIM-0001", [ExtendedKeyUsageOID.SERVER_AUTH], "scan3d test")
+    self_signed(client_key, client_cert, client_uri, [ExtendedKeyUsageOID.CLIENT_AUTH], "test plc")
+
     async def main() -> None:
-        await setup_self_signed_certificate(server_key, server_cert, f"{NAMESPACE}:SIM-0001", "127.0.0.1",
-                                            [ExtendedKeyUsageOID.SERVER_AUTH], {"commonName": "scan3d test"})
-        await setup_self_signed_certificate(client_key, client_cert, client_uri, "127.0.0.1",
-                                            [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test plc"})
         section = {**opcua_section(tmp_path, port), "security_policies": ["Basic256Sha256_SignAndEncrypt"],
                    "certificate_file": str(server_cert), "private_key_file": str(server_key)}
         async with running_service(appliance_copy(tmp_path, opcua=section)) as svc:

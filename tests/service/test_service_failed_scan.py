@@ -49,9 +49,10 @@ def test_a_failed_scan_waits_for_its_pending_pushes(tmp_path: Path, monkeypatch:
         with lock:
             finished[0] += 1
 
+    rig = build_rig(cfg)  # renders the scene and builds ray tables: before the loop, not on it
+    scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
+
     async def main() -> tuple[int, int]:
-        rig = build_rig(cfg)
-        scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig))
         await scanner.open()
         await scanner.warm_up()  # the virtual rig's geometry and the kernels, before the frame timeouts count
         try:
