@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 from pathlib import Path
 
 from appliance.calibration.boards import BoardSpec, detect
@@ -59,7 +60,17 @@ def calibrate_camera_cli(
     _check_models(model)
     views: list[ProcamView] = []
     size: tuple[int, int] | None = None
+    seen: dict[str, Path] = {}
     for p in images:
+        try:
+            digest = hashlib.sha256(Path(p).read_bytes()).hexdigest() if Path(p).is_file() else ""
+        except OSError:
+            digest = ""
+        if digest and digest in seen:  # one pose given twice would weigh twice and fake agreement
+            print(f"{p}: the same image as {seen[digest]}; counted once")
+            continue
+        if digest:
+            seen[digest] = Path(p)
         img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise CalibrationError(f"calibrate camera: image {p} is missing or unreadable; check the path")

@@ -147,9 +147,16 @@ def write_calibration(path: str | os.PathLike[str], calib: Calibration) -> None:
         finally:
             os.close(dfd)
     except OSError as e:
-        raise CalibrationError(f"{path}: cannot write calibration: {e}") from e
+        raise CalibrationError(f"{path}: cannot write calibration ({e.strerror or e}); check the folder exists, "
+                               "is writable and has free space") from e
+    except cv2.error as e:  # OpenCV's own writer failing (a full disk, a folder that vanished)
+        raise CalibrationError(f"{path}: cannot write calibration ({str(e).strip()[-120:]}); check the folder "
+                               "exists, is writable and has free space") from e
     finally:
-        tmp.unlink(missing_ok=True)
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:  # a read-only folder holds no temporary file; its error must not hide the real one
+            pass
 
 
 def read_calibration(

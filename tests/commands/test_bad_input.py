@@ -311,3 +311,23 @@ def test_a_scan_that_cannot_be_written_is_spooled(tmp_path: Path) -> None:
     entries = [p for p in (tmp_path / "spool").iterdir() if not p.name.startswith(".")]
     assert len(entries) == 1
     assert sorted(p.suffix for p in entries[0].iterdir()) == [".json", ".json", ".ply"]
+
+
+WHITE0 = REPO.parent / "shared" / "data" / "procam_graycode_calib" / "capture_0" / "graycode_40.png"
+
+
+@pytest.mark.skipif(not WHITE0.is_file(), reason=f"test data {WHITE0} is absent")
+def test_one_calibration_image_given_four_times_counts_once(tmp_path: Path) -> None:
+    out = io.StringIO()
+    err = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = cli.main(["calibrate", "camera", *[str(WHITE0)] * 4, "--board", "chessboard", "--cols", "9",
+                       "--rows", "7", "--square-mm", "75", "--out", str(tmp_path / "c.yaml")])
+    assert out.getvalue().count("counted once") == 3
+    _one_line(rc, err.getvalue(), "only 1 usable views of 1")  # not four views of one pose
+    assert not (tmp_path / "c.yaml").exists()
+
+
+def test_calibrate_with_an_infinite_square_is_one_line(tmp_path: Path) -> None:
+    rc, err = _run(["calibrate", "camera", str(WHITE0), "--square-mm", "inf", "--out", str(tmp_path / "c.yaml")])
+    _one_line(rc, err, "square_mm", "finite")
