@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 import yaml
-from test_service import ctl, make, ready, run, wait_until
+from fake_service import ctl, make, ready, run, wait_until
 
 from appliance.output import share as S
 from appliance.service import health as health_mod
