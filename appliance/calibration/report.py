@@ -9,7 +9,9 @@ Plots are drawn with OpenCV (no plotting library needed).
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -195,7 +197,7 @@ def write_report(
 
     def figure(name: str, img: U8) -> str:
         data = _png(img)
-        (folder / name).write_bytes(data)
+        _write_whole(folder / name, data)
         return f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(data).decode()}"><br>'
 
     for res in devices:
@@ -238,13 +240,22 @@ def write_report(
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
         f"<style>{style} .warn{{color:#b00}}</style></head><body>{''.join(parts)}</body></html>"
     )
-    try:
-        page.write_text(doc, encoding="utf-8")
-    except OSError as exc:
-        raise OutputError(
-            f"calibration report: cannot write {page} ({exc.strerror}); check permissions"
-        ) from exc
+    _write_whole(page, doc.encode("utf-8"))
     return page
+
+
+def _write_whole(path: Path, data: bytes) -> None:
+    """Write a report file whole or not at all (a full disk leaves no empty PNG); one OutputError line."""
+    try:
+        with open(path, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)
+        raise OutputError(f"calibration report: cannot write {path} ({exc.strerror or exc}); check the folder is "
+                          "writable and has free space (the calibration file itself was written)") from exc
 
 
 def write_rig_calibration(out: Path, result: RigCalibration, board: BoardSpec, title: str) -> Path:

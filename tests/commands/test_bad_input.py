@@ -331,3 +331,19 @@ def test_one_calibration_image_given_four_times_counts_once(tmp_path: Path) -> N
 def test_calibrate_with_an_infinite_square_is_one_line(tmp_path: Path) -> None:
     rc, err = _run(["calibrate", "camera", str(WHITE0), "--square-mm", "inf", "--out", str(tmp_path / "c.yaml")])
     _one_line(rc, err, "square_mm", "finite")
+
+
+def test_a_calibration_report_on_a_full_disk_leaves_no_empty_png(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    from appliance.calibration import report
+    from appliance.errors import OutputError
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report.os, "fsync", full)
+    with pytest.raises(OutputError, match="No space left on device"):
+        report._write_whole(tmp_path / "cam0_residuals.png", b"\x89PNG" + b"\x00" * 100)
+    assert list(tmp_path.iterdir()) == []
