@@ -8,7 +8,16 @@ import tracemalloc
 
 import numpy as np
 import pytest
-from test_triangulate import EXACT_TOL_MM, PLANE, _rig, _triangulator, _truth, _two_camera_calibration, cast, codes
+from procam_geometry import (
+    EXACT_TOL_MM,
+    PLANE,
+    cast,
+    codes,
+    procam_rig,
+    triangulator,
+    true_points,
+    two_camera_calibration,
+)
 
 from appliance.config.schema import ReconstructionConfig
 from appliance.patterns import BlackFrame, Sequence, WhiteFrame, gray_code_frames, phase_shift_frames
@@ -24,10 +33,10 @@ SAME_POINT_MM = 5e-4
 @pytest.mark.parametrize("surface", ["plane", "sphere"])
 @pytest.mark.parametrize(("kind", "axes"), [("h", "x"), ("h", "xy"), ("v", "y"), ("posed", "x"), ("posed", "xy")])
 def test_depth_map_is_the_organised_cloud(kind: str, axes: str, surface: str) -> None:
-    cam, proj, rays = _rig(kind)
-    truth = _truth(kind, surface)
+    cam, proj, rays = procam_rig(kind)
+    truth = true_points(kind, surface)
     maps = codes(proj, truth, axes)
-    tri = _triangulator(kind, axes)
+    tri = triangulator(kind, axes)
     organised = tri.triangulate(maps, None, 400.0, 800.0)
     depth, counts = tri.triangulate_depth(maps, None, 400.0, 800.0)
     assert rays.row_table()[2] < 1e-7  # the coarse ray table interpolates to ~float32 precision
@@ -44,14 +53,14 @@ def test_depth_map_is_the_organised_cloud(kind: str, axes: str, surface: str) ->
 
 @pytest.mark.parametrize("min_neighbours", [3, 8])
 def test_fused_filter_equals_filter_isolated(min_neighbours: int) -> None:
-    _, proj, _ = _rig("posed")
-    truth = _truth("posed", "sphere")
+    _, proj, _ = procam_rig("posed")
+    truth = true_points("posed", "sphere")
     maps = codes(proj, truth, "x")
     rng = np.random.default_rng(3)
     rows, cols = np.nonzero(maps.mask)
     pick = rng.choice(rows.size, 300, replace=False)
     maps.u[rows[pick], cols[pick]] += np.float32(40.0)  # code outliers: depth spikes inside the surface
-    tri = _triangulator("posed", "x")
+    tri = triangulator("posed", "x")
     xyz = tri.triangulate(maps, None, 100.0, 2000.0)
     removed = filter_isolated(xyz, min_neighbours, 2.0)
     depth, counts = tri.triangulate_depth(maps, None, 100.0, 2000.0, min_neighbours, 2.0)
@@ -64,12 +73,12 @@ def test_fused_filter_equals_filter_isolated(min_neighbours: int) -> None:
 
 
 def test_write_points_matches_to_point_cloud() -> None:
-    _, proj, _ = _rig("posed")
-    truth = _truth("posed", "plane")
+    _, proj, _ = procam_rig("posed")
+    truth = true_points("posed", "plane")
     maps = codes(proj, truth, "x")
     maps.quality[...] = np.random.default_rng(0).uniform(10, 90, maps.quality.shape).astype(np.float32)
     inten = (np.arange(maps.u.size) % 253).astype(np.uint8).reshape(maps.u.shape)
-    tri = _triangulator("posed", "x")
+    tri = triangulator("posed", "x")
     xyz = tri.triangulate(maps)
     filter_isolated(xyz, 8, 2.0)
     ref = to_point_cloud(xyz, maps.quality, inten, 1)
@@ -93,7 +102,7 @@ def test_write_points_matches_to_point_cloud() -> None:
 
 
 def test_reconstructor_fused_path_and_pooled_clouds() -> None:
-    calib = _two_camera_calibration()
+    calib = two_camera_calibration()
     proj = calib.projector
     assert proj is not None
     truth = {n: cast(calib.devices[n], PLANE) for n in calib.camera_names}

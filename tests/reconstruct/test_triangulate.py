@@ -6,17 +6,24 @@ plane or sphere and projected into the (distorted) projector to give exact decod
 
 from __future__ import annotations
 
-from functools import cache
-
 import numpy as np
-import numpy.typing as npt
 import pytest
+from procam_geometry import (
+    EXACT_TOL_MM,
+    F64,
+    PLANE,
+    cast,
+    codes,
+    procam_rig,
+    triangulator,
+    true_points,
+    two_camera_calibration,
+)
 
 from appliance.config.schema import ReconstructionConfig
 from appliance.errors import CalibrationError
 from appliance.geometry.calibration_file import Calibration
-from appliance.geometry.camera import CameraModel, look_at
-from appliance.geometry.rays import RayTable
+from appliance.geometry.camera import CameraModel
 from appliance.reconstruct.filters import (
     estimate_normals,
     filter_isolated,
@@ -26,95 +33,16 @@ from appliance.reconstruct.pipeline import Reconstructor
 from appliance.reconstruct.triangulate import ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps
 
-F64 = npt.NDArray[np.float64]
-PLANE = ("plane", (np.array([0.0, 0.0, 600.0]), np.array([0.2, -0.1, -1.0])))
-SPHERE = ("sphere", (np.array([10.0, -5.0, 560.0]), 60.0))
-EXACT_TOL_MM = 0.005
-
-
-def _camera(name: str = "cam0", pose: tuple[F64, F64] | None = None) -> CameraModel:
-    r, t = pose if pose is not None else (np.eye(3), np.zeros(3))
-    return CameraModel(
-        name,
-        [[1800, 0, 639.7], [0, 1800, 512.7], [0, 0, 1]],
-        [-0.12, 0.09, 4e-4, -3e-4, -0.02],
-        1280,
-        1024,
-        r,
-        t,
-    )
-
-
-def _projector(
-    offset: tuple[float, float, float], dist: tuple[float, ...] = (0.08, -0.05, -6e-4, 5e-4, 0.01)
-) -> CameraModel:
-    r, t = look_at(np.array(offset), np.array([0.0, 0.0, 575.0]))
-    return CameraModel(
-        "projector", [[1600, 0, 640.4], [0, 1600, 780.2], [0, 0, 1]], list(dist), 1280, 800, r, t
-    )
-
-
-@cache
-def _rig(kind: str) -> tuple[CameraModel, CameraModel, RayTable]:
-    """'h': 175 mm horizontal baseline, 'v': vertical, 'posed': camera not at the world origin."""
-    if kind == "posed":
-        cam = _camera("cam1", look_at(np.array([-60.0, 20.0, -10.0]), np.array([0.0, 0.0, 590.0])))
-        proj = _projector((115.0, 20.0, 0.0))
-    else:
-        cam = _camera()
-        proj = _projector((175.0, 0.0, 0.0) if kind == "h" else (0.0, 175.0, 0.0))
-    return cam, proj, RayTable(cam)
-
-
-def cast(cam: CameraModel, surface: tuple[str, tuple[F64, F64]]) -> F64:
-    """True world point (H, W, 3) of every camera pixel on the surface (NaN where missed)."""
-    dw = cam.pixel_rays_device() @ cam.R  # device -> world directions
-    c = cam.center
-    kind, (p, q) = surface
-    if kind == "plane":
-        n = q / np.linalg.norm(q)
-        t = ((p - c) @ n) / (dw @ n)
-    else:
-        oc = c - p
-        b = dw @ oc
-        disc = b * b - (oc @ oc - float(q) ** 2)  # type: ignore[arg-type]
-        t = np.where(disc >= 0, -b - np.sqrt(np.maximum(disc, 0)), np.nan)
-    return c + t[..., None] * dw  # type: ignore[no-any-return]
-
-
-def codes(proj: CameraModel, xyz: F64, axes: str = "xy") -> DecodedMaps:
-    """Exact decoded maps of the points seen by the projector; uncoded axes are NaN."""
-    h, w = xyz.shape[:2]
-    px, _ = proj.project(xyz.reshape(-1, 3))
-    u, v = px[:, 0].reshape(h, w), px[:, 1].reshape(h, w)
-    with np.errstate(invalid="ignore"):
-        ok = (u >= -0.5) & (u <= proj.width - 0.5) & (v >= -0.5) & (v <= proj.height - 0.5)
-    u32 = np.where(ok & ("x" in axes), u, np.nan).astype(np.float32)
-    v32 = np.where(ok & ("y" in axes), v, np.nan).astype(np.float32)
-    return DecodedMaps(u32, v32, ok, np.where(ok, 40.0, 0.0).astype(np.float32))
-
-
-@cache
-def _truth(kind: str, surface: str) -> F64:
-    cam, _, _ = _rig(kind)
-    return cast(cam, PLANE if surface == "plane" else SPHERE)
-
-
-@cache
-def _triangulator(kind: str, axes: str) -> ProjectorTriangulator:
-    cam, proj, rays = _rig(kind)
-    return ProjectorTriangulator(cam, proj, axes, rays)
-
 
 @pytest.mark.parametrize("surface", ["plane", "sphere"])
 @pytest.mark.parametrize(
     ("kind", "axes"), [("h", "x"), ("h", "xy"), ("v", "y"), ("posed", "x"), ("posed", "xy")]
 )
 def test_exact_codes_recover_the_surface(kind: str, axes: str, surface: str) -> None:
-    cam, proj, _ = _rig(kind)
-    truth = _truth(kind, surface)
+    cam, proj, _ = procam_rig(kind)
+    truth = true_points(kind, surface)
     maps = codes(proj, truth, axes)
-    tri = _triangulator(kind, axes)
+    tri = triangulator(kind, axes)
     out = np.full((cam.height, cam.width, 3), 7.0, np.float32)
     xyz = tri.triangulate(maps, out)
     assert xyz is out
@@ -129,8 +57,8 @@ def test_exact_codes_recover_the_surface(kind: str, axes: str, surface: str) -> 
 
 def test_projector_distortion_matters() -> None:
     """The same codes with the projector's distortion ignored are off by far more than the tolerance."""
-    cam, proj, rays = _rig("h")
-    truth = _truth("h", "plane")
+    cam, proj, rays = procam_rig("h")
+    truth = true_points("h", "plane")
     maps = codes(proj, truth, "x")
     naive = CameraModel("projector", proj.K, np.zeros(5), proj.width, proj.height, proj.R, proj.T)
     err = np.linalg.norm(ProjectorTriangulator(cam, naive, "x", rays).triangulate(maps) - truth, axis=2)
@@ -139,10 +67,10 @@ def test_projector_distortion_matters() -> None:
 
 @pytest.mark.parametrize("axes", ["x", "xy"])
 def test_code_noise_propagates_as_the_geometry_predicts(axes: str) -> None:
-    _cam, proj, _ = _rig("h")
-    truth = _truth("h", "plane")
+    _cam, proj, _ = procam_rig("h")
+    truth = true_points("h", "plane")
     maps = codes(proj, truth, axes)
-    tri = _triangulator("h", axes)
+    tri = triangulator("h", axes)
     base = tri.triangulate(maps).astype(np.float64)
     delta = 0.01
     shifted = DecodedMaps(maps.u + np.float32(delta), maps.v, maps.mask, maps.quality)
@@ -166,16 +94,16 @@ def test_code_noise_propagates_as_the_geometry_predicts(axes: str) -> None:
 
 
 def test_rows_with_horizontal_baseline_is_refused() -> None:
-    cam, proj, rays = _rig("h")
+    cam, proj, rays = procam_rig("h")
     with pytest.raises(CalibrationError, match="baseline"):
         ProjectorTriangulator(cam, proj, "y", rays)
 
 
 def test_depth_range_and_buffers() -> None:
-    _cam, proj, _ = _rig("h")
-    truth = _truth("h", "sphere")
+    _cam, proj, _ = procam_rig("h")
+    truth = true_points("h", "sphere")
     maps = codes(proj, truth, "x")
-    tri = _triangulator("h", "x")
+    tri = triangulator("h", "x")
     xyz = tri.triangulate(maps, min_depth_mm=520.0, max_depth_mm=540.0)
     z = xyz[..., 2]
     assert np.isfinite(z).sum() > 1000
@@ -192,9 +120,9 @@ def test_depth_range_and_buffers() -> None:
 
 
 def _plane_cloud() -> tuple[np.ndarray, F64]:
-    _cam, proj, _ = _rig("h")
-    truth = _truth("h", "plane")
-    return _triangulator("h", "x").triangulate(codes(proj, truth, "x")), truth
+    _cam, proj, _ = procam_rig("h")
+    truth = true_points("h", "plane")
+    return triangulator("h", "x").triangulate(codes(proj, truth, "x")), truth
 
 
 def test_filter_isolated_removes_specks_and_spikes() -> None:
@@ -244,16 +172,9 @@ def test_point_cloud_from_an_organised_cloud() -> None:
 # --- pipeline ------------------------------------------------------------------------------------------
 
 
-@cache
-def _two_camera_calibration() -> Calibration:
-    cam0 = _camera()
-    cam1 = _camera("cam1", look_at(np.array([200.0, 5.0, 3.0]), np.array([30.0, 0.0, 575.0])))
-    return Calibration({"cam0": cam0, "cam1": cam1, "projector": _projector((100.0, -30.0, 0.0))})
-
-
 @pytest.mark.parametrize("mode", ["projector", "stereo"])
 def test_reconstructor(mode: str) -> None:
-    calib = _two_camera_calibration()
+    calib = two_camera_calibration()
     proj = calib.projector
     assert proj is not None
     truth = {n: cast(calib.devices[n], PLANE) for n in calib.camera_names}
@@ -282,7 +203,7 @@ def test_reconstructor(mode: str) -> None:
 
 
 def test_reconstructor_needs_a_projector() -> None:
-    calib = _two_camera_calibration()
+    calib = two_camera_calibration()
     no_proj = Calibration({n: calib.devices[n] for n in calib.camera_names})
     with pytest.raises(CalibrationError, match="projector"):
         Reconstructor(no_proj, "x", ReconstructionConfig())
