@@ -229,7 +229,10 @@ def test_files_that_never_end_do_not_hang_the_commands(capture: dict[str, Path],
     os.mkfifo(fifo)
     for args in (["validate-config", str(fifo)],
                  ["decode", str(fifo), "--calibration", str(capture["calibration"])],
-                 ["decode", str(capture["manifest"]), "--calibration", "/dev/zero"]):
+                 ["decode", str(capture["manifest"]), "--calibration", "/dev/zero"],
+                 ["decode", str(capture["manifest"]), "--config", str(fifo)],
+                 ["scan", "--config", str(fifo)],
+                 ["run", "--config", str(fifo)]):
         done = _scan3d(*args)
         said = done.stdout + done.stderr
         lines = [ln for ln in said.splitlines() if ln.strip()]
