@@ -100,8 +100,8 @@ def format_validation_error(exc: ValidationError, source: str, doc: Any, root: y
         rule = err["msg"]
         if err["type"] == STRICT_TYPE:  # a model-level check: its context names the field
             ctx = err.get("ctx") or {}
-            loc = (*loc, str(ctx.get("field", "?")))
-            rule = str(ctx.get("problem", rule)).split(" ", 1)[-1]
+            loc = (*loc, str(ctx.get("field", "?")), *(int(i) for i in ctx.get("items", ())))
+            rule = str(ctx.get("rule", rule))
         elif err["type"] == "extra_forbidden":
             rule = "unknown key (check its spelling against config/appliance.yaml)"
         elif err["type"] == "missing":

@@ -635,7 +635,7 @@ class AppConfig(_Strict):
     """The whole configuration file."""
 
     serial: str = Field(
-        "SIM-0001", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+        "SIM-0001",
         description="Appliance serial number (in mDNS, topics, sidecars and file names): letters, digits, '.', "
         "'_' and '-', at most 64.",
     )
@@ -656,6 +656,14 @@ class AppConfig(_Strict):
     output: OutputConfig = Field(default_factory=OutputConfig)
     service: ServiceConfig = Field(default_factory=ServiceConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+
+    @field_validator("serial")
+    @classmethod
+    def _serial_is_a_name(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", v):
+            raise ValueError("must be 1-64 letters, digits, '.', '_' or '-' starting with a letter or digit (it "
+                             "goes into file names, MQTT topics and mDNS)")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> AppConfig:

@@ -19,21 +19,27 @@ def _is_bool(value: Any) -> bool:
     return isinstance(value, bool) or type(value).__name__ == "bool_"  # numpy's too
 
 
-def type_problem(value: Any, annotation: Any) -> str | None:
-    """Why ``value`` (from YAML) does not fit the integer/boolean parts of ``annotation``; None when it does.
+def type_problem(value: Any, annotation: Any) -> tuple[tuple[int, ...], str] | None:
+    """Where and why ``value`` (from YAML) does not fit the integer/boolean parts of ``annotation``.
 
     Only ``int``, ``bool``, ``float`` (no booleans), optionals, unions and tuples of them are looked at;
     everything else is left to pydantic.
+
+    Returns
+    -------
+    ((int, ...), str) or None
+        The item indices down to the offending value (empty for the value itself) and the rule; None when
+        it fits.
     """
     origin = get_origin(annotation)
     if annotation is bool:
-        return None if _is_bool(value) else f"{value!r} must be true or false"
+        return None if _is_bool(value) else ((), "must be true or false")
     if annotation is int:
         if _is_bool(value) or not isinstance(value, numbers.Integral):
-            return f"{value!r} must be a whole number (no fraction, no quotes, not true/false)"
+            return (), "must be a whole number (no fraction, no quotes, not true/false)"
         return None
     if annotation is float:
-        return f"{value!r} must be a number, not true/false" if _is_bool(value) else None
+        return ((), "must be a number, not true/false") if _is_bool(value) else None
     if origin is Annotated:
         return type_problem(value, get_args(annotation)[0])
     if origin is Union or origin is types.UnionType:
@@ -53,12 +59,13 @@ def type_problem(value: Any, annotation: Any) -> str | None:
         for i, (v, a) in enumerate(pairs):
             problem = type_problem(v, a)
             if problem is not None:
-                return f"item {i}: {problem}"
+                return (i, *problem[0]), problem[1]
     return None
 
 
 STRICT_TYPE = "strict_type"
-"""The error type of a wrongly typed integer or boolean; its context names the ``field`` and the ``problem``."""
+"""The error type of a wrongly typed integer or boolean; its context holds the ``field``, the ``items`` down to
+the value (list indices) and the ``rule``."""
 
 
 class StrictModel(BaseModel):
@@ -76,5 +83,8 @@ class StrictModel(BaseModel):
                 if key in data:
                     problem = type_problem(data[key], field.annotation)
                     if problem is not None:
-                        raise PydanticCustomError(STRICT_TYPE, "{field}: {problem}", {"field": key, "problem": problem})
+                        items, rule = problem
+                        where = ".".join([key, *map(str, items)])
+                        raise PydanticCustomError(STRICT_TYPE, "{where}: {rule}",
+                                                  {"field": key, "items": list(items), "rule": rule, "where": where})
         return data

@@ -32,7 +32,9 @@ CASES = [
     ("virtual_rig:\n  scene:\n    - {type: sphere, center_mm: [0, .nan, 500], radius_mm: 30}\n", 3,
      "virtual_rig.scene.0.center_mm.1 = nan"),
     ("virtual_rig:\n  cameras:\n    cam0: {width: 10000, height: 10000, focal_px: 2000}\n", 3, "100 Mpx"),
-    ("sequence: {exposures_us: [true, 100]}\n", 1, "exposures_us"),
+    ("sequence: {exposures_us: [true, 100]}\n", 1, "sequence.exposures_us.0 = True: must be a whole number"),
+    ("sequence:\n  periods_px: [64, 1e30]\n", 2, "sequence.periods_px.1 = '1e30': must be a whole number"),
+    ('serial: "SN\\n42"\n', 1, "serial = 'SN\\n42': must be 1-64 letters"),
 ]
 
 
