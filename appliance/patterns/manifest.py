@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 from collections.abc import Callable, Mapping
 from collections.abc import Sequence as Sequence_
 from concurrent.futures import ThreadPoolExecutor
@@ -126,6 +127,8 @@ def check_bit_depth(stack: FrameStack, bits: int, where: str) -> None:
 
 def _load_npy(path: Path, n_frames: int, manifest: Path) -> FrameStack:
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO or a device would block or never end
+            raise ManifestError(f"{manifest}: stack {path}: not a regular file; a stack is a .npy file")
         arr = np.load(path, mmap_mode="r")
     except (OSError, ValueError) as exc:
         raise ManifestError(f"{manifest}: stack {path}: cannot be read ({exc}); check the file") from exc

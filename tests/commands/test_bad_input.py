@@ -227,12 +227,17 @@ def _scan3d(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]
 def test_files_that_never_end_do_not_hang_the_commands(capture: dict[str, Path], tmp_path: Path) -> None:
     fifo = tmp_path / "fifo.yaml"
     os.mkfifo(fifo)
+    os.mkfifo(tmp_path / "stack.npy")
+    stacked = tmp_path / "stacked.yaml"
+    stacked.write_text("projector: {width: 64, height: 32}\ncameras: [cam0]\nstacks: {cam0: stack.npy}\n"
+                       "frames:\n- {pattern: white}\n- {pattern: black}\n")
     for args in (["validate-config", str(fifo)],
                  ["decode", str(fifo), "--calibration", str(capture["calibration"])],
                  ["decode", str(capture["manifest"]), "--calibration", "/dev/zero"],
                  ["decode", str(capture["manifest"]), "--config", str(fifo)],
                  ["scan", "--config", str(fifo)],
-                 ["run", "--config", str(fifo)]):
+                 ["run", "--config", str(fifo)],
+                 ["decode", str(stacked)]):
         done = _scan3d(*args)
         said = done.stdout + done.stderr
         lines = [ln for ln in said.splitlines() if ln.strip()]
