@@ -38,6 +38,10 @@ BLUR_RATIO = 0.5
 #: ... and only when the coarser period is at least this many times longer: close periods (66.7 / 100 px)
 #: are attenuated almost alike by blur, so a weak finer one means a bad pixel, not blur.
 FALLBACK_PERIOD_RATIO = 4.0
+#: Gray against phase: a pixel's unwrapped phase coordinate lies inside its Gray stripe (half a stripe from the
+#: stripe centre), with this margin for blur and noise, in stripes; farther means the Gray code and the phase
+#: saw different light (a second copy of the pattern by interreflection, a mixed pixel): the pixel is dropped.
+CONSISTENCY_MARGIN = 0.25
 _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
@@ -316,6 +320,18 @@ def _unwrap_gate(fl, stripe, period, ok):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _consistency_gate(cc, cg, fl, stripe, ok):  # type: ignore[no-untyped-def]
+    """Gray against phase: keep a pixel only where its unwrapped coordinate ``cc`` lies within half its Gray
+    stripe (``stripe * 2**fl`` wide, centre ``cg``) plus :data:`CONSISTENCY_MARGIN` stripes."""
+    st = np.float32(stripe)
+    margin = np.float32(CONSISTENCY_MARGIN * stripe)
+    half = np.float32(0.5)
+    for x in range(cc.shape[0]):
+        lim = half * st * np.float32(np.int32(_U1 << fl[x])) + margin
+        ok[x] = ok[x] & (abs(cc[x] - cg[x]) <= lim)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _emit_axis(cc, ok, lit, out):  # type: ignore[no-untyped-def]
     for x in range(cc.shape[0]):
         good = ok[x] & lit[x]
@@ -473,6 +489,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
             else:
                 _unwrap(cph, cg, period, cc)
                 _unwrap_gate(fl, stripe, period, ok)
+                _consistency_gate(cc, cg, fl, stripe, ok)
             res = cc
             _phase_gate(mod, relv, ok, qa)
             _copy(mprev, mod)
