@@ -149,6 +149,8 @@ def _decode_one(
             arrays[f"{cam}_mask"], arrays[f"{cam}_quality"] = m.mask, m.quality
             if m.levels is not None:
                 arrays[f"{cam}_levels"] = m.levels  # Gray bits dropped per axis (finest resolvable bit)
+            if m.reason is not None:
+                arrays[f"{cam}_reason"] = m.reason  # why a pixel has no code (reconstruct.types.Reason)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -198,7 +200,9 @@ def _write_report(
 
     if meta is None:
         man = got.manifest
-        cams = {cam: {"decoded_pixels": int(m.mask.sum()), "pixels": int(m.mask.size),
+        from appliance.reconstruct.decode import reason_block
+
+        cams = {cam: {"decoded_pixels": int(m.mask.sum()), "pixels": int(m.mask.size), **reason_block(m),
                       **per_cam[cam]} for cam, m in got.maps.items()}  # fmt: skip
         meta = ScanMetadata(
             scan_id=man.path.stem, time_utc=dt.datetime.now(dt.UTC).isoformat(),

@@ -28,7 +28,7 @@ from appliance.output.sidecar import ScanMetadata
 from appliance.patterns.manifest import Manifest, read_manifest
 from appliance.patterns.sequence import PhaseFrame, Sequence
 from appliance.reconstruct import pipeline
-from appliance.reconstruct.decode import DecodeParams, DecodePlan, decode, plan_decode, stripe_widths
+from appliance.reconstruct.decode import DecodeParams, DecodePlan, decode, plan_decode, reason_block, stripe_widths
 from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
 from appliance.reconstruct.hdr import decode_passes, pick_per_pixel
 from appliance.reconstruct.types import DecodedMaps, PointCloud
@@ -185,7 +185,7 @@ def scan_metadata(
     for i, name in enumerate(cameras):
         mask = result.maps[name].mask
         per_cam[name] = {"decoded_pixels": int(mask.sum()), "pixels": int(mask.size),
-                         "points": int(np.sum(cloud.camera == i)),
+                         "points": int(np.sum(cloud.camera == i)), **reason_block(result.maps[name]),
                          **(per_camera or {}).get(name, {})}  # fmt: skip
     more: Json = dict(extra or {})
     if result.stereo:

@@ -1,0 +1,75 @@
+"""``scan3d decode`` says per pixel why there is no point: the reason map in ``--maps``, counts and shares per
+reason in the ``--report`` sidecar (the same block a scan's sidecar carries), on an over-exposed render."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from appliance import cli
+from appliance.config import parse_config
+from appliance.geometry.calibration_file import Calibration, write_calibration
+from appliance.patterns.manifest import write_manifest
+from appliance.reconstruct.types import REASON_NAMES, Reason
+from appliance.scan import build_sequence, virtual_calibration
+from appliance.sim.rig import VirtualRig
+
+# 5x the default exposure: the bright middle of the plane clips at 255, the edges of the view are unlit
+RIG = """
+sequence: {kind: gray_phase, axes: x, periods_px: [16]}
+virtual_rig:
+  imaging: {projector_gain_dn: 900}
+  projector: {width: 640, height: 400, focal_px: 800, principal_px: [320, 380], position_mm: [175, 0, 0],
+              look_at_mm: [0, 40, 580]}
+  cameras:
+    cam0: {width: 320, height: 256, focal_px: 450, position_mm: [0, 0, 0], look_at_mm: [0, 0, 580]}
+"""
+
+
+def _decode(*args: Any) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = cli.main(["decode", *[str(a) for a in args]])
+    return rc, out.getvalue(), err.getvalue()
+
+
+def test_report_and_maps_say_why_pixels_have_no_point(tmp_path: Path) -> None:
+    rig = VirtualRig(parse_config(RIG, "rig.yaml").virtual_rig)
+    seq = build_sequence(parse_config(RIG, "rig.yaml").sequence, rig.projector.width, rig.projector.height)
+    stack = rig.render(seq, "cam0", seed=5)
+    np.save(tmp_path / "cam0.npy", stack)
+    man = write_manifest(tmp_path / "scan.yaml", seq, ["cam0"], stacks={"cam0": "cam0.npy"})
+    full = virtual_calibration(rig)
+    calib = tmp_path / "calib.yaml"
+    write_calibration(calib, Calibration({"cam0": full.devices["cam0"], "projector": full.devices["projector"]}))
+    rc, _out, err = _decode(man, "--calibration", calib, "--out", tmp_path / "c.ply", "--report",
+                            tmp_path / "r.json", "--maps", tmp_path / "m.npz")  # fmt: skip
+    assert rc == 0, err
+    cam = json.loads((tmp_path / "r.json").read_text())["counts"]["cameras"]["cam0"]
+    reasons, shares = cam["reasons"], cam["reason_shares"]
+    assert sum(reasons.values()) == cam["pixels"] == stack.shape[1] * stack.shape[2]
+    assert reasons["decoded"] == cam["decoded_pixels"]
+    assert reasons["saturated"] > 0.05 * cam["pixels"]  # the over-exposed middle says so
+    assert set(shares) == set(reasons)
+    assert abs(sum(shares.values()) - 1.0) < 1e-4
+    # the per-pixel map agrees with the counts, and no saturated pixel became a decoded one
+    maps = np.load(tmp_path / "m.npz")
+    reason = maps["cam0_reason"]
+    assert reason.shape == stack.shape[1:] and reason.dtype == np.uint8
+    counts = np.bincount(reason.ravel(), minlength=len(REASON_NAMES))
+    assert {REASON_NAMES[i]: int(c) for i, c in enumerate(counts) if c} == reasons
+    assert np.array_equal(reason == Reason.DECODED, maps["cam0_mask"])
+    clipped = (stack[seq_phase_frames(seq)] >= 255).any(axis=0)
+    assert not (maps["cam0_mask"] & clipped).any()
+
+
+def seq_phase_frames(seq: Any) -> list[int]:
+    """Indices of the phase frames of ``seq``."""
+    from appliance.patterns.sequence import PhaseFrame
+
+    return [i for i, f in enumerate(seq.frames) if isinstance(f, PhaseFrame)]
