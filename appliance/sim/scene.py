@@ -141,6 +141,8 @@ def load_mesh(path: Path) -> tuple[F64, I64]:
     """
     suffix = path.suffix.lower()
     try:
+        if path.exists() and not path.is_file():  # a FIFO or a device would block or never end
+            raise ConfigError(f"scene mesh {path}: not a regular file; give a mesh file")
         if suffix == ".obj":
             return _load_obj(path)
         if suffix == ".stl":

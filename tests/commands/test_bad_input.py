@@ -228,6 +228,9 @@ def test_files_that_never_end_do_not_hang_the_commands(capture: dict[str, Path],
     fifo = tmp_path / "fifo.yaml"
     os.mkfifo(fifo)
     os.mkfifo(tmp_path / "stack.npy")
+    os.mkfifo(tmp_path / "mesh.obj")
+    meshed = tmp_path / "meshed.yaml"
+    meshed.write_text("virtual_rig:\n  scene:\n    - {type: mesh, path: mesh.obj}\n")
     stacked = tmp_path / "stacked.yaml"
     stacked.write_text("projector: {width: 64, height: 32}\ncameras: [cam0]\nstacks: {cam0: stack.npy}\n"
                        "frames:\n- {pattern: white}\n- {pattern: black}\n")
@@ -237,7 +240,9 @@ def test_files_that_never_end_do_not_hang_the_commands(capture: dict[str, Path],
                  ["decode", str(capture["manifest"]), "--config", str(fifo)],
                  ["scan", "--config", str(fifo)],
                  ["run", "--config", str(fifo)],
-                 ["decode", str(stacked)]):
+                 ["decode", str(stacked)],
+                 ["validate-config", str(meshed)],
+                 ["scan", "--config", str(meshed)]):
         done = _scan3d(*args)
         said = done.stdout + done.stderr
         lines = [ln for ln in said.splitlines() if ln.strip()]
