@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from appliance.config.schema import SequenceConfig
-from appliance.patterns.sequence import Sequence, gray_code_sequence, gray_phase_sequence
+from appliance.patterns.sequence import Sequence, exposure_capture, gray_code_sequence, gray_phase_sequence
 
 
 def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
@@ -15,3 +15,23 @@ def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
                                    inverses=cfg.inverses)
     return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,
                                inverses=cfg.inverses)
+
+
+def build_capture(
+    cfg: SequenceConfig, width: int, height: int
+) -> tuple[Sequence, tuple[tuple[float, float], ...] | None]:
+    """What a scan captures: the configured sequence once per ``sequence.exposures_us`` pass.
+
+    Returns
+    -------
+    capture : Sequence
+        The sequence, repeated per exposure (once when ``exposures_us`` is empty).
+    exposures : tuple of (float, float) or None
+        Per frame its ``(exposure_us, intensity)``; None when ``exposures_us`` is empty (one pass at each
+        camera's own exposure).
+    """
+    one = build_sequence(cfg, width, height)
+    if not cfg.exposures_us:
+        return one, None
+    return exposure_capture(one, [float(e) for e in cfg.exposures_us])
+

@@ -276,3 +276,44 @@ def gray_phase_sequence(
         for p in ordered:
             frames.extend(phase_shift_frames(axis, p, steps))  # type: ignore[arg-type]
     return Sequence(width, height, tuple(frames))
+
+
+def exposure_capture(
+    sequence: Sequence, exposures_us: tuple[float, ...] | list[float], intensity: float = 1.0
+) -> tuple[Sequence, tuple[tuple[float, float], ...]]:
+    """A multi-exposure capture: ``sequence`` once per exposure, one full pass after the other.
+
+    The frames and the per-frame ``(exposure_us, intensity)`` a scan captures and a manifest records
+    (``exposure_us`` / ``intensity`` of SEQUENCE-MANIFEST.md), so that a scan and an offline decode of its
+    recording group the same frames into the same passes
+    (:class:`appliance.reconstruct.hdr.HdrStreamingDecoder`, :func:`appliance.reconstruct.hdr.decode_passes`).
+
+    Parameters
+    ----------
+    sequence : Sequence
+        One pass.
+    exposures_us : sequence of float
+        Camera exposure of each pass (µs, > 0, each once), in capture order.
+    intensity : float
+        Projector brightness of every pass (0-1 of full scale).
+
+    Returns
+    -------
+    capture : Sequence
+        ``len(exposures_us) * len(sequence)`` frames.
+    exposures : tuple of (float, float)
+        Per frame of ``capture`` its ``(exposure_us, intensity)``.
+    """
+    passes = [float(e) for e in exposures_us]
+    if not passes:
+        raise PatternError("exposure capture: exposures_us = []: give at least one exposure (µs)")
+    for e in passes:
+        if not (e > 0 and math.isfinite(e)):
+            raise PatternError(f"exposure capture: exposure {e} µs: must be a finite number > 0")
+    if len(set(passes)) != len(passes):
+        raise PatternError(f"exposure capture: exposures_us = {passes}: lists an exposure twice; list each once")
+    if not (0.0 < intensity <= 1.0):
+        raise PatternError(f"exposure capture: intensity = {intensity}: must be in (0, 1]")
+    frames = sequence.frames * len(passes)
+    per_frame = tuple((e, float(intensity)) for e in passes for _ in sequence.frames)
+    return Sequence(sequence.width, sequence.height, frames), per_frame
