@@ -247,6 +247,12 @@ class HdrStreamingDecoder:
         self._decoders[k].push(j, frame)
 
     @property
+    def borrowed(self) -> frozenset[int]:
+        """Indices (of the whole capture) of the pushed frames still read from the caller's memory
+        (``borrow_frames``); every other pushed frame may be overwritten or released."""
+        return frozenset(self.passes[k][1][j] for k, d in enumerate(self._decoders) for j in d.borrowed)
+
+    @property
     def missing(self) -> list[int]:
         """Indices (of the whole capture) of the frames the decoder still needs."""
         return sorted(self.passes[k][1][j] for k, d in enumerate(self._decoders) for j in d.missing)

@@ -74,6 +74,23 @@ def test_streamed_hdr_equals_the_offline_decode() -> None:
     assert streamed.mask.mean() > max(s.mask.mean() for s in singles) + 0.05
 
 
+def test_borrowed_frames_are_named_in_capture_indices() -> None:
+    seq, exposures, stack = _capture()
+    offline, _choice, _passes = decode_passes(stack, seq, exposures, DecodeParams())
+    dec = HdrStreamingDecoder(seq, exposures, stack.shape[1:], stack.dtype, borrow_frames=True)
+    n = len(seq) // 3
+    dec.push(2, stack[2])  # a Gray pattern frame of the first pass: held until its inverse arrives
+    dec.push(n + 3, stack[n + 3])  # an inverse of the second pass
+    assert dec.borrowed == {2, n + 3}
+    dec.push(3, stack[3])
+    assert dec.borrowed == {n + 3}
+    for i in range(len(seq)):
+        if i not in (2, 3, n + 3):
+            dec.push(i, stack[i])
+    assert dec.borrowed == frozenset()
+    assert _bytes(dec.finish()) == _bytes(offline)
+
+
 def test_missing_frames_are_named() -> None:
     seq, exposures, stack = _capture()
     dec = HdrStreamingDecoder(seq, exposures, stack.shape[1:], stack.dtype)
