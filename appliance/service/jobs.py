@@ -244,6 +244,15 @@ class ScanJobs:
         b.add_scan(rec)
         log.info("scan %s: %d points, %.0f ms trigger to file; %s: %s", scan_id, len(result.cloud),
                  timings["trigger_to_file_ms"], outcome.location, outcome.files[0] if outcome.files else "-")
+        if len(cfg.cameras) > 1:  # what each camera took
+            per_cam = ", ".join(f"{n} capture {timings.get(f'capture_{n}_ms', 0):.0f} ms + decode "
+                                f"{timings.get(f'decode_finish_{n}_ms', 0):.0f} ms" for n in cfg.cameras)
+            log.info("scan %s: %s; reconstruct %.0f ms (mode %s)", scan_id, per_cam, timings.get("reconstruct_ms", 0),
+                     cfg.reconstruction.mode)
+        health = rec.calibration_health  # what the scan's redundant views say of the calibration
+        if health:
+            checks = ", ".join(f"{c['kind']} {c['status']}" for c in health.get("checks", []))
+            log.info("scan %s: calibration health %s (%s)", scan_id, health.get("status"), checks or "no check")
         b.set_state(svc.hardware.idle_state(), "ready")
         # the bookkeeping goes on beside the next scan (the writer thread keeps the order of the files)
         virtual = svc.rig.virtual if svc.rig is not None else None
