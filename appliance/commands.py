@@ -20,7 +20,9 @@ from appliance.config.schema import ReconstructionConfig
 from appliance.errors import ApplianceError, ConfigError, OutputError
 
 if TYPE_CHECKING:
-    from appliance.replay import ReplayBatch
+    from appliance.hardware.registry import Rig
+    from appliance.replay import ReplayBatch, ScanResult
+    from appliance.scan import Scanner
 
 
 def _config_or_default(path: Path | None) -> AppConfig:
@@ -309,27 +311,32 @@ def decode_manifests(
 
 
 async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) -> int:
-    from appliance.hardware.registry import build_rig
-    from appliance.output.atomic import write_atomic
-    from appliance.output.scanfiles import make_scan_id
-    from appliance.replay import result_files, scan_metadata
-    from appliance.scan import Scanner, load_calibration_for
-    from appliance.sim.accuracy import compare_to_ground_truth
+    t = time.perf_counter()
 
-    rig = build_rig(cfg)
-    calibration = load_calibration_for(cfg, rig)
-    scanner = Scanner(cfg, rig, calibration)
+    def make() -> tuple[Rig, Scanner]:  # imports, renders the virtual rig's scene, builds ray tables: off the loop
+        from appliance.hardware.registry import build_rig
+        from appliance.scan import Scanner, load_calibration_for
+
+        _note_compiling("scan")
+        rig = build_rig(cfg)
+        return rig, Scanner(cfg, rig, load_calibration_for(cfg, rig))
+
+    rig, scanner = await asyncio.to_thread(make)
     failed = 0
     try:
-        t = time.perf_counter()
-        _note_compiling("scan")
         await scanner.open()
         await scanner.warm_up()
         print(f"rig ready in {time.perf_counter() - t:.1f} s: {len(cfg.cameras)} camera(s), "
               f"{scanner.sequence.describe()}")
-        for i in range(count):
-            started = dt.datetime.now(dt.UTC)
-            result = await scanner.scan()
+
+        def write(i: int, started: dt.datetime, result: ScanResult) -> int:
+            """The scan's files (rendered, compared with the truth, written: off the event loop); 1 if spooled."""
+            from appliance.output.atomic import write_atomic
+            from appliance.output.scanfiles import make_scan_id
+            from appliance.replay import result_files, scan_metadata
+            from appliance.sim.accuracy import compare_to_ground_truth
+
+            failed = 0
             scan_id = make_scan_id(cfg.serial, i + 1, started)
             meta = scan_metadata(scan_id, started.isoformat(), scanner.sequence, scanner.calibration, list(cfg.cameras),
                                  result, serial=cfg.serial)  # fmt: skip
@@ -349,7 +356,7 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
                 paths = _spool_scan(cfg, f"{started:%Y-%m-%d}", scan_id, contents)
                 print(f"scan3d scan: {folder}: cannot be written ({exc}); scan {scan_id} kept in the spool "
                       f"{paths[0].parent} (scan3d run delivers it to the share)", file=sys.stderr)
-                failed += 1
+                failed = 1
             tm = result.timings_ms
             print(f"scan {scan_id}: {len(result.cloud)} points in {tm['scan_ms']:.0f} ms "
                   f"(capture+decode {tm['capture_ms']:.0f} ms, reconstruct {tm['reconstruct_ms']:.0f} ms, "
@@ -357,6 +364,12 @@ async def _scan_async(cfg: AppConfig, out_dir: Path, count: int, compare: bool) 
             print(f"  cloud:   {paths[0]}\n  sidecar: {paths[-1]}\n  preview: {paths[1] if len(paths) > 2 else None}")
             if report is not None:
                 print(f"  error against ground truth: {report.line()}")
+            return failed
+
+        for i in range(count):
+            started = dt.datetime.now(dt.UTC)
+            result = await scanner.scan()
+            failed += await asyncio.to_thread(write, i, started, result)
     finally:
         await scanner.close()
     return 2 if failed else 0
