@@ -201,7 +201,7 @@ def load_config(path: str | Path) -> AppConfig:
     data = read_bytes_file(p, what="configuration", error=ConfigError, limit_bytes=MAX_CONFIG_BYTES,
                            fix="check the path or pass --config FILE")
     if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
-        raise ConfigError(f"{p}: not a YAML mapping (UTF-16 text); save the file as UTF-8 text")
+        raise ConfigError(f"{p}: not a YAML mapping (binary data: UTF-16 text); save the file as UTF-8 text")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -106,7 +106,7 @@ def read_text_file(path: str | os.PathLike[str], *, what: str, error: type[Appli
     """
     data = read_bytes_file(path, what=what, error=error, limit_bytes=limit_bytes, fix=fix)
     if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
-        raise error(f"{path}: not a YAML {what} (UTF-16 text); save the file as UTF-8 text")
+        raise error(f"{path}: not a YAML {what} (binary data: UTF-16 text); save the file as UTF-8 text")
     if b"\x00" in data:
         raise error(f"{path}: not a YAML {what} (binary data: a NUL byte at offset {data.index(0)}); "
                     "check that this is the right file")
