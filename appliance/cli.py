@@ -47,10 +47,12 @@ def _cmd_scan(a: argparse.Namespace) -> int:
 
 
 def _cmd_tune(a: argparse.Namespace) -> int:
+    import asyncio
+
     from appliance.config import load_config
     from appliance.procedures.tune import tune_command
 
-    return tune_command(load_config(a.config), a.config, a.time_budget_ms, a.apply)
+    return asyncio.run(tune_command(load_config(a.config), a.config, a.time_budget_ms, a.apply))
 
 
 def _cmd_validate(a: argparse.Namespace) -> int:

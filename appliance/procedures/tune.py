@@ -277,14 +277,14 @@ def scan_time_ms(exposures_us: list[float], frames_per_pass: int) -> float:
     return sum(frames_per_pass * max(e, FRAME_PERIOD_US) for e in exposures_us) / 1000.0
 
 
-def tune(cfg: AppConfig, time_budget_ms: float) -> TuneChoice:
+async def tune(cfg: AppConfig, time_budget_ms: float) -> TuneChoice:
     """Probe the configured rig and choose its exposures (see the module docstring)."""
     if not (time_budget_ms > 0 and math.isfinite(time_budget_ms)):
         raise ConfigError(f"scan3d tune: --time-budget-ms = {time_budget_ms}: must be a positive number of ms")
     base = base_exposure_us(cfg)
-    pr = asyncio.run(probe(cfg, tuple(base * f for f in PROBE_FACTORS)))
+    pr = await probe(cfg, tuple(base * f for f in PROBE_FACTORS))
     seq = build_sequence(cfg.sequence, 1280, 800)  # the frame count does not depend on the projector size
-    return choose(pr, cfg.reconstruction.min_contrast_dn, len(seq), time_budget_ms, base)
+    return await asyncio.to_thread(choose, pr, cfg.reconstruction.min_contrast_dn, len(seq), time_budget_ms, base)
 
 
 _SEQ_KEY = re.compile(r"^sequence:[ \t]*(#.*)?$")
@@ -329,9 +329,9 @@ def apply_choice(path: Path, exposures_us: tuple[int, ...]) -> None:
     write_bytes_atomic(path, new.encode())
 
 
-def tune_command(cfg: AppConfig, config_path: Path | None, time_budget_ms: float, apply: bool) -> int:
+async def tune_command(cfg: AppConfig, config_path: Path | None, time_budget_ms: float, apply: bool) -> int:
     """``scan3d tune``: probe, print the choice and, with ``apply``, write it into the configuration file."""
-    choice = tune(cfg, time_budget_ms)
+    choice = await tune(cfg, time_budget_ms)
     for line in choice.lines(time_budget_ms):
         print(line)
     if apply:
