@@ -121,6 +121,7 @@ def _decode_one(
     """Decode (and with a calibration reconstruct) one capture through the replay path; print what it did and
     write its files. Returns its timings (ms)."""
     from appliance.output.atomic import write_atomic
+    from appliance.reconstruct.decode import reason_advice
     from appliance.replay import replay_capture, result_files, scan_metadata, stripe_summary
 
     tag = f"{manifest_path.stem}: " if is_batch else ""
@@ -139,6 +140,9 @@ def _decode_one(
                 line += f"; stripe widths {axis}: " + ", ".join(
                     f"{w} px {100 * v:.1f} %" for w, v in shares_w.items())  # fmt: skip
         print(line)
+        advice = reason_advice(m, cam)
+        if advice:
+            print(f"{tag}{advice}")
     t0, t4 = got.span_s  # printing and writing count as write_ms
     for warning in result.warnings if result is not None else ():
         print(f"{tag}warning: {warning}")

@@ -28,7 +28,15 @@ from appliance.output.sidecar import ScanMetadata
 from appliance.patterns.manifest import Manifest, read_manifest
 from appliance.patterns.sequence import PhaseFrame, Sequence
 from appliance.reconstruct import pipeline
-from appliance.reconstruct.decode import DecodeParams, DecodePlan, decode, plan_decode, reason_block, stripe_widths
+from appliance.reconstruct.decode import (
+    DecodeParams,
+    DecodePlan,
+    decode,
+    plan_decode,
+    reason_advice,
+    reason_block,
+    stripe_widths,
+)
 from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
 from appliance.reconstruct.hdr import decode_passes, pick_per_pixel
 from appliance.reconstruct.types import DecodedMaps, PointCloud
@@ -201,7 +209,7 @@ def scan_metadata(
         appliance_serial=serial,
         cameras=list(cameras),
         stages=result.stages,
-        warnings=result.warnings,
+        warnings=[*result.warnings, *(a for name in cameras if (a := reason_advice(result.maps[name], name)))],
         calibration_health=dict(result.calibration_health),
         extra=more,
     )

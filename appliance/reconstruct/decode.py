@@ -34,6 +34,7 @@ from __future__ import annotations
 from appliance.reconstruct.decode_batch import (
     decode,
     empty_maps,
+    reason_advice,
     reason_block,
     reason_counts,
     stripe_widths,
@@ -70,6 +71,7 @@ __all__ = [
     "lit_threshold",
     "otsu_threshold",
     "plan_decode",
+    "reason_advice",
     "reason_block",
     "reason_counts",
     "stripe_widths",

@@ -167,6 +167,40 @@ def reason_block(maps: DecodedMaps) -> dict[str, dict[str, Any]]:
     return {"reasons": counts, "reason_shares": {k: round(n / total, 6) for k, n in counts.items()}}
 
 
+#: A reason is said in plain words when it holds at least this share of the lit (not shadowed) pixels.
+DOMINANT_REASON_SHARE = 0.2
+_ADVICE = {
+    Reason.TOO_DARK: "too dark: add a longer exposure (sequence.exposures_us) or run scan3d tune",
+    Reason.SATURATED: "saturated: add a shorter exposure (sequence.exposures_us) or run scan3d tune",
+    Reason.WEAK_CODE: ("weak or inconsistent codes (stripes finer than the optics resolve, interreflection, "
+                       "a moving part): use coarser stripes or longer periods, or run scan3d tune"),
+}
+
+
+def reason_advice(maps: DecodedMaps, camera: str) -> str | None:
+    """One plain-words line when one reason leaves at least :data:`DOMINANT_REASON_SHARE` of the lit pixels
+    without a code (too dark, saturated, weak or inconsistent code), with what to do; None otherwise.
+
+    Parameters
+    ----------
+    maps : DecodedMaps
+        A decode with ``reason``.
+    camera : str
+        The camera's name (the line starts with it).
+    """
+    if maps.reason is None:
+        return None
+    counts = np.bincount(maps.reason.ravel(), minlength=int(max(Reason)) + 1)
+    lit = int(maps.reason.size - counts[Reason.SHADOW])
+    if lit <= 0:
+        return None
+    worst = max(_ADVICE, key=lambda r: int(counts[r]))
+    share = int(counts[worst]) / lit
+    if share < DOMINANT_REASON_SHARE:
+        return None
+    return f"{camera}: {100 * share:.0f} % of the lit pixels are {_ADVICE[worst]}"
+
+
 def decode(
     frames: FrameStack,
     sequence: Sequence | DecodePlan,

@@ -47,7 +47,7 @@ def test_report_and_maps_say_why_pixels_have_no_point(tmp_path: Path) -> None:
     full = virtual_calibration(rig)
     calib = tmp_path / "calib.yaml"
     write_calibration(calib, Calibration({"cam0": full.devices["cam0"], "projector": full.devices["projector"]}))
-    rc, _out, err = _decode(man, "--calibration", calib, "--out", tmp_path / "c.ply", "--report",
+    rc, out, err = _decode(man, "--calibration", calib, "--out", tmp_path / "c.ply", "--report",
                             tmp_path / "r.json", "--maps", tmp_path / "m.npz")  # fmt: skip
     assert rc == 0, err
     cam = json.loads((tmp_path / "r.json").read_text())["counts"]["cameras"]["cam0"]
@@ -57,6 +57,11 @@ def test_report_and_maps_say_why_pixels_have_no_point(tmp_path: Path) -> None:
     assert reasons["saturated"] > 0.05 * cam["pixels"]  # the over-exposed middle says so
     assert set(shares) == set(reasons)
     assert abs(sum(shares.values()) - 1.0) < 1e-4
+    # one reason dominates the lit pixels: said in plain words, on the terminal and in the sidecar
+    lit = cam["pixels"] - reasons.get("shadow", 0)
+    said = f"cam0: {100 * reasons['saturated'] / lit:.0f} % of the lit pixels are saturated: add a shorter exposure"
+    assert said in out
+    assert any(w.startswith(said) for w in json.loads((tmp_path / "r.json").read_text())["warnings"])
     # the per-pixel map agrees with the counts, and no saturated pixel became a decoded one
     maps = np.load(tmp_path / "m.npz")
     reason = maps["cam0_reason"]
