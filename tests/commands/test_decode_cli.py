@@ -18,13 +18,13 @@ import pytest
 from plyfile import PlyData
 
 from appliance import cli
-from appliance.replay import choose_decode_mode
 from appliance.config import parse_config
 from appliance.config.schema import ReconstructionConfig
 from appliance.errors import ConfigError
 from appliance.geometry.calibration_file import Calibration, read_calibration, write_calibration
 from appliance.patterns.manifest import write_manifest
 from appliance.reconstruct.defaults import default_depth_range_mm
+from appliance.replay import choose_decode_mode
 from appliance.scan import build_sequence, virtual_calibration
 from appliance.sim.rig import VirtualRig
 
