@@ -47,7 +47,10 @@ def _guard_every_event_loop(request: pytest.FixtureRequest, monkeypatch: pytest.
     guard costs nothing where no loop runs, and a new async test is guarded without anyone remembering to.
     Warm numba's kernels before the measured part: the first call of a kernel compiles or loads it.
     """
-    with guard(monkeypatch, check_threads="loop_guard" in request.fixturenames):
+    limits = request.node.get_closest_marker("loop_guard_limits")
+    kw = dict(limits.kwargs) if limits is not None else {}
+    kw.pop("reason", None)
+    with guard(monkeypatch, check_threads="loop_guard" in request.fixturenames, **kw):
         yield
 
 

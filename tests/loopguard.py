@@ -126,7 +126,13 @@ def _run_delay_s() -> float:
 
 
 @contextlib.contextmanager
-def slow_callbacks(monkeypatch: pytest.MonkeyPatch, ran: list[int] | None = None) -> Iterator[list[str]]:
+def slow_callbacks(
+    monkeypatch: pytest.MonkeyPatch,
+    ran: list[int] | None = None,
+    *,
+    cpu_s: float | None = None,
+    held_s: float | None = None,
+) -> Iterator[list[str]]:
     """Within the block, every event-loop callback (a task step included) that computes on the loop for more
     than :data:`SLOW_CALLBACK_S` or blocks it for more than :data:`BLOCKED_CALLBACK_S` is described in the list
     it gives; ``ran[0]``, where given, counts the callbacks run.
@@ -139,6 +145,8 @@ def slow_callbacks(monkeypatch: pytest.MonkeyPatch, ran: list[int] | None = None
     loaded machine.
     """
     slow: list[str] = []
+    cpu_limit = SLOW_CALLBACK_S if cpu_s is None else cpu_s
+    held_limit = BLOCKED_CALLBACK_S if held_s is None else held_s
     real_run = _REAL_HANDLE_RUN
     counter = ran if ran is not None else [0]
     gc_clock = _GcClock()
@@ -157,7 +165,7 @@ def slow_callbacks(monkeypatch: pytest.MonkeyPatch, ran: list[int] | None = None
             log_cpu, log_wall = log_clock.since(tid, log0)
             cpu = time.thread_time() - c0 - gc_cpu - log_cpu
             held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall - log_wall
-            if cpu > SLOW_CALLBACK_S or held > BLOCKED_CALLBACK_S or young_wall > GC_PAUSE_S:
+            if cpu > cpu_limit or held > held_limit or young_wall > GC_PAUSE_S:
                 slow.append(
                     f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held (garbage collection {gc_wall * 1e3:.0f} ms, "
                     f"{gc_cpu * 1e3:.0f} ms CPU, not counted; {young_wall * 1e3:.0f} ms of it young), "
@@ -193,15 +201,22 @@ def _describe(handle: asyncio.events.Handle) -> str:
 
 
 @contextlib.contextmanager
-def guard(monkeypatch: pytest.MonkeyPatch, *, check_threads: bool = False) -> Iterator[None]:
+def guard(
+    monkeypatch: pytest.MonkeyPatch,
+    *,
+    check_threads: bool = False,
+    cpu_s: float | None = None,
+    held_s: float | None = None,
+) -> Iterator[None]:
     """Run the block under the loop guard; on leaving, fail (``AssertionError``) when a loop callback in it was
     slow (:func:`slow_callbacks`), or when it ran an event loop (or ``check_threads``) and a thread it started
     is still running :data:`THREAD_GRACE_S` later. A block that runs no event loop is not held to the thread
-    rule: thread pools of sync code are not this guard's business.
+    rule: thread pools of sync code are not this guard's business. ``cpu_s`` / ``held_s`` replace the limits
+    (:data:`SLOW_CALLBACK_S`, :data:`BLOCKED_CALLBACK_S`) for a test marked ``loop_guard_limits`` with a reason.
     """
     before = set(threading.enumerate())
     ran = [0]
-    with slow_callbacks(monkeypatch, ran) as slow:
+    with slow_callbacks(monkeypatch, ran, cpu_s=cpu_s, held_s=held_s) as slow:
         yield
     assert not slow, "the event loop was blocked: " + "; ".join(slow[:5])
     if not (ran[0] or check_threads):

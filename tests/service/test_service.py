@@ -127,7 +127,9 @@ def test_trigger_wait_returns_the_scan(tmp_path: Path, capsys: pytest.CaptureFix
     screen = capsys.readouterr().out
     assert "IDLE" in screen and "hardware" in screen and "last scans" in screen and "40 pts" in screen
     rss = re.search(r"RSS (\d+) MB", screen)  # the service's resident memory, from /proc
-    assert rss is not None and 20 < int(rss.group(1)) < 4000, screen
+    # the service runs inside the test process, whose RSS holds what the whole suite loaded (6 GB seen): the check
+    # is of the unit (MB, not kB or bytes), not of the service's size, which test_service_memory measures
+    assert rss is not None and 20 < int(rss.group(1)) < 24_000, screen
 
 
 def test_absent_hardware_is_retried_and_reported(tmp_path: Path) -> None:
