@@ -9,27 +9,19 @@ import appliance._numba_cache  # noqa: F401  (the cache folder, before any kerne
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def choose_pass(mask, reason, r_sat, r_ok, choice, out_reason):  # type: ignore[no-untyped-def]
-    """Per pixel the brightest pass (highest index) that decoded it; undecoded: the brightest pass that did not
-    clip it (its reason), else the darkest pass ("saturated" everywhere)."""
+    """Per pixel the brightest pass (highest index) that did not clip it: its result, decoded or not (a darker
+    pass has less signal, so where the brightest unclipped one found no reliable code, no darker one is trusted);
+    the darkest pass ("saturated") where every pass clipped it."""
     n, h, w = mask.shape
     for y in prange(h):
         for x in range(w):
-            best = -1
-            for k in range(n - 1, -1, -1):
-                if mask[k, y, x]:
-                    best = k
-                    break
-            if best >= 0:
-                choice[y, x] = best
-                out_reason[y, x] = r_ok
-                continue
-            alt = 0
+            best = 0
             for k in range(n - 1, -1, -1):
                 if reason[k, y, x] != r_sat:
-                    alt = k
+                    best = k
                     break
-            choice[y, x] = alt
-            out_reason[y, x] = reason[alt, y, x]
+            choice[y, x] = best
+            out_reason[y, x] = r_ok if mask[best, y, x] else reason[best, y, x]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")

@@ -3,13 +3,12 @@ per pixel.
 
 Each exposure is a full pass of the sequence and is decoded on its own (a clipped sample carries no code, see
 :mod:`appliance.reconstruct.decode`), so a pixel decodes in every pass where its light is neither clipped nor
-too dark. Per pixel the fusion keeps the brightest pass that decoded it: the longest exposure whose needed
-samples are all below full scale, which has the most contrast over the read noise. Its coordinates, quality
-(DN of that pass, so the per-point error model still applies) and grey value are taken whole; nothing is
-averaged across passes, so no pass's bias leaks into another's.
-
-A pixel that no pass decodes keeps the reason of the brightest pass that did not clip it (too dark even
-there, or a weak code), or ``saturated`` when every pass clipped it.
+too dark. Per pixel the fusion takes the brightest pass that did not clip it: the longest exposure whose
+needed samples are all below full scale, which has the most contrast over the read noise. Its coordinates,
+quality (DN of that pass, so the per-point error model still applies) and grey value are taken whole, or, where
+that pass found no reliable code, its reason: a darker pass has less signal, so it is not trusted over the
+brighter one's verdict. Nothing is averaged across passes, so no pass's bias leaks into another's. A pixel
+every pass clipped is ``saturated``.
 """
 
 from __future__ import annotations
@@ -64,7 +63,7 @@ def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDAr
     Returns
     -------
     maps : DecodedMaps
-        Per pixel the brightest pass that decoded it (``u``, ``v``, ``mask``, ``quality`` in that pass's DN,
+        Per pixel the brightest pass that did not clip it (``u``, ``v``, ``mask``, ``quality`` in that pass's DN,
         ``levels``), and the fused ``reason``.
     choice : ndarray, shape (H, W), uint8
         Index of the pass each pixel's result came from (the pass its reason came from where undecoded).
