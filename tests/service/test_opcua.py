@@ -21,11 +21,13 @@ from faces_helpers import TOKEN, Broker, appliance_copy, faces_of, free_port, ru
 from appliance.service.opcua import NAMESPACE, OpcUaFace
 
 # asyncua's server start, measured under the loop guard (every test runs under it since this stop): building
-# the standard address space runs in a thread but holds the interpreter lock in long C calls, which the service's
-# loop then waits for (300-970 ms "held" with 3-8 ms CPU, once per service start), and BinaryServer.start's
-# create_server takes ~60 ms CPU on the loop. Start-up only; left for a change that builds the address space once
-# per process before the loop gets busy. Everything else the faces do is held to the suite's limits elsewhere.
-pytestmark = pytest.mark.loop_guard_limits(cpu_s=0.15, held_s=1.5, reason="asyncua server start-up (see above)")
+# the standard address space runs in the face's own thread (~1 s of pure-Python CPU), and while it runs the
+# service's loop competes with it for the interpreter lock: 300-970 ms "held" with 3-8 ms CPU here, 1672 and
+# 1868 ms with 12-16 ms CPU on the 2-core CI machine (stop 29's CI run, where a 1.5 s limit failed two tests).
+# BinaryServer.start's create_server takes ~60 ms CPU on the loop. Once per service start, before ready; left
+# for a change that builds the address space once per process before the loop gets busy. The held limit is
+# 4 s: twice the worst seen on CI. Everything else the faces do is held to the suite's limits elsewhere.
+pytestmark = pytest.mark.loop_guard_limits(cpu_s=0.15, held_s=4.0, reason="asyncua server start-up (see above)")
 
 
 @pytest.fixture(scope="module", autouse=True)
