@@ -327,3 +327,43 @@ def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
                         "folder (e.g. /var/lib/scan3d/spool), or watchers see spooled scans and a share that is "
                         "away takes the spool with it")
     return problems
+
+
+SERVICE_FOLDERS = (
+    ("service.state_directory", "the service keeps its scan counter and calibration health there",
+     "/var/lib/scan3d/state"),
+    ("output.spool_directory", "scans wait there while the share is away", "/var/lib/scan3d/spool"),
+)
+"""The local folders ``scan3d run`` needs before it may say ready: key, what it is for, an example."""
+
+
+def prepare_service_folders(cfg: AppConfig, source: str = "<config>") -> None:
+    """Make the service's local folders (state, spool) and check they are writable, before it reports ready.
+
+    Parameters
+    ----------
+    cfg : AppConfig
+        The configuration the service runs.
+    source : str
+        The configuration file's name, for the message.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the key, the folder, the rule (a writable folder, or one that can be made) and the
+        fix, when a folder is a file, lies under a file, holds a NUL, cannot be made or is read-only.
+    """
+    for key, why_needed, example in SERVICE_FOLDERS:
+        section, name = key.split(".")
+        folder = Path(getattr(getattr(cfg, section), name))
+        why = folder_problem(folder, writable=True)
+        if not why:
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                why = f"cannot be created ({exc.strerror or exc})"
+        if not why and not os.access(folder, os.W_OK | os.X_OK):
+            why = "is not writable"
+        if why:
+            raise ConfigError(f"{source}: {key} = '{folder}': {why}; it must be a writable folder "
+                              f"({why_needed}): make it one or point {key} at one (e.g. {example})")

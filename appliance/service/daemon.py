@@ -221,6 +221,8 @@ class Service:
         self.board.subscribe(self.publisher.publish)
         self.board.set_state(State.STARTING, "loading configuration", Phase.LOAD_CONFIG)
         try:
+            from appliance.config.loader import prepare_service_folders  # a state folder that is a file: no start
+            await asyncio.to_thread(prepare_service_folders, self.cfg, str(self.config_path))
             await self.output.start()
             self.control = ControlServer(self.socket_path, self.handlers.handle)
             await self.control.start()

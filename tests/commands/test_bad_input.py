@@ -361,3 +361,27 @@ def test_a_calibration_report_on_a_full_disk_leaves_no_empty_png(tmp_path: Path,
     with pytest.raises(OutputError, match="No space left on device"):
         report._write_whole(tmp_path / "cam0_residuals.png", b"\x89PNG" + b"\x00" * 100)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("case", ["state_is_a_file", "spool_under_a_file"])
+def test_run_refuses_to_start_without_its_local_folders(tmp_path: Path, case: str) -> None:
+    """``scan3d run`` with a state folder that is a file (or a spool under one) stops at start with one line and
+    a non-zero exit (systemd shows the unit failed) instead of saying ready and failing every scan."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder\n")
+    service = {"state_directory": str(tmp_path / "state"), "control_socket": str(tmp_path / "ctl.sock")}
+    output = {"directory": str(tmp_path / "share"), "spool_directory": str(tmp_path / "spool"), "preview": False}
+    if case == "state_is_a_file":
+        service["state_directory"], key, bad = str(blocker), "service.state_directory", str(blocker)
+    else:
+        output["spool_directory"] = bad = str(blocker / "spool")
+        key = "output.spool_directory"
+    config = tmp_path / "appliance.yaml"
+    config.write_text(RIG + yaml.safe_dump({"service": service, "output": output}))
+    done = _scan3d("run", "--config", str(config), "--scans", "1", timeout=120)
+    said = done.stdout + done.stderr
+    lines = [ln for ln in said.splitlines() if ln.strip() and "compiling the numba kernels" not in ln]
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in said, said
+    assert all(w in lines[0] for w in (key, bad, "is a file, not a folder", "writable folder")), lines[0]
+    assert not (tmp_path / "ctl.sock").exists()  # never listened, so never said ready
+    assert blocker.read_text() == "not a folder\n"
