@@ -35,21 +35,30 @@ def write_patterns(out: Path, config: Path | None, width: int | None, height: in
     """Write the configured sequence's projector images (PNG) and a manifest into ``out``."""
     import cv2
 
-    from appliance.patterns import render_frame, write_manifest
+    from appliance.output.atomic import write_files_atomic
+    from appliance.patterns import render_frame
     from appliance.patterns.from_config import build_sequence
+    from appliance.patterns.manifest import manifest_text
 
     cfg = _config_or_default(config)
     w = width or cfg.virtual_rig.projector.width
     h = height or cfg.virtual_rig.projector.height
     seq = build_sequence(cfg.sequence, w, h)
-    out.mkdir(parents=True, exist_ok=True)
-    names = []
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise OutputError(f"{str(out)!r}: cannot be created ({getattr(exc, 'strerror', None) or exc}); "
+                          "give --out a folder that can be made") from exc
+    files: dict[str, bytes] = {}
     for i, frame in enumerate(seq.frames):
         name = f"pattern_{i:03d}.png"
-        if not cv2.imwrite(str(out / name), render_frame(frame, w, h)):
-            raise ApplianceError(f"{out / name}: cannot be written; check the folder")
-        names.append(name)
-    write_manifest(out / "manifest.yaml", seq, ["projector"], images={"projector": names})
+        ok, png = cv2.imencode(".png", render_frame(frame, w, h))
+        if not ok:
+            raise ApplianceError(f"{out / name}: the PNG encoder failed; check the projector size")
+        files[name] = png.tobytes()
+    names = list(files)
+    files["manifest.yaml"] = manifest_text(seq, ["projector"], images={"projector": names}).encode()
+    write_files_atomic(out, files)  # all or none: a full disk keeps the previous images and manifest whole
     print(f"wrote {len(names)} projector images ({seq.describe()}) and {out / 'manifest.yaml'}")
     return 0
 
@@ -183,12 +192,15 @@ def _decode_one(
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OutputError(f"{path.parent}: cannot be created ({exc.strerror}); check --out") from exc
-        # the same files as a scan's; an offline PLY carries no header comment
-        ply = result_files(meta, result, normals=rc.normals and result.cloud.normal is not None, preview=False,
-                           ply_comments=[])[0]  # fmt: skip
+        # the same files as a scan's (the preview beside the cloud, the pixels without a point striped by
+        # reason); an offline PLY carries no header comment
+        ply, png = result_files(meta, result, normals=rc.normals and result.cloud.normal is not None, preview=True,
+                                ply_comments=[])[:2]  # fmt: skip
         write_atomic(path, ply.write_to)
         written["cloud"] = str(path)
-        print(f"{tag}cloud: {path} ({len(result.cloud)} points, mode {setup.mode})")
+        preview_path = write_atomic(path.with_suffix(".png"), png.write_to)
+        written["preview"] = str(preview_path)
+        print(f"{tag}cloud: {path} ({len(result.cloud)} points, mode {setup.mode}); preview: {preview_path}")
     t5 = time.perf_counter()
     times = {**got.timings_ms, "write_ms": round((t5 - t4) * 1e3, 3), "total_ms": round((t5 - t0) * 1e3, 3)}
     if report is not None:

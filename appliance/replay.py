@@ -227,7 +227,8 @@ def result_files(
 
     The one "result -> files" step of ``scan3d scan`` and ``scan3d decode``; the service's share writer
     renders the same files (:func:`appliance.output.scanfiles.scan_file_contents`) with ``meta`` from
-    :func:`scan_metadata`.
+    :func:`scan_metadata` and the reasons from :func:`reason_maps`. The preview stripes each pixel without a
+    point in the colour of its reason.
 
     Parameters
     ----------
@@ -241,7 +242,13 @@ def result_files(
         The PLY header's comments (default: the scan id and the unit).
     """
     return scan_file_contents(meta, result.cloud, list(result.shapes.values()), normals=normals, preview=preview,
-                              comments=ply_comments)  # fmt: skip
+                              comments=ply_comments, reasons=reason_maps(result))  # fmt: skip
+
+
+def reason_maps(result: ScanResult) -> list[npt.NDArray[np.uint8] | None]:
+    """Per camera (order of ``result.shapes``), its reason map (why each pixel has no point) or None: what the
+    preview draws (:func:`appliance.output.preview.render_preview`)."""
+    return [result.maps[name].reason if name in result.maps else None for name in result.shapes]
 
 
 def choose_decode_mode(calib: Calibration, cameras: list[str] | tuple[str, ...], requested: str | None = None) -> str:

@@ -1,4 +1,9 @@
-"""Preview PNG of a scan: depth in colour with a labelled scale bar."""
+"""Preview PNG of a scan: depth in colour with a labelled scale bar, and why pixels have no point.
+
+Where a camera pixel has no point and its reason map (:class:`appliance.reconstruct.types.Reason`) says why,
+the tile shows diagonal stripes in the reason's colour over the no-point grey (stripes, so a reason is never
+read as a depth), and a legend under the tiles gives each reason's colour and share of the image.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +13,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from appliance.output.font import CAP_H, draw_text, text_size
-from appliance.reconstruct.types import PointCloud
+from appliance.output.font import CAP_H, LINE_H, draw_text, text_size
+from appliance.reconstruct.types import PointCloud, Reason
 
 PERCENTILE_SAMPLES = 100_000
 """The colour range (1st to 99th percentile of depth) is taken from about this many evenly spaced points."""
@@ -19,6 +24,22 @@ NO_POINT_BGR = (40, 40, 40)
 """Colour of pixels without a point."""
 MIN_COVERAGE = 0.5
 """A scaled-down pixel holds a depth when at least this fraction of the area it covers has one."""
+
+REASON_STYLE: dict[int, tuple[str, tuple[int, int, int]]] = {
+    Reason.SHADOW: ("shadow", NO_POINT_BGR),
+    Reason.TOO_DARK: ("too dark", (255, 90, 140)),
+    Reason.SATURATED: ("saturated", (255, 255, 255)),
+    Reason.WEAK_CODE: ("weak/inconsistent code", (255, 0, 255)),
+    Reason.NOT_MATCHED: ("not matched", (255, 255, 0)),
+    Reason.OUT_OF_RANGE: ("out of range", (0, 255, 255)),
+    Reason.FILTERED: ("filtered", (0, 140, 255)),
+}
+"""Per reason a pixel has no point: its legend label and stripe colour (BGR). Shadow is the plain no-point grey
+(nothing to fix); a reason missing here is drawn in :data:`OTHER_REASON_BGR`."""
+OTHER_REASON_BGR = (128, 128, 128)
+"""Stripe colour of a reason :data:`REASON_STYLE` does not name."""
+STRIPE_PX = 3
+"""Width of the reason stripes (px of the preview)."""
 
 _COLOUR_ANCHORS = (
     (0.00, (30, 15, 90)), (0.12, (45, 70, 210)), (0.30, (20, 195, 225)), (0.45, (60, 215, 75)),
@@ -121,9 +142,13 @@ def downscale_depth(depth: npt.NDArray[np.float32], shape: tuple[int, int]) -> n
 
 
 def render_preview(
-    depths: list[npt.NDArray[np.float32]], title: str = "", max_width_px: int = 1280
+    depths: list[npt.NDArray[np.float32]],
+    title: str = "",
+    max_width_px: int = 1280,
+    reasons: list[npt.NDArray[np.uint8] | None] | None = None,
 ) -> npt.NDArray[np.uint8]:
-    """Colour image (BGR uint8) of one or more depth maps side by side, with a scale bar in mm.
+    """Colour image (BGR uint8) of one or more depth maps side by side, with a scale bar in mm, and where
+    ``reasons`` are given, why pixels have no point.
 
     Parameters
     ----------
@@ -135,13 +160,20 @@ def render_preview(
         The tiles are scaled down (:func:`downscale_depth`) so that they and the 4-px gaps between them are
         at most this wide (px), at least 1 px a tile; the scale bar adds 94 px beside them. One camera up to
         this width is drawn at full size (no resampling).
+    reasons : list of (ndarray, shape (H, W), uint8, or None), optional
+        Per depth map, the camera's reason map (:class:`appliance.reconstruct.types.Reason`, 0 = decoded),
+        or None. A pixel without a depth whose reason is not 0 is striped in the reason's colour
+        (:data:`REASON_STYLE`, sampled at the tile's nearest source pixel), and a legend under the tiles gives
+        each reason present with its share of the images' pixels (%).
 
     Returns
     -------
     ndarray, shape (H', W', 3), uint8
         The picture: tiles (near = warm, :data:`NO_POINT_BGR` where empty) on black, 4 px apart, then the
-        scale bar on white.
+        scale bar on white; the reasons' legend below when there is one.
     """
+    if reasons is not None and len(reasons) != len(depths):
+        raise ValueError(f"reasons: {len(reasons)} maps for {len(depths)} depth maps; give one (or None) each")
     lo, hi = _colour_range(depths)
     lut = depth_lut()
     gap, margin = 4, 90
@@ -154,9 +186,12 @@ def render_preview(
     canvas = np.full((h, w + gap + margin, 3), 255, np.uint8)
     canvas[:, : w + gap] = 0
     x = 0
-    for d, (sw, sh) in zip(depths, sizes, strict=True):
+    for i, (d, (sw, sh)) in enumerate(zip(depths, sizes, strict=True)):
         small = d if (sh, sw) == d.shape else downscale_depth(d, (sh, sw))
         _colour_into(small, lo, hi, lut, canvas[:sh, x : x + sw])
+        reason = None if reasons is None else reasons[i]
+        if reason is not None:
+            _stripe_reasons(small, reason, canvas[:sh, x : x + sw])
         del small
         x += sw + gap
     black, white = (0, 0, 0), (255, 255, 255)
@@ -175,7 +210,68 @@ def render_preview(
         tw, th = text_size(title, 2)
         canvas[4 : 8 + th + 2, 4 : 8 + tw + 4] = black  # legible on any colour
         draw_text(canvas, title, 8, 8, white, 2)
+    if reasons is not None:
+        canvas = _with_legend(canvas, [r for r in reasons if r is not None])
     return canvas
+
+
+def reason_colour(reason: int) -> tuple[int, int, int]:
+    """The stripe colour (BGR) of a :class:`appliance.reconstruct.types.Reason` value in the preview."""
+    style = REASON_STYLE.get(reason)
+    return OTHER_REASON_BGR if style is None else style[1]
+
+
+def _stripe_reasons(small: npt.NDArray[np.float32], reason: npt.NDArray[np.uint8], out: npt.NDArray[Any]) -> None:
+    """Stripe the tile ``out`` (h, w, 3) where ``small`` (h, w) has no depth, by the reason map (H, W) sampled at
+    each tile pixel's nearest source pixel: the reason's colour on every other :data:`STRIPE_PX`-wide diagonal."""
+    h, w = small.shape
+    big_h, big_w = reason.shape
+    rows = ((np.arange(h) + 0.5) * (big_h / h)).astype(np.intp)
+    cols = ((np.arange(w) + 0.5) * (big_w / w)).astype(np.intp)
+    stripe = (np.add.outer(np.arange(h), np.arange(w)) // STRIPE_PX) % 2 == 0
+    sampled = reason[rows][:, cols]
+    empty = ~np.isfinite(small)
+    for value in np.unique(sampled[empty & stripe]):
+        if value == Reason.DECODED:
+            continue
+        out[empty & stripe & (sampled == value)] = reason_colour(int(value))
+
+
+def _with_legend(canvas: npt.NDArray[np.uint8], reasons: list[npt.NDArray[np.uint8]]) -> npt.NDArray[np.uint8]:
+    """``canvas`` with a legend strip below: a swatch, the label and the share (% of all pixels of ``reasons``)
+    of each reason present, in :class:`Reason` order, wrapped to the canvas's width (widened for one entry)."""
+    total = sum(r.size for r in reasons)
+    counts = np.zeros(256, np.int64)
+    for r in reasons:
+        counts += np.bincount(r.ravel(), minlength=256)[:256]
+    entries = [(f"{REASON_STYLE[v][0] if v in REASON_STYLE else f'reason {v}'} {100.0 * counts[v] / total:.1f} %",
+                reason_colour(v)) for v in range(1, 256) if counts[v]]  # fmt: skip
+    if not entries:
+        return canvas
+    swatch, pad = 10, 12
+    widths = [swatch + 4 + text_size(label)[0] for label, _ in entries]
+    width = max(canvas.shape[1], max(widths) + 2 * pad)
+    lines: list[list[int]] = [[]]
+    x = pad
+    for i, wd in enumerate(widths):
+        if lines[-1] and x + wd > width - pad:
+            lines.append([])
+            x = pad
+        lines[-1].append(i)
+        x += wd + pad
+    row_h = LINE_H + 6
+    out = np.full((canvas.shape[0] + 4 + row_h * len(lines), width, 3), 255, np.uint8)
+    out[: canvas.shape[0], : canvas.shape[1]] = canvas
+    for n, line in enumerate(lines):
+        y = canvas.shape[0] + 4 + n * row_h + 3
+        x = pad
+        for i in line:
+            label, colour = entries[i]
+            out[y : y + CAP_H + 1, x : x + swatch] = (0, 0, 0)
+            out[y + 1 : y + CAP_H, x + 1 : x + swatch - 1] = colour
+            draw_text(out, label, x + swatch + 4, y, (0, 0, 0))
+            x += widths[i] + pad
+    return out
 
 
 def _area_taps(n_in: int, n_out: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.float64]]:

@@ -14,6 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+import numpy as np
+import numpy.typing as npt
+
 from appliance.output.atomic import write_atomic
 from appliance.output.ply import PackedRecords, ply_bytes_header, vertex_dtype
 from appliance.output.png import encode_png
@@ -86,6 +89,7 @@ def scan_file_contents(
     normals: bool = False,
     preview: bool = True,
     comments: list[str] | None = None,
+    reasons: list[npt.NDArray[np.uint8] | None] | None = None,
 ) -> list[FileContent]:
     """Render the files of one scan in memory: cloud, preview (when ``preview``), sidecar last.
 
@@ -101,6 +105,10 @@ def scan_file_contents(
         Normals in the PLY; a preview PNG.
     comments : list of str, optional
         The PLY header's comments (default: the scan id and ``units mm``).
+    reasons : list of (ndarray, shape (H, W), uint8, or None), optional
+        Per camera (order of ``shapes``), why each pixel has no point
+        (:class:`appliance.reconstruct.types.Reason`): drawn in the preview with a legend
+        (:func:`appliance.output.preview.render_preview`).
 
     Returns
     -------
@@ -116,7 +124,7 @@ def scan_file_contents(
     meta.files = {"cloud": f"{sid}.ply", "sidecar": f"{sid}.json"}
     if preview:
         depths = [depth_image(cloud, i, s) for i, s in enumerate(shapes)]
-        out.append(FileContent(f"{sid}.png", (encode_png(render_preview(depths, sid)),)))
+        out.append(FileContent(f"{sid}.png", (encode_png(render_preview(depths, sid, reasons=reasons)),)))
         meta.files["preview"] = f"{sid}.png"
     out.append(FileContent(f"{sid}.json", (meta.to_json().encode(),)))
     return out

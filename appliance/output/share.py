@@ -44,6 +44,9 @@ from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
+import numpy.typing as npt
+
 from appliance.config.schema import OutputConfig
 from appliance.errors import OutputError
 from appliance.output.atomic import TMP_PREFIX, fsync_dir, mkdir_synced, write_bytes_atomic
@@ -617,14 +620,15 @@ class ShareWriter:
     # --- one scan --------------------------------------------------------------------------------
 
     def write_scan(self, day: str, meta: ScanMetadata, cloud: PointCloud, shapes: list[tuple[int, int]], *,
-                   normals: bool = False, preview: bool = True) -> WriteOutcome:
+                   normals: bool = False, preview: bool = True,
+                   reasons: list[npt.NDArray[np.uint8] | None] | None = None) -> WriteOutcome:
         """Write one scan's cloud, preview and sidecar to ``share/day/``, or to the spool.
 
         Parameters
         ----------
         day : str
             ``YYYY-MM-DD`` folder of the scan (its UTC start date).
-        meta, cloud, shapes, normals, preview
+        meta, cloud, shapes, normals, preview, reasons
             As for :func:`appliance.output.scanfiles.scan_file_contents`.
 
         Raises
@@ -634,7 +638,7 @@ class ShareWriter:
         """
         if self.spool_entries():
             self.flush_spool()
-        contents = scan_file_contents(meta, cloud, shapes, normals=normals, preview=preview)
+        contents = scan_file_contents(meta, cloud, shapes, normals=normals, preview=preview, reasons=reasons)
         need = estimate_scan_bytes(shapes, normals=normals, preview=preview)
         reason = "older scans are still in the spool" if self.spool_entries() else self.share_problem(need)
         if not reason:

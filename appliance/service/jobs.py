@@ -218,7 +218,7 @@ class ScanJobs:
         write = out.call(
             lambda: writer.write_scan(_today(started), meta, result.cloud, list(result.shapes.values()),
                                       normals=cfg.output.normals and result.cloud.normal is not None,
-                                      preview=cfg.output.preview))
+                                      preview=cfg.output.preview, reasons=replay.reason_maps(result)))
         try:
             outcome: WriteOutcome = await asyncio.shield(write)  # a started write always completes
         except OutputError as exc:

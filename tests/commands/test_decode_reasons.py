@@ -9,11 +9,14 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from appliance import cli
 from appliance.config import parse_config
 from appliance.geometry.calibration_file import Calibration, write_calibration
+from appliance.output.font import text_size
+from appliance.output.preview import NO_POINT_BGR, STRIPE_PX, reason_colour
 from appliance.patterns.manifest import write_manifest
 from appliance.reconstruct.types import REASON_NAMES, Reason
 from appliance.scan import build_sequence, virtual_calibration
@@ -71,6 +74,22 @@ def test_report_and_maps_say_why_pixels_have_no_point(tmp_path: Path) -> None:
     assert np.array_equal(reason == Reason.DECODED, maps["cam0_mask"])
     clipped = (stack[seq_phase_frames(seq)] >= 255).any(axis=0)
     assert not (maps["cam0_mask"] & clipped).any()
+    # the preview says it too: read back by OpenCV, each saturated pixel is striped white (every other 3-px
+    # diagonal), shadow stays the no-point grey, and a legend strip lies under the tile
+    png = cv2.imread(str(tmp_path / "c.png"), cv2.IMREAD_COLOR)
+    h, w = reason.shape
+    assert png is not None and png.shape[0] > h and png.shape[1] >= w
+    tile = png[:h, :w]
+    rows, cols = np.indices(reason.shape)
+    below_title = rows >= 12 + text_size("c", 2)[1]  # the title's box (the capture's name) is at the top left
+    stripe = (((rows + cols) // STRIPE_PX) % 2 == 0) & below_title
+    for value in (Reason.SATURATED, Reason.TOO_DARK, Reason.WEAK_CODE):
+        sel = (reason == value) & stripe
+        assert (tile[sel] == reason_colour(value)).all(), REASON_NAMES[value]
+    assert (tile[(reason == Reason.SHADOW) & stripe] == NO_POINT_BGR).all()
+    assert (tile[(reason == Reason.SATURATED) & ~stripe & below_title] == NO_POINT_BGR).all()
+    legend = png[h + 4 :, :]
+    assert (legend == 0).all(axis=2).sum() > 50  # swatch borders and labels drawn in black
 
 
 def seq_phase_frames(seq: Any) -> list[int]:
