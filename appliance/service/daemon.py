@@ -9,11 +9,13 @@ logged, counted and shown on the controller's lamps. Absent or failing hardware 
 SIGHUP or an edit of the file reloads the configuration; SIGTERM finishes (or aborts) the running scan
 and exits 0.
 
-The parts, one module each: :mod:`~appliance.service.jobs` (the scan job queue and worker),
-:mod:`~appliance.service.writing` (share, spool, persistent state), :mod:`~appliance.service.publish`
-(STATUS=, mDNS TXT, lamps), :mod:`~appliance.service.handlers` (control-socket commands) and
-:mod:`~appliance.service.rig` (connecting the hardware). The event loop never blocks: devices, numba work and
-file writes run in threads.
+The parts, one module each: :mod:`~appliance.service.rig` (connecting the hardware: the one owner of the rig
+and its scanner, built by the factory handed in), :mod:`~appliance.service.jobs` (the scan job queue and
+worker), :mod:`~appliance.service.writing` (share, spool, persistent state), :mod:`~appliance.service.publish`
+(STATUS=, mDNS TXT, lamps), :mod:`~appliance.service.health` (the watchdog's check) and
+:mod:`~appliance.service.handlers` (control-socket commands). This module builds and wires them: each gets the
+status board and the small protocol of :mod:`~appliance.service.parts` it needs, never the service itself.
+The event loop never blocks: devices, numba work and file writes run in threads.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -46,7 +48,7 @@ from appliance.service.memory import rss_mb, tune_malloc
 from appliance.service.notify import SdNotifier
 from appliance.service.publish import Publisher
 from appliance.service.reload import ConfigWatcher
-from appliance.service.rig import RigManager, current_threading_layer, select_threading_layer
+from appliance.service.rig import RigManager, build_scanner, current_threading_layer, select_threading_layer
 from appliance.service.state import Phase, ScanRecord, State, StatusBoard
 from appliance.service.writing import STATE_FILE, ScanOutput
 
@@ -56,6 +58,7 @@ __all__ = ["STATE_FILE", "Service", "TriggerEvent", "run_service"]
 if TYPE_CHECKING:  # the scan machinery is imported when the rig is built, not at start-up
     from appliance.hardware.registry import Rig
     from appliance.scan import Scanner
+    from appliance.service.parts import ScannerFactory
 
 log = logging.getLogger(__name__)
 
@@ -103,39 +106,40 @@ class Service:
     ground_truth : bool
         On a virtual rig, log each scan's error against the rig's ground truth (after its files are
         written, off the event loop; a demonstration aid, not for production).
+    make_scanner : ScannerFactory, optional
+        Builds (not opens) the rig and its scanner for a configuration, in a thread
+        (:func:`~appliance.service.rig.build_scanner` when None); tests hand in fakes.
     """
 
     def __init__(self, config_path: Path, cfg: AppConfig | None = None, *, control_socket: Path | None = None,
                  scans: int | None = None, stdin_button: bool = False,
-                 notifier: SdNotifier | None = None, ground_truth: bool = False) -> None:
+                 notifier: SdNotifier | None = None, ground_truth: bool = False,
+                 make_scanner: ScannerFactory | None = None) -> None:
         self.config_path = Path(config_path)
         self.cfg = cfg if cfg is not None else load_config(self.config_path)
         self.socket_override = control_socket
-        self.max_scans = scans
         self.stdin_button = stdin_button
-        self.ground_truth = ground_truth
         self.notifier = notifier if notifier is not None else SdNotifier.from_env()
         self.board = StatusBoard(self.cfg.serial, str(self.config_path))
         self.board.config_loaded_utc = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
-        self.scanner: Scanner | None = None
-        self.rig: Rig | None = None
         self.control: ControlServer | None = None
         self.watcher: ConfigWatcher | None = None
-        self.successful_scans = 0
         select_threading_layer()  # before any parallel kernel runs
         tune_malloc()  # before the big allocations
         self.scan_lock = asyncio.Lock()  # held by a scan and by every change of the rig
-        self.output = ScanOutput(self, self.cfg)
-        self.jobs = ScanJobs(self)
-        self.publisher = Publisher(self)
-        self.hardware = RigManager(self)
-        self.handlers = ControlHandlers(self)
+        # the parts: each gets the board and a protocol of what it may call (appliance.service.parts)
+        self.output = ScanOutput(self.board, self.cfg)
+        self.hardware = RigManager(self.board, self, make_scanner or build_scanner, self.scan_lock)
+        self.publisher = Publisher(self.board, self, self.notifier, self.hardware)
+        self.jobs = ScanJobs(self.board, self, self.hardware, self.output, self.publisher, self.scan_lock,
+                             max_scans=scans, ground_truth=ground_truth)
+        self.handlers = ControlHandlers(self.board, self)
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self._traceback_logs: set[asyncio.Future[None]] = set()  # tracebacks still being written
         self._ready_sent = False
         self._scan_listeners: list[ScanListener] = []
-        self.health = HealthCheck(self)
+        self.health = HealthCheck(self.board, self, self.notifier, self.jobs, self.hardware, self.output)
         self.exit_status = 0
         self._extensions: list[Extension] = []
         self.faces = ServiceFaces(self)  # HTTP + status page, MQTT, OPC UA: each off unless configured
@@ -152,6 +156,26 @@ class Service:
     def writer(self) -> ShareWriter:
         """The share writer in use."""
         return self.output.writer
+
+    @property
+    def rig(self) -> Rig | None:
+        """The rig built last (owned by the rig part)."""
+        return self.hardware.rig
+
+    @property
+    def scanner(self) -> Scanner | None:
+        """The connected rig's scanner (None while not connected; owned by the rig part)."""
+        return self.hardware.scanner
+
+    @property
+    def successful_scans(self) -> int:
+        """Scans that ended with their files written (since start)."""
+        return self.jobs.successful_scans
+
+    @property
+    def control_path(self) -> Path | None:
+        """The control socket being served (None while none is)."""
+        return self.control.path if self.control is not None else None
 
     @property
     def stopping(self) -> bool:
@@ -207,6 +231,26 @@ class Service:
         snap = self.status()
         snap["share"] = await asyncio.to_thread(self.writer.status)  # any thread; waits for neither share nor writer
         return snap
+
+    async def reload(self, why: str) -> tuple[bool, str]:
+        """Load the configuration file now and apply it when valid: (applied, error message)."""
+        if self.watcher is None:
+            return False, "not started"
+        return await self.watcher.reload(why)
+
+    # --- what the rig part reports (appliance.service.parts.RigHost) ------------------------------
+
+    def rig_ready(self) -> None:
+        """The rig is connected and warm: the scan worker looks at its queue."""
+        self.jobs.wake()
+
+    def rig_lost(self, reason: str) -> None:
+        """Connecting the rig failed: the queued triggers are dropped with the reason."""
+        self.jobs.drop_queued(f"scan not started: hardware: {reason}")
+
+    def trigger_opening(self) -> None:
+        """A trigger device is about to open: the next change sets all its lamps."""
+        self.publisher.reset_lamps()
 
     # --- lifecycle -------------------------------------------------------------------------------
 
@@ -271,7 +315,7 @@ class Service:
         if self.watcher is not None:
             self.spawn(self.watcher.reload("SIGHUP"), "reload", critical=False)
 
-    def spawn(self, coro: Any, name: str, *, critical: bool = True) -> asyncio.Task[Any]:
+    def spawn(self, coro: Coroutine[Any, Any, Any], name: str, *, critical: bool = True) -> asyncio.Task[Any]:
         """Run ``coro`` as a task of the service (cancelled at shutdown).
 
         A critical task runs for the life of the service: if it ends other than by cancellation, the service
@@ -381,17 +425,6 @@ class Service:
             await asyncio.wait(self._traceback_logs, timeout=TRACEBACK_LOG_WAIT_S)
         log.info("stopped after %d scans", self.board.counters["scans_done"])
 
-    # --- hardware --------------------------------------------------------------------------------
-
-    def _make_scanner(self, cfg: AppConfig) -> tuple[Rig, Scanner]:
-        """Build (not open) the rig and its scanner; runs in a thread. Tests replace it with fakes."""
-        from appliance.hardware.registry import build_rig
-        from appliance.scan import Scanner, load_calibration_for
-
-        rig = build_rig(cfg)
-        calibration = load_calibration_for(cfg, rig)
-        return rig, Scanner(cfg, rig, calibration, keep_frames=False, on_phase=self.hardware.on_scan_phase)
-
     # --- configuration ---------------------------------------------------------------------------
 
     def _config_rejected(self, message: str) -> None:
@@ -423,7 +456,7 @@ class Service:
                 log.info("configuration changes the rig: reconnecting")
                 # say so at once: until the rig is rebuilt, the old one must not look ready
                 b.set_state(State.STARTING, "reconnecting for the new configuration", Phase.CONNECT)
-                self.hardware.changed.set()
+                self.hardware.reconnect()
             for ext in self._extensions:
                 await ext.apply(new)
             b.changed()
@@ -432,7 +465,7 @@ class Service:
 
     def _start_stdin_reader(self, loop: asyncio.AbstractEventLoop) -> None:
         def press() -> None:
-            trig = self.rig.trigger if self.rig is not None else None
+            trig = self.hardware.trigger
             if trig is not None and hasattr(trig, "press"):
                 trig.press("stdin")  # the simulated button
             else:

@@ -20,13 +20,10 @@ import json
 import logging
 import time
 from concurrent.futures import Future
-from typing import TYPE_CHECKING
 
-from appliance.service.notify import watchdog_interval_s
-from appliance.service.state import State
-
-if TYPE_CHECKING:
-    from appliance.service.daemon import Service
+from appliance.service.notify import SdNotifier, watchdog_interval_s
+from appliance.service.parts import Files, HealthHost, RigView, Worker
+from appliance.service.state import State, StatusBoard
 
 log = logging.getLogger(__name__)
 
@@ -38,17 +35,39 @@ CONTROL_DEADLINE_S = 5.0  # the control socket must answer a ping within this
 
 
 class HealthCheck:
-    """Checks one service and pings the watchdog while it is healthy."""
+    """Checks one service and pings the watchdog while it is healthy.
 
-    def __init__(self, svc: Service) -> None:
-        self.svc = svc
+    Parameters
+    ----------
+    board : StatusBoard
+        The service's status board (a failure is published there).
+    host : HealthHost
+        The configuration (``service.watchdog``) and the control socket to probe.
+    notifier : SdNotifier
+        Where the watchdog pings go.
+    worker : Worker
+        The scan worker's signs of life.
+    rig : RigView
+        The rig part (the state to go back to when the check passes again).
+    files : Files
+        The writer thread (probed with a no-op).
+    """
+
+    def __init__(self, board: StatusBoard, host: HealthHost, notifier: SdNotifier, worker: Worker, rig: RigView,
+                 files: Files) -> None:
+        self.board = board
+        self.host = host
+        self.notifier = notifier
+        self.worker = worker
+        self.rig = rig
+        self.files = files
         self.problem = ""  # '' while healthy
         self.last_ok = time.monotonic()
         self._probe: Future[float] | None = None
         self._probe_sent = 0.0
 
     def _worker_problem(self, now: float) -> str:
-        jobs = self.svc.jobs
+        jobs = self.worker
         if jobs.active is not None:
             if jobs.deadline is not None and now > jobs.deadline:
                 return (f"scan worker: scan {jobs.scan_id or '(starting)'} is {now - jobs.deadline:.0f} s past its "
@@ -61,7 +80,7 @@ class HealthCheck:
     def _writer_problem(self, now: float) -> str:
         if self._probe is None or self._probe.done():
             try:
-                self._probe = self.svc.output.submit(time.monotonic)
+                self._probe = self.files.submit(time.monotonic)
             except RuntimeError as exc:  # the executor was shut down
                 return f"writer thread: {exc}"
             self._probe_sent = now
@@ -72,10 +91,10 @@ class HealthCheck:
         return ""
 
     async def _control_problem(self) -> str:
-        control = self.svc.control
+        control = self.host.control_path
         if control is None:
             return "control socket: not listening"
-        path = str(control.path)
+        path = str(control)
         try:
             async with asyncio.timeout(CONTROL_DEADLINE_S):
                 reader, writer = await asyncio.open_unix_connection(path)
@@ -105,20 +124,19 @@ class HealthCheck:
 
     async def run(self) -> None:
         """Check, publish changes, ping the watchdog while healthy (until cancelled)."""
-        svc = self.svc
-        interval = watchdog_interval_s() if svc.cfg.service.watchdog else None
+        interval = watchdog_interval_s() if self.host.cfg.service.watchdog else None
         while True:
             problem = await self.check()
             if not problem:
                 self.last_ok = time.monotonic()
                 if interval is not None:
-                    svc.notifier.watchdog()
+                    self.notifier.watchdog()
             if problem != self.problem:
                 self._changed(problem)
             await asyncio.sleep(interval if interval is not None else HEALTH_PERIOD_S)
 
     def _changed(self, problem: str) -> None:
-        b = self.svc.board
+        b = self.board
         if problem:
             log.error("health check failed: %s; the watchdog is no longer pinged", problem)
             b.error("service", f"not healthy: {problem}; systemd restarts the service when its watchdog "
@@ -127,5 +145,5 @@ class HealthCheck:
         else:
             log.info("health check passes again (was: %s)", self.problem)
             if b.state == State.FAULT:
-                b.set_state(self.svc.hardware.idle_state(), "ready" if self.svc.hardware.ready else b.detail)
+                b.set_state(self.rig.idle_state(), "ready" if self.rig.ready else b.detail)
         self.problem = problem

@@ -11,6 +11,7 @@ import importlib
 import logging
 import time
 from collections import deque
+from collections.abc import Coroutine
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -19,11 +20,12 @@ from appliance.errors import ApplianceError, OutputError, ScanError
 from appliance.hardware.base import TriggerEvent
 from appliance.output.scanfiles import make_scan_id
 from appliance.output.share import WriteOutcome, estimate_scan_bytes
-from appliance.service import memory
-from appliance.service.state import ScanRecord, State
+from appliance.service.parts import Files, JobsHost, Lamps, RigView
+from appliance.service.state import ScanRecord, State, StatusBoard
 
 if TYPE_CHECKING:
-    from appliance.service.daemon import Service
+    from appliance.reconstruct.types import PointCloud
+    from appliance.sim.rig import VirtualRig
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +48,40 @@ def _today(when: dt.datetime) -> str:
 
 
 class ScanJobs:
-    """The queue of accepted triggers and the scan worker of one service."""
+    """The queue of accepted triggers and the scan worker of one service.
 
-    def __init__(self, svc: Service) -> None:
-        self.svc = svc
+    Parameters
+    ----------
+    board : StatusBoard
+        The service's status board (this part writes the state during a scan, ``queue_length``, the scan
+        counters and the last scans).
+    host : JobsHost
+        The configuration, the service's tasks and stop, and where finished scans go.
+    rig : RigView
+        The rig part: ready or not, its scanner.
+    files : Files
+        The writer thread: scan numbers, the files, the state file.
+    lamps : Lamps
+        The refused-trigger blink.
+    scan_lock : asyncio.Lock
+        Held by a scan and by every change of the rig.
+    max_scans : int, optional
+        Stop the service after this many successful scans.
+    ground_truth : bool
+        On a virtual rig, log each scan's error against ground truth (after its files).
+    """
+
+    def __init__(self, board: StatusBoard, host: JobsHost, rig: RigView, files: Files, lamps: Lamps,
+                 scan_lock: asyncio.Lock, *, max_scans: int | None = None, ground_truth: bool = False) -> None:
+        self.board = board
+        self.host = host
+        self.rig = rig
+        self.files = files
+        self.lamps = lamps
+        self.scan_lock = scan_lock
+        self.max_scans = max_scans
+        self.ground_truth = ground_truth
+        self.successful_scans = 0
         self.queue: deque[Job] = deque()
         self.ready = asyncio.Event()
         self.current: asyncio.Task[ScanRecord] | None = None
@@ -63,19 +95,18 @@ class ScanJobs:
     @property
     def busy(self) -> bool:
         """True while a job is queued, waiting for the scan lock or running (the hand-over included)."""
-        return bool(self.queue) or self.active is not None or self.svc.board.busy
+        return bool(self.queue) or self.active is not None or self.board.busy
 
     def request(self, event: TriggerEvent) -> tuple[str, Job | None]:
         """Accept, queue or refuse a trigger; returns (``started``/``queued``/``refused: why``, job)."""
-        svc = self.svc
-        b = svc.board
+        b, service = self.board, self.host.cfg.service
         b.count("triggers")
-        if svc.stopping:
+        if self.host.stopping:
             why = "the service is stopping"
-        elif not svc.hardware.ready:
+        elif not self.rig.ready:
             why = f"not ready ({b.state}: {b.detail})"
         elif self.busy:
-            if svc.cfg.service.busy_policy == "queue" and len(self.queue) < svc.cfg.service.queue_max:
+            if service.busy_policy == "queue" and len(self.queue) < service.queue_max:
                 job = Job(event)
                 self.queue.append(job)
                 b.queue_length = len(self.queue)
@@ -92,8 +123,12 @@ class ScanJobs:
             return "started", job
         b.count("triggers_refused")
         log.warning("trigger from %s refused: %s", event.source, why)
-        svc.publisher.blink_refused()
+        self.lamps.blink_refused()
         return f"refused: {why}", None
+
+    def wake(self) -> None:
+        """Look at the queue now (the rig is ready again)."""
+        self.ready.set()
 
     def drop_queued(self, why: str) -> None:
         """Fail every queued (not started) job with ``why``."""
@@ -101,7 +136,7 @@ class ScanJobs:
             if not job.done.done():
                 job.done.set_exception(ApplianceError(why))
         self.queue.clear()
-        self.svc.board.queue_length = 0
+        self.board.queue_length = 0
 
     def abort_active(self, why: str) -> None:
         """Resolve the job in hand (if any) as failed with ``why`` (shutdown: its client gets a reply)."""
@@ -111,17 +146,17 @@ class ScanJobs:
 
     async def worker(self) -> None:
         """Run queued scans one after another (until cancelled); heartbeats while idle."""
-        svc = self.svc
+        host, b = self.host, self.board
         while True:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self.ready.wait(), HEARTBEAT_S)
             self.ready.clear()
             self.heartbeat = time.monotonic()
-            while self.queue and svc.hardware.ready and not svc.stopping:
+            while self.queue and self.rig.ready and not host.stopping:
                 job = self.queue.popleft()
-                svc.board.queue_length = len(self.queue)
+                b.queue_length = len(self.queue)
                 self.active = job
-                self.deadline = time.monotonic() + svc.cfg.service.scan_timeout_s + WRITE_DEADLINE_S
+                self.deadline = time.monotonic() + host.cfg.service.scan_timeout_s + WRITE_DEADLINE_S
                 try:
                     record = await self._run(job)
                 finally:
@@ -130,20 +165,19 @@ class ScanJobs:
                     self.heartbeat = time.monotonic()
                 if record is None:  # the rig went away while it waited: back in front, until it is back
                     self.queue.appendleft(job)
-                    svc.board.queue_length = len(self.queue)
+                    b.queue_length = len(self.queue)
                     break
                 if not job.done.done():
                     job.done.set_result(record)
-                svc.scan_finished(record)
-                if svc.max_scans is not None and svc.successful_scans >= svc.max_scans:
-                    log.info("%d scans done (--scans); stopping", svc.successful_scans)
-                    svc.request_stop()
+                host.scan_finished(record)
+                if self.max_scans is not None and self.successful_scans >= self.max_scans:
+                    log.info("%d scans done (--scans); stopping", self.successful_scans)
+                    host.request_stop()
 
     async def _run(self, job: Job) -> ScanRecord | None:
         """One job under the scan lock; None when the rig is not (or no longer) ready."""
-        svc = self.svc
-        async with svc.scan_lock:
-            if not svc.hardware.ready:  # a reload changed the rig while this job waited for the lock
+        async with self.scan_lock:
+            if not self.rig.ready:  # a reload changed the rig while this job waited for the lock
                 log.info("trigger from %s waits: the rig is being reconnected", job.event.source)
                 return None
             self.current = asyncio.get_running_loop().create_task(self._scan_guarded(job.event))
@@ -164,7 +198,7 @@ class ScanJobs:
         try:
             return await self._scan(event, started)
         except Exception as exc:  # the service outlives any failed scan, whatever failed
-            svc, b = self.svc, self.svc.board
+            b = self.board
             if not isinstance(exc, ApplianceError):
                 log.exception("scan %s: unexpected error", self.scan_id or "(before start)")
             msg = str(exc) or type(exc).__name__
@@ -173,13 +207,12 @@ class ScanJobs:
             b.error("scan", f"{what} failed: {msg}")
             rec = ScanRecord(self.scan_id, started.isoformat(), event.source, False, error=msg)
             b.add_scan(rec)
-            b.set_state(svc.hardware.idle_state(), "ready")
+            b.set_state(self.rig.idle_state(), "ready")
             return rec
 
     async def _scan(self, event: TriggerEvent, started: dt.datetime) -> ScanRecord:
-        svc = self.svc
-        out = svc.output
-        scanner, cfg, b = svc.scanner, svc.cfg, svc.board
+        out = self.files
+        scanner, cfg, b = self.rig.scanner, self.host.cfg, self.board
         if scanner is None:  # checked under the scan lock before; a rig that went since fails this scan
             raise ScanError("the rig is not connected (reconnecting); the next trigger tries again")
         shapes = [(m.height, m.width) for n, m in scanner.calibration.devices.items() if n in cfg.cameras]
@@ -189,7 +222,7 @@ class ScanJobs:
             b.count("triggers_refused")
             b.count("scans_failed")
             b.error("disk", f"scan refused: {problem}")
-            svc.publisher.blink_refused()
+            self.lamps.blink_refused()
             rec = ScanRecord("", started.isoformat(), event.source, False, error=f"refused: {problem}")
             b.add_scan(rec)
             return rec
@@ -205,9 +238,9 @@ class ScanJobs:
             b.error("scan", f"scan {scan_id} failed: {msg}")
             rec = ScanRecord(scan_id, started.isoformat(), event.source, False, error=msg)
             b.add_scan(rec)
-            b.set_state(svc.hardware.idle_state(), "ready")
+            b.set_state(self.rig.idle_state(), "ready")
             if isinstance(exc, TimeoutError):
-                svc.hardware.changed.set()  # devices in an unknown state: reconnect
+                self.rig.reconnect()  # devices in an unknown state
             return rec
         b.set_state(State.WRITING, scan_id)
         meta = replay.scan_metadata(scan_id, started.isoformat(), scanner.sequence, scanner.calibration,
@@ -227,7 +260,7 @@ class ScanJobs:
             rec = ScanRecord(scan_id, started.isoformat(), event.source, False, len(result.cloud),
                              error=str(exc))
             b.add_scan(rec)
-            b.set_state(svc.hardware.idle_state(), "ready")
+            b.set_state(self.rig.idle_state(), "ready")
             return rec
         timings = dict(result.timings_ms)
         timings["write_ms"] = (time.perf_counter() - t_w) * 1e3
@@ -239,7 +272,7 @@ class ScanJobs:
         if outcome.location == "spool":
             b.count("spooled")
             b.error("share", f"scan {scan_id} spooled: {outcome.reason}")
-        svc.successful_scans += 1
+        self.successful_scans += 1
         b.counters["scans_done"] += 1
         b.add_scan(rec)
         log.info("scan %s: %d points, %.0f ms trigger to file; %s: %s", scan_id, len(result.cloud),
@@ -253,25 +286,24 @@ class ScanJobs:
         if health:
             checks = ", ".join(f"{c['kind']} {c['status']}" for c in health.get("checks", []))
             log.info("scan %s: calibration health %s (%s)", scan_id, health.get("status"), checks or "no check")
-        b.set_state(svc.hardware.idle_state(), "ready")
+        b.set_state(self.rig.idle_state(), "ready")
         # the bookkeeping goes on beside the next scan (the writer thread keeps the order of the files)
-        virtual = svc.rig.virtual if svc.rig is not None else None
-        cloud = result.cloud if svc.ground_truth and virtual is not None else None
+        virtual = self.rig.virtual
+        cloud = result.cloud if self.ground_truth and virtual is not None else None
         self._after(self._bookkeeping(scan_id, cloud, virtual, list(cfg.cameras)))
         return rec
 
-    def _after(self, coro: Any) -> None:
-        task = self.svc.spawn(coro, "after-scan", critical=False)
+    def _after(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = self.host.spawn(coro, "after-scan", critical=False)
         self.after_scan.add(task)
         task.add_done_callback(self.after_scan.discard)
 
-    async def _bookkeeping(self, scan_id: str, cloud: Any, virtual: Any, cameras: list[str]) -> None:
+    async def _bookkeeping(self, scan_id: str, cloud: PointCloud | None, virtual: VirtualRig | None,
+                           cameras: list[str]) -> None:
         """After a scan: the share's state, the state file, and (a demonstration aid) the ground-truth error."""
-        out = self.svc.output
-        self.svc.board.share = await out.call(out.writer.status)
-        await out.save_state()
-        await out.call(memory.trim)  # the scan's temporaries back to the system
-        if cloud is not None:
+        out = self.files
+        await out.after_scan()
+        if cloud is not None and virtual is not None:
             accuracy = await asyncio.to_thread(importlib.import_module, "appliance.sim.accuracy")
             report = await out.call(accuracy.compare_to_ground_truth, cloud, virtual, cameras)
             log.info("scan %s: error against ground truth: %s", scan_id, report.line())

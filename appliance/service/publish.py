@@ -11,14 +11,13 @@ import asyncio
 import importlib
 import logging
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from appliance import __version__
 from appliance.errors import ApplianceError
+from appliance.service.notify import SdNotifier
+from appliance.service.parts import Configured, RigView
 from appliance.service.state import State, StatusBoard
-
-if TYPE_CHECKING:
-    from appliance.service.daemon import Service
 
 log = logging.getLogger(__name__)
 
@@ -27,10 +26,25 @@ REFUSED_BLINK_S = 0.5  # the fault lamp blinks this long when a trigger is refus
 
 
 class Publisher:
-    """STATUS=, mDNS TXT and lamps of one service."""
+    """STATUS=, mDNS TXT and lamps of one service.
 
-    def __init__(self, svc: Service) -> None:
-        self.svc = svc
+    Parameters
+    ----------
+    board : StatusBoard
+        The service's status board (read only; :meth:`publish` is subscribed to it).
+    host : Configured
+        The running configuration (mDNS section, share, serial).
+    notifier : SdNotifier
+        Where the STATUS= line goes.
+    rig : RigView
+        The rig part: its trigger device has the lamps.
+    """
+
+    def __init__(self, board: StatusBoard, host: Configured, notifier: SdNotifier, rig: RigView) -> None:
+        self.board = board
+        self.host = host
+        self.notifier = notifier
+        self.rig = rig
         self.announcer: Any = None
         self._last_status = ""
         self._blink_until = 0.0
@@ -41,7 +55,7 @@ class Publisher:
     def txt_record(self) -> dict[str, str]:
         """The mDNS TXT record: state, scans done, last scan id, share location, version, serial, and the last
         scan's calibration health (``calibration``: ok | drifting | bad | not measured)."""
-        b, cfg = self.svc.board, self.svc.cfg
+        b, cfg = self.board, self.host.cfg
         txt = {"txtvers": "1", "state": str(b.state), "scans": str(b.counters["scans_done"]),
                "last": b.last_scan_id(), "share": str(cfg.output.directory), "version": __version__,
                "serial": cfg.serial}
@@ -57,7 +71,7 @@ class Publisher:
         line = board.one_line()
         if line != self._last_status:
             self._last_status = line
-            self.svc.notifier.status(line)
+            self.notifier.status(line)
         if self.announcer is not None:
             self.announcer.set_txt(self.txt_record())
         self.set_lamps()
@@ -68,11 +82,10 @@ class Publisher:
 
     def set_lamps(self) -> None:
         """Show ready/busy/fault on the trigger device's lamps (when it has any)."""
-        rig = self.svc.rig
-        trig = rig.trigger if rig is not None else None
+        trig = self.rig.trigger
         if trig is None or not trig.has_lamps:
             return
-        b = self.svc.board
+        b = self.board
         blink = time.monotonic() < self._blink_until
         lamps = (b.state == State.IDLE, b.busy, b.state == State.FAULT or blink)
         if lamps == self._lamps:
@@ -101,7 +114,7 @@ class Publisher:
 
     async def start_mdns(self) -> None:
         """Announce the service over mDNS (when enabled); a failure is published, never raised."""
-        m = self.svc.cfg.service.mdns
+        m = self.host.cfg.service.mdns
         if not m.enabled:
             return
         mdns = await asyncio.to_thread(importlib.import_module, "appliance.output.mdns")  # zeroconf: slow import
@@ -109,7 +122,7 @@ class Publisher:
             ann = mdns.MdnsAnnouncer(m)
             await ann.start(self.txt_record())
         except (OSError, ApplianceError) as exc:
-            self.svc.board.error("mdns", f"mDNS announcement on {list(m.interfaces)} failed: {exc}")
+            self.board.error("mdns", f"mDNS announcement on {list(m.interfaces)} failed: {exc}")
             log.error("mDNS disabled: %s", exc)
             return
         self.announcer = ann

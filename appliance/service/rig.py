@@ -12,13 +12,18 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from appliance.config import AppConfig
 from appliance.errors import ApplianceError
+from appliance.hardware.base import TriggerSource
 from appliance.service import memory
-from appliance.service.state import DeviceStatus, Phase, State
+from appliance.service.parts import RigHost
+from appliance.service.state import DeviceStatus, Phase, State, StatusBoard
 
 if TYPE_CHECKING:
-    from appliance.scan import ScanPhase
-    from appliance.service.daemon import Service
+    from appliance.hardware.registry import Rig
+    from appliance.scan import Scanner, ScanPhase
+    from appliance.service.parts import ScannerFactory
+    from appliance.sim.rig import VirtualRig
 
 log = logging.getLogger(__name__)
 
@@ -68,48 +73,99 @@ def threading_layer_problem() -> str:
             "unset NUMBA_THREADING_LAYER (or set it to omp or tbb) and install libgomp1 (apt) or tbb (pip)")
 
 
-class RigManager:
-    """Connects the rig of one service and keeps it connected."""
+def build_scanner(cfg: AppConfig, on_phase: Callable[[ScanPhase], None]) -> tuple[Rig, Scanner]:
+    """Build (not open) the configured rig and its scanner; blocking (renders the virtual rig, builds ray
+    tables), run in a thread. The service's :data:`~appliance.service.parts.ScannerFactory`.
 
-    def __init__(self, svc: Service) -> None:
-        self.svc = svc
+    Parameters
+    ----------
+    cfg : AppConfig
+        The configuration (devices, calibration file, sequence, reconstruction).
+    on_phase : callable
+        The scanner's phase callback (see :class:`~appliance.scan.Scanner`).
+    """
+    from appliance.hardware.registry import build_rig
+    from appliance.scan import Scanner, load_calibration_for
+
+    rig = build_rig(cfg)
+    calibration = load_calibration_for(cfg, rig)
+    return rig, Scanner(cfg, rig, calibration, keep_frames=False, on_phase=on_phase)
+
+
+class RigManager:
+    """Connects the rig of one service and keeps it connected; the one owner of the rig and its scanner.
+
+    Parameters
+    ----------
+    board : StatusBoard
+        The service's status board (this part writes its ``devices`` and ``sequence``).
+    host : RigHost
+        The configuration, the service's tasks, and where presses, "ready" and "lost" go.
+    make_scanner : ScannerFactory
+        Builds the rig and its scanner for a configuration (in a thread); tests hand in fakes.
+    scan_lock : asyncio.Lock
+        Held by a scan and by every change of the rig.
+    """
+
+    def __init__(self, board: StatusBoard, host: RigHost, make_scanner: ScannerFactory,
+                 scan_lock: asyncio.Lock) -> None:
+        self.board = board
+        self.host = host
+        self.make_scanner = make_scanner
+        self.scan_lock = scan_lock
+        self.rig: Rig | None = None  # the rig built last (kept after close: its trigger shows the lamps)
+        self.scanner: Scanner | None = None  # the open rig's scanner (None while not connected)
         self.changed = asyncio.Event()  # set: close and rebuild the rig (new configuration, lost devices)
         self.connected = False  # connected and warm
         self._trigger_task: asyncio.Task[None] | None = None
 
     def devices_from_config(self) -> None:
         """Every configured device, not connected yet."""
-        cfg = self.svc.cfg
+        cfg = self.host.cfg
         devs = {f"camera:{n}": DeviceStatus("camera", n, c.type) for n, c in cfg.cameras.items()}
         devs["projector"] = DeviceStatus("projector", "projector", cfg.projector.type)
         devs["trigger"] = DeviceStatus("trigger", "trigger", cfg.trigger.type)
-        self.svc.board.devices = devs
+        self.board.devices = devs
 
     @property
     def ready(self) -> bool:
         """True when the rig is connected and current (no rebuild pending)."""
-        return self.connected and self.svc.scanner is not None and not self.changed.is_set()
+        return self.connected and self.scanner is not None and not self.changed.is_set()
+
+    @property
+    def virtual(self) -> VirtualRig | None:
+        """The virtual rig of the rig built last (None: no simulated device, or no rig yet)."""
+        return self.rig.virtual if self.rig is not None else None
+
+    @property
+    def trigger(self) -> TriggerSource | None:
+        """The trigger device of the rig built last (None before the first)."""
+        return self.rig.trigger if self.rig is not None else None
+
+    def reconnect(self) -> None:
+        """Close and rebuild the rig (a new configuration, devices in an unknown state); not ready from now."""
+        self.changed.set()
 
     def idle_state(self) -> State:
         """``idle`` when every device is fine, else ``fault``."""
-        return State.IDLE if all(d.ok for d in self.svc.board.devices.values()) else State.FAULT
+        return State.IDLE if all(d.ok for d in self.board.devices.values()) else State.FAULT
 
     def on_scan_phase(self, phase: ScanPhase) -> None:
         """The scanner's phases (on the event loop): once every camera has its frames, the scan is
         ``processing``."""
-        b = self.svc.board
+        b = self.board
         if phase.value == "captured" and b.state == State.SCANNING:
             b.set_state(State.PROCESSING, b.detail)
 
     async def connect(self) -> None:
         """Build and open the rig, open the trigger, warm the kernels (under the scan lock)."""
-        svc = self.svc
         loop = asyncio.get_running_loop()
-        cfg = svc.cfg
-        svc.board.set_state(State.STARTING, "connecting hardware", Phase.CONNECT)
-        rig, scanner = await loop.run_in_executor(None, svc._make_scanner, cfg)
-        svc.rig = rig
-        svc.board.sequence = scanner.sequence.describe()
+        cfg = self.host.cfg
+        b = self.board
+        b.set_state(State.STARTING, "connecting hardware", Phase.CONNECT)
+        rig, scanner = await loop.run_in_executor(None, self.make_scanner, cfg, self.on_scan_phase)
+        self.rig = rig
+        b.sequence = scanner.sequence.describe()
         try:
             await scanner.open()
         except BaseException:
@@ -120,12 +176,12 @@ class RigManager:
             info = scanner.camera_info.get(n)
             detail = (f"{info.model} {info.serial}, {info.width}x{info.height} {info.pixel_format}"
                       if info is not None else "open")
-            svc.board.devices[f"camera:{n}"] = DeviceStatus("camera", n, cfg.cameras[n].type, True, detail)
-        svc.board.devices["projector"] = DeviceStatus("projector", "projector", cfg.projector.type, True,
-                                                      f"sequence loaded: {scanner.sequence.describe()}")
-        svc.scanner = scanner
+            b.devices[f"camera:{n}"] = DeviceStatus("camera", n, cfg.cameras[n].type, True, detail)
+        b.devices["projector"] = DeviceStatus("projector", "projector", cfg.projector.type, True,
+                                              f"sequence loaded: {scanner.sequence.describe()}")
+        self.scanner = scanner
         await self._open_trigger()
-        svc.board.set_state(State.STARTING, "warming kernels", Phase.WARM)
+        b.set_state(State.STARTING, "warming kernels", Phase.WARM)
         t = time.perf_counter()
         try:
             await scanner.warm_up()  # a discarded scan on the virtual rig, else a decode of blank frames
@@ -141,7 +197,7 @@ class RigManager:
 
     def _trigger_link(self, state: Any, reason: str) -> None:
         """The trigger backend's link state changed (backends that reconnect by themselves report here)."""
-        b = self.svc.board
+        b = self.board
         dev = b.devices.get("trigger")
         if dev is None:
             return
@@ -150,110 +206,108 @@ class RigManager:
             if not ok:
                 b.error("hardware", f"trigger {dev.backend}: {reason}")
             dev.ok, dev.detail = ok, f"{getattr(state, 'value', state)}: {reason}"
-            if not b.busy and b.state in (State.IDLE, State.FAULT) and self.svc.scanner:
+            if not b.busy and b.state in (State.IDLE, State.FAULT) and self.scanner:
                 b.set_state(self.idle_state(), "ready" if ok else f"trigger: {reason}")
 
     async def _open_trigger(self) -> None:
-        svc = self.svc
-        if svc.rig is None:
+        if self.rig is None:
             return
-        trig = svc.rig.trigger
-        kind = svc.cfg.trigger.type
+        trig = self.rig.trigger
+        kind = self.host.cfg.trigger.type
         if hasattr(trig, "on_state"):
             trig.on_state = self._trigger_link
-        svc.publisher.reset_lamps()
+        self.host.trigger_opening()
         try:
             await trig.open()
         except (ApplianceError, OSError) as exc:
-            svc.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, False, str(exc))
-            svc.board.error("hardware", f"trigger {kind}: {exc}")
+            self.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, False, str(exc))
+            self.board.error("hardware", f"trigger {kind}: {exc}")
         else:
             detail = trig.status() or "open"
-            svc.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, True, detail)
-        self._trigger_task = svc.spawn(self._trigger_loop(trig), "trigger")
+            self.board.devices["trigger"] = DeviceStatus("trigger", trig.name, kind, True, detail)
+        self._trigger_task = self.host.spawn(self._trigger_loop(trig), "trigger")
 
     async def close(self) -> None:
         """Stop the trigger loop, close the trigger and the rig."""
-        svc = self.svc
         self.connected = False
         if self._trigger_task is not None:
             self._trigger_task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._trigger_task
             self._trigger_task = None
-        if svc.rig is not None:
+        if self.rig is not None:
             with contextlib.suppress(Exception):
-                await svc.rig.trigger.close()
-        if svc.scanner is not None:
+                await self.rig.trigger.close()
+        if self.scanner is not None:
             try:
-                await svc.scanner.close()
+                await self.scanner.close()
             except Exception as exc:
                 log.warning("closing the rig: %s", exc)
-        svc.scanner = None
+        self.scanner = None
 
     async def loop(self) -> None:
         """Connect, retry with backoff on failure, rebuild on :attr:`changed` (runs until cancelled)."""
-        svc = self.svc
+        host, b = self.host, self.board
         delay = RETRY_FIRST_S
         failures = 0
         while True:
             self.devices_from_config()
             try:
-                async with svc.scan_lock:
+                async with self.scan_lock:
                     await self.connect()
             except FatalError as exc:
                 await self.close()
-                svc.fail(str(exc))
+                host.fail(str(exc))
                 return
             except Exception as exc:  # any failure to connect is a fault to retry, never the end
                 await self.close()
                 failures += 1
                 if not isinstance(exc, (ApplianceError, OSError)):
                     log.exception("hardware: unexpected error")
-                for d in svc.board.devices.values():
+                for d in b.devices.values():
                     if not d.ok and d.detail == "not connected":
                         d.detail = "not connected (see last error)"
                 if failures == 1:
                     log.error("hardware: %s; retrying with backoff", exc)
-                svc.board.error("hardware", str(exc))
-                svc.jobs.drop_queued(f"scan not started: hardware: {exc}")
-                svc.board.set_state(State.FAULT, f"hardware: {exc}; retry in {delay:.0f} s", Phase.CONNECT)
-                svc.send_ready()
+                b.error("hardware", str(exc))
+                host.rig_lost(str(exc))
+                b.set_state(State.FAULT, f"hardware: {exc}; retry in {delay:.0f} s", Phase.CONNECT)
+                host.send_ready()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self.changed.wait(), delay)
                 self.changed.clear()
-                delay = min(delay * 2, svc.cfg.service.retry_max_s)
+                delay = min(delay * 2, host.cfg.service.retry_max_s)
                 continue
             if failures:
                 log.info("hardware recovered after %d failed attempt(s)", failures)
             failures, delay = 0, RETRY_FIRST_S
             self.connected = True
-            svc.board.set_state(self.idle_state(), "ready", Phase.READY)
-            svc.send_ready()
-            svc.jobs.ready.set()
+            b.set_state(self.idle_state(), "ready", Phase.READY)
+            host.send_ready()
+            host.rig_ready()
             await self.changed.wait()
             self.connected = False  # not ready from here on, before the lock is taken
             self.changed.clear()
-            async with svc.scan_lock:
+            async with self.scan_lock:
                 await self.close()
 
     async def _trigger_loop(self, trig: Any) -> None:
-        svc = self.svc
+        b = self.board
         delay = RETRY_FIRST_S
         key = "trigger"
         while True:
             try:
                 event = await trig.next_event()
             except (ApplianceError, OSError) as exc:
-                dev = svc.board.devices[key]
+                dev = b.devices[key]
                 if dev.ok:
                     log.error("trigger %s failed: %s; retrying with backoff", trig.name, exc)
-                    svc.board.error("hardware", f"trigger {trig.name}: {exc}")
+                    b.error("hardware", f"trigger {trig.name}: {exc}")
                 dev.ok, dev.detail = False, str(exc)
-                if not svc.board.busy:
-                    svc.board.set_state(State.FAULT, f"trigger: {exc}")
+                if not b.busy:
+                    b.set_state(State.FAULT, f"trigger: {exc}")
                 await asyncio.sleep(delay)
-                delay = min(delay * 2, svc.cfg.service.retry_max_s)
+                delay = min(delay * 2, self.host.cfg.service.retry_max_s)
                 with contextlib.suppress(ApplianceError, OSError):
                     await trig.close()
                 try:
@@ -263,7 +317,7 @@ class RigManager:
                     continue
                 log.info("trigger %s recovered", trig.name)
                 dev.ok, dev.detail, delay = True, "open", RETRY_FIRST_S
-                if not svc.board.busy:
-                    svc.board.set_state(self.idle_state(), "ready")
+                if not b.busy:
+                    b.set_state(self.idle_state(), "ready")
                 continue
-            svc.request_scan(event)
+            self.host.request_scan(event)

@@ -14,16 +14,14 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 from appliance.config import AppConfig
 from appliance.errors import ApplianceError
 from appliance.output.atomic import write_bytes_atomic
 from appliance.output.share import ShareWriter, WriteOutcome
+from appliance.service import memory
 from appliance.service.state import ScanRecord, StatusBoard
-
-if TYPE_CHECKING:
-    from appliance.service.daemon import Service
 
 log = logging.getLogger(__name__)
 
@@ -35,18 +33,22 @@ T = TypeVar("T")
 
 
 class ScanOutput:
-    """The share writer, its thread, the spool flush and the persistent state of one service."""
+    """The share writer, its thread, the spool flush and the persistent state of one service.
 
-    def __init__(self, svc: Service, cfg: AppConfig) -> None:
-        self.svc = svc
+    Parameters
+    ----------
+    board : StatusBoard
+        The service's status board (this part writes its ``share`` and the ``spool_dropped`` counter).
+    cfg : AppConfig
+        The configuration at start (:meth:`configure` takes each applied reload).
+    """
+
+    def __init__(self, board: StatusBoard, cfg: AppConfig) -> None:
+        self.board = board
+        self.cfg = cfg
         self.writer = ShareWriter(cfg.output)
         self.counter = 0
         self._ex = ThreadPoolExecutor(1, thread_name_prefix="scan3d-writer")
-
-    @property
-    def board(self) -> StatusBoard:
-        """The service's status board."""
-        return self.svc.board
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` in the writer thread."""
@@ -58,6 +60,7 @@ class ScanOutput:
 
     def configure(self, old: AppConfig, new: AppConfig) -> None:
         """A new configuration: a new share writer when the output section changed."""
+        self.cfg = new
         if new.output != old.output:
             self.writer = ShareWriter(new.output)
 
@@ -77,6 +80,13 @@ class ScanOutput:
                 self.board.share = await self.call(self.writer.status)
                 self.board.changed()
 
+    async def after_scan(self) -> None:
+        """A scan's files are written: look at the share again, save the state file, give the scan's
+        temporaries back to the system (all in the writer thread, after the files)."""
+        self.board.share = await self.call(self.writer.status)
+        await self.save_state()
+        await self.call(memory.trim)
+
     def _flush_spool(self) -> list[WriteOutcome]:
         if not self.writer.spool_entries():
             return []
@@ -90,7 +100,7 @@ class ScanOutput:
 
     def state_path(self) -> Path:
         """``service-state.json`` in ``service.state_directory``."""
-        return Path(self.svc.cfg.service.state_directory) / STATE_FILE
+        return Path(self.cfg.service.state_directory) / STATE_FILE
 
     def load_state(self) -> None:
         """Read the scan counter and the last scans (a missing or broken file starts from zero)."""

@@ -125,12 +125,14 @@ class RecordingNotifier(SdNotifier):
 
 
 class FakeService(D.Service):
+    """The service with :meth:`make_scanner` handed in as its rig factory (the test seam)."""
+
     def __init__(self, *a: Any, plan: SimpleNamespace, **kw: Any) -> None:
-        super().__init__(*a, **kw)
         self.plan = plan
         self.trigger = FakeTrigger()
+        super().__init__(*a, make_scanner=self.make_scanner, **kw)
 
-    def _make_scanner(self, cfg: Any) -> tuple[Any, Any]:
+    def make_scanner(self, cfg: Any, on_phase: Any) -> tuple[Any, Any]:
         rig = SimpleNamespace(cameras={}, projector=None, trigger=self.trigger, virtual=None)
         return rig, FakeScanner(self.plan)
 
