@@ -143,9 +143,14 @@ async def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> li
 
     import cv2
 
+    from appliance.atomic_write import write_files_atomic
     from appliance.config.backends import AravisCameraConfig
 
-    await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
+    try:
+        await asyncio.to_thread(out.mkdir, parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise HardwareError(f"grab: --out {str(out)!r} cannot be created ({getattr(exc, 'strerror', None) or exc}); "
+                            "give a folder that can be made") from exc
     if camera.startswith("aravis:"):
         cam_cfg: Any = AravisCameraConfig(address=camera.split(":", 1)[1], trigger="Software")
         name = camera.replace(":", "-")
@@ -162,11 +167,14 @@ async def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> li
 
         chosen = backend("camera", cam_cfg)
         if chosen.simulated:
-            from appliance.patterns.sequence import WhiteFrame
-            from appliance.sim.rig import VirtualRig
+            def render() -> list[npt.NDArray[Any]]:  # the rig's scene is built in the thread too (the loop guard)
+                from appliance.patterns.sequence import WhiteFrame
+                from appliance.sim.rig import VirtualRig
 
-            rig = VirtualRig(cfg.virtual_rig)
-            return [await asyncio.to_thread(rig.render_frame, WhiteFrame(), name) for _ in range(frames)]
+                rig = VirtualRig(cfg.virtual_rig)
+                return [rig.render_frame(WhiteFrame(), name) for _ in range(frames)]
+
+            return await asyncio.to_thread(render)
         cam = chosen.make(name, cam_cfg, None)
         try:
             await cam.open()
@@ -174,10 +182,14 @@ async def grab_frames(cfg: AppConfig, camera: str, frames: int, out: Path) -> li
         finally:
             await cam.close()
 
-    paths = []
-    for i, img in enumerate(await grab_all()):
-        p = out / f"{name}_{i:03d}.png"
-        if not await asyncio.to_thread(cv2.imwrite, str(p), img):
-            raise HardwareError(f"grab: {p} cannot be written; check the folder")
-        paths.append(p)
-    return paths
+    def write_pngs(images: list[npt.NDArray[Any]]) -> list[Path]:  # all or none: a failure keeps the old files
+        files: dict[str, bytes] = {}
+        for i, img in enumerate(images):
+            ok, png = cv2.imencode(".png", img)
+            if not ok:
+                raise HardwareError(f"grab: frame {i} of {name}: the PNG encoder refused it ({img.dtype}, "
+                                    f"{img.shape})")
+            files[f"{name}_{i:03d}.png"] = png.tobytes()
+        return write_files_atomic(out, files)
+
+    return await asyncio.to_thread(write_pngs, await grab_all())

@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
+from appliance.atomic_write import write_bytes_atomic
 from appliance.config.yamlfile import DuplicateKeyError, parse_yaml, read_bytes_file, read_text_file, yaml_problem
 from appliance.errors import ManifestError, PatternError
 from appliance.patterns.sequence import (
@@ -464,8 +465,7 @@ def _exposures(per_frame: list[tuple[float, float] | None], path: Path) -> tuple
     return tuple(e for e in per_frame if e is not None)
 
 
-def write_manifest(
-    path: str | Path,
+def manifest_text(
     sequence: Sequence,
     cameras: list[str] | tuple[str, ...],
     *,
@@ -473,15 +473,11 @@ def write_manifest(
     stacks: Mapping[str, str] | None = None,
     bit_depth: int | None = None,
     exposures: Sequence_[tuple[float, float]] | None = None,
-) -> Path:
-    """Write a manifest; ``images``/``stacks`` hold paths relative to the manifest's folder.
-
-    ``bit_depth`` (8..16), when given, is written as the top-level ``bit_depth`` (significant bits);
-    ``exposures``, when given, as each frame's ``exposure_us`` and ``intensity``.
-    """
-    path = Path(path)
+    source: str = "<manifest>",
+) -> str:
+    """The YAML text of a manifest (what :func:`write_manifest` writes; the arguments are the same)."""
     if (images is None) == (stacks is None):
-        raise ManifestError(f"{path}: give exactly one of images= or stacks=")
+        raise ManifestError(f"{source}: give exactly one of images= or stacks=")
     frames: list[dict[str, Any]] = []
     for i, f in enumerate(sequence.frames):
         d = frame_to_dict(f)
@@ -499,6 +495,31 @@ def write_manifest(
     if stacks is not None:
         doc["stacks"] = {c: str(stacks[c]) for c in cameras}
     doc["frames"] = frames
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
-    return path
+    return str(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
+
+
+def write_manifest(
+    path: str | Path,
+    sequence: Sequence,
+    cameras: list[str] | tuple[str, ...],
+    *,
+    images: Mapping[str, list[str] | tuple[str, ...]] | None = None,
+    stacks: Mapping[str, str] | None = None,
+    bit_depth: int | None = None,
+    exposures: Sequence_[tuple[float, float]] | None = None,
+) -> Path:
+    """Write a manifest; ``images``/``stacks`` hold paths relative to the manifest's folder.
+
+    ``bit_depth`` (8..16), when given, is written as the top-level ``bit_depth`` (significant bits);
+    ``exposures``, when given, as each frame's ``exposure_us`` and ``intensity``. The file is written
+    atomically: a failure (``OutputError``: a full disk, a read-only folder) leaves an old manifest whole.
+    """
+    path = Path(path)
+    text = manifest_text(sequence, cameras, images=images, stacks=stacks, bit_depth=bit_depth,
+                         exposures=exposures, source=str(path))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:  # ValueError: a NUL in the path
+        raise ManifestError(f"{str(path)!r}: its folder cannot be made ({getattr(exc, 'strerror', None) or exc}); "
+                            "fix the path") from exc
+    return write_bytes_atomic(path, text.encode())  # a failure keeps the old manifest whole
