@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import os
+import re
 import stat
 from pathlib import Path
 from typing import Any
@@ -20,6 +23,19 @@ MAX_CONFIG_BYTES = 32 * 1024 * 1024
 
 MAX_PROBLEMS = 20
 """Problems listed one per line; the rest are counted."""
+
+LIFT_MIN_CHARS = 64 * 1024
+"""A flow list of plain numbers at least this long (characters) is read by the JSON decoder (an inline mesh)."""
+
+INLINE_MESH_NOTE_BYTES = 1024 * 1024
+INLINE_MESH_NOTE_VERTICES = 20_000
+"""A configuration over ~1 MB with an inline mesh of more vertices than this gets a log line: use a mesh file."""
+
+_LIST_START = re.compile(r"(?:^[ \t]*(?:-[ \t]+)+|:[ \t]+|[,\[{][ \t]*)\[", re.M)
+_NUMERIC_LIST = re.compile(r"[0-9.\-\s\[\],]*")
+_AFTER_LIST = re.compile(r"[ \t]*(?:$|#|,|\]|\})", re.M)
+_JSON = json.JSONDecoder()
+log = logging.getLogger(__name__)
 
 
 def _keys_of(node: yaml.MappingNode, index: dict[int, dict[str, tuple[yaml.Node, yaml.Node]]],
@@ -147,7 +163,7 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
         raise ConfigError(f"{source}: not a YAML mapping (binary data: a NUL character at offset "
                           f"{text.index(chr(0))}); restore the file from config/appliance.yaml or a backup")
     try:
-        doc, root = parse_yaml(text)
+        doc, root, lifted = _parse_fast(text)
     except DuplicateKeyError as exc:
         where, problem = yaml_problem(exc, source)
         raise ConfigError(f"{where}: {problem}") from exc
@@ -178,7 +194,83 @@ def parse_config(text: str, source: str = "<config>", base_dir: Path | None = No
         raise ConfigError(format_validation_error(exc, source, doc, root)) from exc
     if base_dir is not None:
         cfg = _resolve_paths(cfg, base_dir)
+    if len(text) + sum(n for _, n in lifted.values()) > INLINE_MESH_NOTE_BYTES:
+        for i, obj in enumerate(cfg.virtual_rig.scene):
+            if obj.type == "mesh" and obj.path is None and len(obj.vertices_mm) > INLINE_MESH_NOTE_VERTICES:
+                log.warning("%s: virtual_rig.scene.%d is an inline mesh of %d vertices and %d triangles; it is read "
+                            "at every start and reload: put it in a PLY/OBJ/STL file and give its path "
+                            "(virtual_rig.scene.%d.path)", source, i, len(obj.vertices_mm), len(obj.triangles), i)
     return cfg
+
+
+def _lift_numeric_lists(text: str) -> tuple[str, dict[str, tuple[Any, int]]]:
+    """Large flow lists of plain numbers (an inline mesh) parsed by the JSON decoder instead of YAML.
+
+    libyaml still builds a Python node per scalar: an 8 MB inline mesh took ~30 s. A list is lifted only when it is
+    the value of a key or a list item, longer than :data:`LIFT_MIN_CHARS`, holds nothing but digits, '.', '-',
+    brackets, commas and white space, and parses as JSON: with no exponents, '+', '_' or leading zeros, YAML and JSON
+    read such numbers alike (int or float). It is replaced by a placeholder and its newlines, so line numbers stay.
+    Returns the new text and ``{placeholder: (value, length)}``.
+    """
+    lifted: dict[str, tuple[Any, int]] = {}
+    if len(text) < LIFT_MIN_CHARS:
+        return text, lifted
+    parts, end = [], 0
+    for m in _LIST_START.finditer(text):
+        start = m.end() - 1
+        if start < end:
+            continue
+        line_start = text.rfind("\n", 0, start) + 1
+        if any(c in text[line_start:start] for c in "#'\""):
+            continue  # in a comment or a quoted scalar
+        try:
+            value, stop = _JSON.raw_decode(text, start)
+        except ValueError:
+            continue
+        after = _AFTER_LIST.match(text, stop)
+        if stop - start < LIFT_MIN_CHARS or not isinstance(value, list) or after is None or \
+                _NUMERIC_LIST.fullmatch(text, start, stop) is None:
+            continue
+        key = f"__scan3d_inline_list_{len(lifted)}__"
+        if key in text:
+            continue
+        lifted[key] = (value, stop - start)
+        parts += [text[end:start], key, "\n" * text.count("\n", start, stop)]
+        end = stop
+    if not lifted:
+        return text, lifted
+    parts.append(text[end:])
+    return "".join(parts), lifted
+
+
+def _put_back(doc: Any, lifted: dict[str, tuple[Any, int]], used: set[str]) -> Any:
+    """``doc`` with each placeholder string of :func:`_lift_numeric_lists` replaced by its list."""
+    if isinstance(doc, str) and doc in lifted:
+        used.add(doc)
+        return lifted[doc][0]
+    if isinstance(doc, dict):
+        return {k: _put_back(v, lifted, used) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_put_back(v, lifted, used) for v in doc]
+    return doc
+
+
+def _parse_fast(text: str) -> tuple[Any, yaml.Node | None, dict[str, tuple[Any, int]]]:
+    """:func:`parse_yaml` with large numeric lists lifted out (:func:`_lift_numeric_lists`); should the lifted
+    text not parse, or a placeholder land anywhere but as a whole value, the original text is parsed as it is
+    (its result and its errors are the authority)."""
+    short, lifted = _lift_numeric_lists(text)
+    if lifted:
+        try:
+            doc, root = parse_yaml(short)
+            used: set[str] = set()
+            doc = _put_back(doc, lifted, used)
+            if used == set(lifted):
+                return doc, root, lifted
+        except (yaml.YAMLError, RecursionError):
+            pass
+    doc, root = parse_yaml(text)
+    return doc, root, {}
 
 
 def _resolve_paths(cfg: AppConfig, base: Path) -> AppConfig:
