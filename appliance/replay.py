@@ -38,7 +38,7 @@ from appliance.reconstruct.decode import (
     stripe_widths,
 )
 from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
-from appliance.reconstruct.hdr import decode_passes, pick_per_pixel
+from appliance.reconstruct.hdr import capture_summary, decode_passes, pick_per_pixel
 from appliance.reconstruct.types import DecodedMaps, PointCloud
 
 Json = dict[str, object]
@@ -67,6 +67,9 @@ class ScanResult:
         The scan's calibration health (:func:`appliance.calibration.scan_health.assess_scan`).
     frames : dict of str to ndarray (F, H, W)
         The captured frames, where the scanner keeps them (else empty).
+    capture : dict
+        A multi-exposure capture's exposures and what each pass gave per camera (the sidecar's ``extra.hdr``,
+        see :func:`appliance.reconstruct.hdr.capture_summary`); empty for one pass.
     """
 
     reconstruction: pipeline.Reconstruction
@@ -76,6 +79,7 @@ class ScanResult:
     shapes: dict[str, tuple[int, int]]
     calibration_health: Json = field(default_factory=dict)
     frames: dict[str, FrameArray] = field(default_factory=dict)
+    capture: Json = field(default_factory=dict)
 
     @property
     def cloud(self) -> PointCloud:
@@ -196,6 +200,8 @@ def scan_metadata(
                          "points": int(np.sum(cloud.camera == i)), **reason_block(result.maps[name]),
                          **(per_camera or {}).get(name, {})}  # fmt: skip
     more: Json = dict(extra or {})
+    if result.capture:
+        more["hdr"] = result.capture
     if result.stereo:
         more["stereo"] = result.stereo
     return ScanMetadata(
@@ -444,6 +450,7 @@ def replay_capture(batch: ReplayBatch, manifest_path: Path, *, cloud_wanted: boo
     maps: dict[str, DecodedMaps] = {}
     grey: dict[str, npt.NDArray[np.uint8]] = {}
     shares: dict[str, list[float]] = {}
+    hdr: dict[str, object] = {}
     for cam, st in stacks.items():
         params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast,
                               max_value=float((1 << bits[cam]) - 1))  # fmt: skip
@@ -459,6 +466,7 @@ def replay_capture(batch: ReplayBatch, manifest_path: Path, *, cloud_wanted: boo
         grey[cam] = np.asarray(pick_per_pixel(greys, choice), np.uint8)
         per_pass = np.bincount(choice[maps[cam].mask], minlength=len(passes)) / max(int(maps[cam].mask.sum()), 1)
         shares[cam] = [float(s) for s in per_pass]
+        hdr[cam] = capture_summary(man.exposures, passes, choice, maps[cam].mask)
     t3 = time.perf_counter()
     result = None
     stage_ms = {"triangulate_ms": 0.0, "filter_ms": 0.0}
@@ -466,7 +474,12 @@ def replay_capture(batch: ReplayBatch, manifest_path: Path, *, cloud_wanted: boo
         white = grey or {cam: grey_of_stack(st, plan, bits[cam]) for cam, st in stacks.items()}
         rec, health = reconstruct(setup.reconstructor, maps, white)  # offline: no trend, the tolerance only
         stage_ms = {"triangulate_ms": rec.timings_ms["triangulate_ms"], "filter_ms": rec.timings_ms["filter_ms"]}
-        result = ScanResult(rec, maps, white, {}, shapes, health)
+        capture: Json = {}
+        if man.exposures is not None:
+            pairs = list(dict.fromkeys(man.exposures))  # the passes, in capture order
+            capture = {"exposures_us": [e for e, _i in pairs], "frames_per_pass": len(man.sequence) // len(pairs),
+                       "frames": len(man.sequence), "cameras": hdr}  # fmt: skip
+        result = ScanResult(rec, maps, white, {}, shapes, health, capture=capture)
     t4 = time.perf_counter()
     times = {
         "load_ms": round((t1 - t0) * 1e3, 3),

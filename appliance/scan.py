@@ -3,6 +3,11 @@
 :class:`Scanner` owns everything that lives across scans (frame buffers, streaming decoders, ray tables),
 so a scan allocates nothing per frame. It drives devices only through the hardware protocols. From the
 decoded maps on, a scan runs the replay path's code (:mod:`appliance.replay`), as an offline decode does.
+
+With ``sequence.exposures_us`` set, a scan is a multi-exposure (HDR) capture: the projector shows its one-pass
+sequence once per exposure, each camera's exposure is set before each pass, and the frames of all passes go
+(in capture indices) into one :class:`~appliance.reconstruct.hdr.HdrStreamingDecoder`, which fuses them per
+pixel as an offline ``scan3d decode`` of the recorded capture does.
 """
 
 from __future__ import annotations
@@ -26,11 +31,13 @@ from appliance.calibration.scan_health import trend_for
 from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
-from appliance.hardware.base import CameraInfo, FrameArray, pulse_source
+from appliance.hardware.base import Camera, CameraInfo, FrameArray, exposure_control, pulse_source
 from appliance.hardware.registry import Rig, build_rig
+from appliance.patterns.from_config import build_capture
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
+from appliance.reconstruct.hdr import HdrStreamingDecoder, capture_summary, pick_per_pixel
 from appliance.reconstruct.pipeline import Reconstruction, Reconstructor, white_to_uint8
 from appliance.reconstruct.types import DecodedMaps
 from appliance.replay import ScanResult as ScanResult  # re-exported for callers
@@ -120,6 +127,13 @@ class Scanner:
         1280x1024), and ``ScanResult.frames`` is empty.
     on_phase : callable, optional
         Called on the event loop with each :class:`ScanPhase` a scan enters (the service's status).
+
+    Raises
+    ------
+    ScanError
+        When the calibration lacks the projector or a configured camera.
+    CameraError
+        When ``sequence.exposures_us`` is set and a camera cannot set its exposure.
     """
 
     def __init__(
@@ -144,6 +158,21 @@ class Scanner:
                 "calibrate them or rename the cameras in the configuration"
             )
         self.sequence = build_sequence(cfg.sequence, proj.width, proj.height)
+        """One pass: what the projector shows (once per exposure)."""
+        self.capture, self.exposures = build_capture(cfg.sequence, proj.width, proj.height)
+        """Every frame of every pass in capture order, and per frame its ``(exposure_us, intensity)`` (None: one
+        pass at the cameras' own exposure): what the decoder sees and a recording's manifest holds."""
+        self.pass_exposures_us: tuple[float, ...] = tuple(float(e) for e in cfg.sequence.exposures_us)
+        """The exposure of each pass (µs), in capture order; empty for a one-pass scan."""
+        if self.pass_exposures_us:
+            for name, cam in rig.cameras.items():
+                if exposure_control(cam) is None:
+                    raise CameraError(
+                        f"camera {name!r} ({cfg.cameras[name].type}): cannot set its exposure, but "
+                        f"sequence.exposures_us = {list(cfg.sequence.exposures_us)} captures one pass per "
+                        "exposure; use a camera backend with exposure control (aravis, uvc, sim) or remove "
+                        "sequence.exposures_us"
+                    )
         if rig.virtual is not None:  # its renderers keep projector coordinates of the coded axes only
             rig.virtual.coded_axes = frozenset(str(a) for f in self.sequence.frames if (a := getattr(f, "axis", None)))
         rc = cfg.reconstruction
@@ -153,12 +182,17 @@ class Scanner:
         self._white_index = next(
             (i for i, f in enumerate(self.sequence.frames) if isinstance(f, WhiteFrame)), None
         )
+        n_pass = len(self.sequence)
+        # the white frame of every pass stays in memory until the scan's grey image is made
+        self._kept: frozenset[int] = frozenset(
+            () if self._white_index is None else (k * n_pass + self._white_index for k in range(self.n_passes))
+        )
         self.keep_frames = keep_frames
         self._buffers: dict[str, FrameArray] = {}
         self._releasable: dict[str, FrameMemory] = {}
         self._unreleased: dict[str, set[int]] = {}
         self._bits: dict[str, int] = {}
-        self._decoders: dict[str, StreamingDecoder] = {}
+        self._decoders: dict[str, StreamingDecoder | HdrStreamingDecoder] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
         self._opened = False
         self.scans_done = 0
@@ -166,9 +200,14 @@ class Scanner:
         self.camera_info: dict[str, CameraInfo] = {}
         """What each camera said when it was opened (model, serial, size, pixel format)."""
 
+    @property
+    def n_passes(self) -> int:
+        """Passes of the sequence a scan captures (one per configured exposure; 1 without)."""
+        return max(1, len(self.pass_exposures_us))
+
     async def open(self) -> None:
-        """Open every device, allocate the buffers and load the sequence into the projector."""
-        n = len(self.sequence)
+        """Open every device, allocate the buffers (for every pass) and load the sequence into the projector."""
+        n = len(self.capture)
         for name, cam in self.rig.cameras.items():
             info = await cam.open()
             self.camera_info[name] = info
@@ -201,7 +240,11 @@ class Scanner:
         # thresholds in the camera's own scale (Mono12: 0..4095 in uint16)
         params = dataclasses.replace(self.params, max_value=float((1 << bits) - 1))
         # the frames stay in this buffer for the whole scan: the decoder keeps references, not copies
-        self._decoders[name] = StreamingDecoder(self.sequence, shape[1:], dtype, params, borrow_frames=True)
+        if self.exposures is None:
+            self._decoders[name] = StreamingDecoder(self.sequence, shape[1:], dtype, params, borrow_frames=True)
+        else:
+            self._decoders[name] = HdrStreamingDecoder(self.capture, self.exposures, (shape[1], shape[2]), dtype,
+                                                       params, borrow_frames=True)  # fmt: skip
         self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"decode-{name}")
 
     async def warm_up(self) -> None:
@@ -223,28 +266,29 @@ class Scanner:
 
             await loop.run_in_executor(None, warm_sim)
 
-        def warm_decode(name: str) -> DecodedMaps:
+        def warm_decode(name: str) -> tuple[DecodedMaps, npt.NDArray[np.uint8], dict[str, object]]:
             dec, buf = self._decoders[name], self._buffers[name]
             dec.reset()
             for i in range(buf.shape[0]):
                 self._push(name, i, buf[i])
-            maps = dec.finish()
+            done = self._finish(name)
             dec.reset()
-            return maps
+            return done
 
         names = list(self._decoders)
         finished = await asyncio.gather(
             *(loop.run_in_executor(self._executors[n], warm_decode, n) for n in names)
         )
-        white: dict[str, npt.NDArray[np.generic]] = {n: self._white_u8(self._buffers[n], n) for n in names}
-        await loop.run_in_executor(None, self.reconstructor.run, dict(zip(names, finished, strict=True)), white)
+        maps = {n: f[0] for n, f in zip(names, finished, strict=True)}
+        white: dict[str, npt.NDArray[np.generic]] = {n: f[1] for n, f in zip(names, finished, strict=True)}
+        await loop.run_in_executor(None, self.reconstructor.run, maps, white)
 
     def _phase(self, phase: ScanPhase) -> None:
         if self.on_phase is not None:
             self.on_phase(phase)
 
     async def scan(self) -> ScanResult:
-        """Run one scan and reconstruct it.
+        """Run one scan (every exposure pass) and reconstruct it.
 
         Raises
         ------
@@ -254,16 +298,16 @@ class Scanner:
         if not self._opened:
             await self.open()
         loop = asyncio.get_running_loop()
-        n = len(self.sequence)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         pushes: list[asyncio.Future[None]] = []
 
-        def on_frame_factory(name: str) -> Any:
+        def on_frame_factory(name: str, offset: int) -> Any:
             ex = self._executors[name]
 
             def on_frame(index: int, frame: FrameArray) -> None:  # camera thread
-                fut: Future[None] = ex.submit(self._push, name, index, frame)
+                # the camera counts the frames of its pass; the decoder those of the whole capture
+                fut: Future[None] = ex.submit(self._push, name, offset + index, frame)
                 loop.call_soon_threadsafe(pushes.append, asyncio.wrap_future(fut, loop=loop))
 
             return on_frame
@@ -272,34 +316,13 @@ class Scanner:
         # still queued there from an earlier scan, and off the event loop
         await asyncio.gather(*(loop.run_in_executor(self._executors[n], d.reset) for n, d in self._decoders.items()))
         try:
-            for name, cam in self.rig.cameras.items():
-                await cam.arm(n, self._buffers[name], on_frame_factory(name))
-            await self.rig.projector.start()
-            # a trigger controller emits the camera (and projector) pulses of the whole sequence
-            pulser = pulse_source(self.rig.trigger)
-            if pulser is not None:
-                pulses = await pulser.run_sequence(n)
-                if len(pulses) != n:
-                    raise HardwareError(
-                        f"trigger {self.rig.trigger.name!r}: emitted {len(pulses)} of {n} pulses; check the "
-                        "controller's log (scan3d status) and its cable"
-                    )
-            # cameras without a hardware trigger line (software-timed) are fired frame by frame
-            software = [c for c in self.rig.cameras.values() if c.needs_software_trigger]
-            for i in range(n if software else 0):
-                await asyncio.gather(*(c.trigger(i) for c in software))
-            timeout = FRAME_TIMEOUT_S + n * FRAME_TIMEOUT_PER_FRAME_S
-
-            async def captured(name: str, cam: Any) -> None:
-                await cam.wait_frames(timeout)
-                timings[f"capture_{name}_ms"] = (time.perf_counter() - t0) * 1e3
-
-            results = await asyncio.gather(
-                *(captured(name, cam) for name, cam in self.rig.cameras.items()), return_exceptions=True
-            )
-            errors = [r for r in results if isinstance(r, BaseException)]
-            if errors:
-                raise errors[0]
+            for k in range(self.n_passes):
+                if self.pass_exposures_us:
+                    t_e = time.perf_counter()
+                    await asyncio.gather(*(self._set_exposure(name, cam, self.pass_exposures_us[k])
+                                           for name, cam in self.rig.cameras.items()))  # fmt: skip
+                    timings["set_exposure_ms"] = timings.get("set_exposure_ms", 0.0) + (time.perf_counter() - t_e) * 1e3
+                await self._capture_pass(k, on_frame_factory, timings, t0)
             await asyncio.sleep(0)  # let the last call_soon_threadsafe callbacks run
             await asyncio.gather(*pushes)
         except (CameraError, HardwareError) as exc:
@@ -317,17 +340,16 @@ class Scanner:
         self._phase(ScanPhase.CAPTURED)
         t1 = time.perf_counter()
 
-        def finish(name: str, dec: StreamingDecoder) -> DecodedMaps:
-            maps = dec.finish()
+        def finish(name: str) -> tuple[DecodedMaps, npt.NDArray[np.uint8], dict[str, object]]:
+            done = self._finish(name)
             timings[f"decode_finish_{name}_ms"] = (time.perf_counter() - t1) * 1e3
-            return maps
+            return done
 
-        finished = await asyncio.gather(
-            *(loop.run_in_executor(self._executors[name], finish, name, dec) for name, dec in self._decoders.items())
-        )
-        maps = dict(zip(self._decoders, finished, strict=True))
+        names = list(self._decoders)
+        finished = await asyncio.gather(*(loop.run_in_executor(self._executors[n], finish, n) for n in names))
+        maps = {n: f[0] for n, f in zip(names, finished, strict=True)}
+        white = {n: f[1] for n, f in zip(names, finished, strict=True)}
         timings["decode_finish_ms"] = (time.perf_counter() - t1) * 1e3
-        white = {name: self._white_u8(buf, name) for name, buf in self._buffers.items()}
         self._phase(ScanPhase.RECONSTRUCTING)
         t2 = time.perf_counter()
         rec, health = await loop.run_in_executor(None, self._reconstruct, maps, white)
@@ -337,11 +359,71 @@ class Scanner:
         self.scans_done += 1
         shapes = {name: (int(b.shape[1]), int(b.shape[2])) for name, b in self._buffers.items()}
         frames = dict(self._buffers) if self.keep_frames else {}
-        return ScanResult(rec, maps, white, timings, shapes, dict(health), frames)
+        capture: dict[str, object] = {}
+        if self.exposures is not None:
+            per_camera = {n: f[2] for n, f in zip(names, finished, strict=True)}
+            capture = {"exposures_us": list(self.pass_exposures_us), "frames_per_pass": len(self.sequence),
+                       "frames": len(self.capture), "cameras": per_camera}  # fmt: skip
+        return ScanResult(rec, maps, white, timings, shapes, dict(health), frames, capture)
+
+    async def _set_exposure(self, name: str, cam: Camera, exposure_us: float) -> None:
+        control = exposure_control(cam)
+        if control is None:  # checked when the scanner was made; a rig swapped since
+            raise CameraError(f"camera {name!r}: cannot set its exposure; remove sequence.exposures_us")
+        await control.set_exposure(exposure_us)
+
+    async def _capture_pass(self, k: int, on_frame_factory: Any, timings: dict[str, float], t0: float) -> None:
+        """Pass ``k``: arm the cameras for its frames (their part of the buffers), run the projector and the
+        triggers once, wait for every frame."""
+        n = len(self.sequence)
+        off = k * n
+        for name, cam in self.rig.cameras.items():
+            await cam.arm(n, self._buffers[name][off:off + n], on_frame_factory(name, off))
+        await self.rig.projector.start()
+        # a trigger controller emits the camera (and projector) pulses of the whole pass
+        pulser = pulse_source(self.rig.trigger)
+        if pulser is not None:
+            pulses = await pulser.run_sequence(n)
+            if len(pulses) != n:
+                raise HardwareError(
+                    f"trigger {self.rig.trigger.name!r}: emitted {len(pulses)} of {n} pulses; check the "
+                    "controller's log (scan3d status) and its cable"
+                )
+        # cameras without a hardware trigger line (software-timed) are fired frame by frame
+        software = [c for c in self.rig.cameras.values() if c.needs_software_trigger]
+        for i in range(n if software else 0):
+            await asyncio.gather(*(c.trigger(i) for c in software))
+        timeout = FRAME_TIMEOUT_S + n * FRAME_TIMEOUT_PER_FRAME_S
+
+        async def captured(name: str, cam: Any) -> None:
+            await cam.wait_frames(timeout)
+            timings[f"capture_{name}_ms"] = (time.perf_counter() - t0) * 1e3
+
+        results = await asyncio.gather(
+            *(captured(name, cam) for name, cam in self.rig.cameras.items()), return_exceptions=True
+        )
+        errors = [r for r in results if isinstance(r, BaseException)]
+        if errors:
+            raise errors[0]
+
+    def _finish(self, name: str) -> tuple[DecodedMaps, npt.NDArray[np.uint8], dict[str, object]]:
+        """Finish camera ``name``'s decode (in its decode thread): its maps, its grey image (0..255; per pixel
+        from the pass its code came from) and, for a multi-exposure capture, what each pass gave."""
+        dec, buf = self._decoders[name], self._buffers[name]
+        maps = dec.finish()
+        if not isinstance(dec, HdrStreamingDecoder):
+            return maps, self._white_u8(buf[self._white_index] if self._white_index is not None else None, name), {}
+        assert dec.choice is not None
+        greys = [self._white_u8(None if self._white_index is None else buf[idx[self._white_index]], name)
+                 for _light, idx in dec.passes]  # fmt: skip
+        white = np.asarray(pick_per_pixel(greys, dec.choice), np.uint8)
+        assert self.exposures is not None
+        return maps, white, capture_summary(self.exposures, dec.passes, dec.choice, maps.mask)
 
     def _push(self, name: str, index: int, frame: FrameArray) -> None:
-        """Push frame ``index`` of camera ``name`` into its decoder (in its decode thread); without
-        ``keep_frames``, give back the memory of every frame the decoder no longer reads (not the white one)."""
+        """Push frame ``index`` (of the whole capture) of camera ``name`` into its decoder (in its decode thread);
+        without ``keep_frames``, give back the memory of every frame the decoder no longer reads (not the white
+        frames, read for the grey image after the decode)."""
         dec = self._decoders[name]
         dec.push(index, frame)
         mem = self._releasable.get(name)
@@ -350,7 +432,7 @@ class Scanner:
         pending = self._unreleased[name]
         pending.add(index)
         held = dec.borrowed
-        for i in [i for i in pending if i not in held and i != self._white_index]:
+        for i in [i for i in pending if i not in held and i not in self._kept]:
             mem.release(i)
             pending.discard(i)
 
@@ -363,11 +445,11 @@ class Scanner:
         return replay.reconstruct(self.reconstructor, maps, white, self._trend,
                                   self.cfg.calibration.health_tolerance_px)  # fmt: skip
 
-    def _white_u8(self, buf: FrameArray, name: str) -> npt.NDArray[np.uint8]:
-        if self._white_index is None:
-            return np.zeros(buf.shape[1:], np.uint8)
+    def _white_u8(self, white: FrameArray | None, name: str) -> npt.NDArray[np.uint8]:
+        if white is None:
+            return np.zeros(self._buffers[name].shape[1:], np.uint8)
         # the camera's significant bits, not the container's
-        return white_to_uint8(buf[self._white_index], self._bits.get(name, 16))
+        return white_to_uint8(white, self._bits.get(name, 16))
 
     @staticmethod
     async def _settle(pushes: list[asyncio.Future[None]]) -> None:

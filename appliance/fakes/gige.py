@@ -118,6 +118,7 @@ class _Spec:
     line_pulses: int | None = None
     line_rate_hz: float = 50.0
     trigger_tick_hz: float = 200.0
+    exposure_reference_us: float | None = None
 
 
 def _patched_genicam(xml: str) -> str:
@@ -155,6 +156,7 @@ class _Server:
         self.index = 0
         self.served = 0
         self.acquisitions = 0
+        self.exposures: list[int] = []
         self.active = False
         self.pulses_left = 0
         self.pulsing = False
@@ -238,6 +240,9 @@ class _Server:
             elif op == "stats":
                 assert self.conn is not None
                 self.conn.send(("stats", {"served": self.served, "acquisitions": self.acquisitions}))
+            elif op == "exposures":
+                assert self.conn is not None
+                self.conn.send(("exposures", list(self.exposures)))
             elif op == "stop":
                 self.loop.quit()
 
@@ -267,19 +272,20 @@ class _Server:
         self.active = True
         self.pulses_left = self.spec.line_pulses if self.spec.line_pulses is not None else 1 << 30
 
-    def _fill(self, buffer: int, _data: int, _exposure_us: int, _gain: int, pixel_format: int) -> None:
+    def _fill(self, buffer: int, _data: int, exposure_us: int, _gain: int, pixel_format: int) -> None:
         try:
-            self._fill_frame(buffer, pixel_format)
+            self._fill_frame(buffer, pixel_format, exposure_us)
         except Exception as exc:  # an exception must not cross the C callback
             print(f"fake camera {self.spec.address}: fill failed: {exc!r}", file=sys.stderr, flush=True)
 
-    def _fill_frame(self, buffer: int, pixel_format: int) -> None:
+    def _fill_frame(self, buffer: int, pixel_format: int, exposure_us: int) -> None:
         # The fake allocates a new buffer at each AcquisitionStart: an untagged buffer starts frame 0.
         if not self.gobject.g_object_get_data(buffer, _TAG):
             self.gobject.g_object_set_data(buffer, _TAG, 1)
             with self.lock:
                 self.index = 0
                 self.acquisitions += 1
+                self.exposures.append(int(exposure_us))
         with self.lock:
             index = self.index
             self.index += 1
@@ -301,6 +307,10 @@ class _Server:
             data = frame.astype("<u2", copy=False) if frame.dtype == np.uint16 else frame.astype("<u2") << 8
         else:
             data = frame if frame.dtype == np.uint8 else (frame >> 8).astype(np.uint8)
+        ref = self.spec.exposure_reference_us
+        if ref is not None and exposure_us != ref:  # light scales with the exposure, clipped at full scale
+            full = {_MONO12: 4095, _MONO16: 65535}.get(pixel_format, 255)
+            data = np.minimum(np.rint(data * (exposure_us / ref)), full).astype(data.dtype)
         data = np.ascontiguousarray(data)
         size = ctypes.c_size_t(0)
         dest = self.lib.arv_buffer_get_image_data(buffer, ctypes.byref(size))
@@ -355,6 +365,15 @@ class FakeGigECamera:
             reply = self.conn.recv()
         return dict(reply[1])
 
+    def acquisition_exposures(self, timeout_s: float = 2.0) -> list[int]:
+        """The ``ExposureTime`` (µs) each acquisition so far started with, in order."""
+        with self._lock:
+            self.conn.send(("exposures",))
+            if not self.conn.poll(timeout_s):
+                raise CameraError(f"fake camera {self.address}: no answer to an exposures request")
+            reply = self.conn.recv()
+        return [int(e) for e in reply[1]]
+
     def kill(self) -> None:
         """Make the camera vanish at once (SIGKILL), like a pulled cable."""
         if self.process.is_alive():
@@ -393,6 +412,7 @@ def start_fake_camera(
     line_rate_hz: float = 50.0,
     trigger_tick_hz: float = 200.0,
     ready_timeout_s: float = READY_TIMEOUT_S,
+    exposure_reference_us: float | None = None,
 ) -> FakeGigECamera:
     """Start a fake GigE Vision camera in its own process, listening on ``address`` port 3956.
 
@@ -415,6 +435,10 @@ def start_fake_camera(
         (all of ``frames`` when None) and how fast (Hz).
     trigger_tick_hz : float
         How often the fake checks for triggers (Hz); its frame latency is up to one tick.
+    exposure_reference_us : float, optional
+        The ``ExposureTime`` (µs) at which ``frames`` hold: at another exposure each frame's values scale with
+        ``ExposureTime / exposure_reference_us`` (rounded, clipped at the pixel format's full scale). None:
+        served as they are, whatever the exposure.
 
     Returns
     -------
@@ -442,6 +466,7 @@ def start_fake_camera(
         line_pulses,
         line_rate_hz,
         trigger_tick_hz,
+        exposure_reference_us,
     )
     ctx = multiprocessing.get_context("spawn")
     parent, child = ctx.Pipe()

@@ -239,6 +239,7 @@ class AravisCamera:
         self._job: _Job | None = None
         self._last_frame_id: int | None = None
         self._trigger_now = config.trigger
+        self._exposure_us = float(config.exposure_us)  # what set_exposure() asked for; kept over reconnects
 
     # --- labels ---------------------------------------------------------------------------------------
 
@@ -369,6 +370,20 @@ class AravisCamera:
         frame: FrameArray = out[0]
         return frame
 
+    async def set_exposure(self, exposure_us: float) -> None:
+        """Set ``ExposureTime`` (µs) for the next acquisition, e.g. between the passes of an HDR scan.
+
+        A reconnect keeps it (the camera is configured with the last exposure set here).
+
+        Raises
+        ------
+        CameraError
+            While an acquisition runs, or when the camera refuses the value (with the range it accepts).
+        """
+        if self._job is not None and not self._job.future.done():
+            raise CameraError(self._msg("set_exposure() while a sequence is being captured; wait_frames() first"))
+        await self._run(self._set_exposure, float(exposure_us))
+
     async def close(self) -> None:
         """Abort any acquisition, release the stream, then the camera; idempotent."""
         self._abort.set()
@@ -381,6 +396,25 @@ class AravisCamera:
             await asyncio.to_thread(executor.shutdown, True)
             self._job = None
             self._abort.clear()
+
+    def _set_exposure(self, exposure_us: float) -> None:
+        self._ensure_open()
+        camera, glib = self._camera, self._glib
+        try:
+            low, high = camera.get_exposure_time_bounds()
+        except glib.Error:
+            low, high = 0.0, float("inf")
+        if not low <= exposure_us <= high:
+            raise CameraError(self._msg(
+                f"exposure {exposure_us:g} µs is outside the camera's ExposureTime range {low:g}..{high:g} µs; "
+                "choose exposures in that range (sequence.exposures_us)"))  # fmt: skip
+        try:
+            camera.set_exposure_time(exposure_us)
+        except glib.Error as exc:
+            raise CameraError(self._msg(
+                f"ExposureTime = {exposure_us:g} µs was refused ({exc.message}); check the camera's exposure "
+                "range and that nothing else controls it")) from exc  # fmt: skip
+        self._exposure_us = exposure_us
 
     # --- arm -------------------------------------------------------------------------------------------
 
@@ -583,7 +617,7 @@ class AravisCamera:
             camera.set_string("ExposureMode", "Timed")
         if camera.is_exposure_auto_available():
             camera.set_exposure_time_auto(aravis.Auto.OFF)
-        camera.set_exposure_time(cfg.exposure_us)
+        camera.set_exposure_time(self._exposure_us)
         if camera.is_gain_available():
             if camera.is_gain_auto_available():
                 camera.set_gain_auto(aravis.Auto.OFF)

@@ -85,6 +85,33 @@ class Camera(Protocol):
 
 
 @runtime_checkable
+class ExposureControl(Protocol):
+    """A camera whose exposure a scan sets between the passes of a multi-exposure (HDR) capture.
+
+    Optional: a :class:`Camera` has it when it implements :meth:`set_exposure` (see :func:`exposure_control`).
+    """
+
+    name: str
+
+    async def set_exposure(self, exposure_us: float) -> None:
+        """Expose the frames of the next acquisition for ``exposure_us`` (µs); call between acquisitions.
+
+        Raises
+        ------
+        CameraError
+            When the camera refuses the value (naming the camera, the value and what it accepts).
+        """
+        ...
+
+
+def exposure_control(camera: Camera) -> ExposureControl | None:
+    """``camera`` as an :class:`ExposureControl` when it can set its exposure between passes, else None."""
+    if isinstance(camera, ExposureControl):
+        return camera
+    return None
+
+
+@runtime_checkable
 class Projector(Protocol):
     """A projector that shows a :class:`Sequence`, frame by frame, on triggers or its own clock."""
 

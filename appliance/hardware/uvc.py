@@ -52,6 +52,7 @@ def _open_capture(device: str) -> CaptureLike:
 _PROP_FRAME_WIDTH, _PROP_FRAME_HEIGHT, _PROP_BUFFERSIZE = 3, 4, 38
 _PROP_AUTO_EXPOSURE, _PROP_EXPOSURE = 21, 15
 _V4L2_MANUAL_EXPOSURE = 1.0
+_V4L2_EXPOSURE_UNIT_US = 100.0  # V4L2's exposure_time_absolute counts 100 µs units
 
 
 class UvcCamera:
@@ -93,6 +94,7 @@ class UvcCamera:
         self._done: set[int] = set()
         self._error: CameraError | None = None
         self._all = threading.Event()
+        self._exposure: float | None = config.exposure  # device units; set_exposure() changes it
 
     def _msg(self, text: str) -> str:
         return f"camera {self.name!r} (uvc, {self.config.device}): {text}"
@@ -121,9 +123,9 @@ class UvcCamera:
         cap.set(_PROP_FRAME_WIDTH, cfg.width)
         cap.set(_PROP_FRAME_HEIGHT, cfg.height)
         cap.set(_PROP_BUFFERSIZE, 1)
-        if cfg.exposure is not None:
+        if self._exposure is not None:
             cap.set(_PROP_AUTO_EXPOSURE, _V4L2_MANUAL_EXPOSURE)
-            cap.set(_PROP_EXPOSURE, cfg.exposure)
+            cap.set(_PROP_EXPOSURE, self._exposure)
         ok, frame = cap.read()
         if not ok or frame is None:
             cap.release()
@@ -156,6 +158,29 @@ class UvcCamera:
         self._done = set()
         self._error = None
         self._all.clear()
+
+    async def set_exposure(self, exposure_us: float) -> None:
+        """Switch to manual exposure of ``exposure_us`` (µs; V4L2 ``exposure_time_absolute`` in 100 µs units)
+        for the following frames, e.g. between the passes of an HDR scan; the next ``settle_ms`` lets it apply.
+
+        Raises
+        ------
+        CameraError
+            When the driver refuses manual exposure or the value (a webcam without exposure control).
+        """
+        await self._run(self._set_exposure, float(exposure_us))
+
+    def _set_exposure(self, exposure_us: float) -> None:
+        self._open()
+        cap = self._cap
+        assert cap is not None
+        units = max(1.0, round(exposure_us / _V4L2_EXPOSURE_UNIT_US))
+        if not (cap.set(_PROP_AUTO_EXPOSURE, _V4L2_MANUAL_EXPOSURE) and cap.set(_PROP_EXPOSURE, units)):
+            raise CameraError(self._msg(
+                f"exposure {exposure_us:g} µs (V4L2 exposure_time_absolute {units:g}) was refused: the "
+                "driver offers no manual exposure control; use a camera that has one, or empty "
+                "sequence.exposures_us"))  # fmt: skip
+        self._exposure = units
 
     async def trigger(self, index: int) -> None:
         """Capture frame ``index`` now: the scan has just shown its pattern.

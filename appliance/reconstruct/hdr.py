@@ -116,6 +116,45 @@ def pick_per_pixel(images: Sequence[npt.NDArray[np.generic]], choice: npt.NDArra
     return picked
 
 
+def capture_summary(
+    exposures: Sequence[tuple[float, float]],
+    passes: Sequence[tuple[float, list[int]]],
+    choice: npt.NDArray[np.uint8],
+    mask: npt.NDArray[np.bool_],
+) -> dict[str, object]:
+    """What each exposure pass of one camera's capture gave, for the sidecar (JSON-ready).
+
+    Parameters
+    ----------
+    exposures : sequence of (float, float)
+        Per frame of the capture its ``(exposure_us, intensity)``.
+    passes : sequence of (float, list of int)
+        Per pass (darkest first) its light and frame indices (:func:`exposure_passes`).
+    choice : ndarray, shape (H, W), uint8
+        The pass each pixel's result came from (:func:`fuse_exposures`).
+    mask : ndarray, shape (H, W), bool
+        The fused decode's mask.
+
+    Returns
+    -------
+    dict
+        ``passes``: per pass, darkest first, its ``exposure_us`` (µs), ``intensity`` (0-1), ``decoded_pixels``
+        (the decoded pixels whose code it gave), ``decoded_share`` (their share of all decoded pixels) and
+        ``pixel_share`` (the share of the image whose result, decoded or not, it gave).
+    """
+    k = len(passes)
+    decoded = np.bincount(choice[mask], minlength=k)
+    chosen = np.bincount(choice.ravel(), minlength=k)
+    total, size = max(int(mask.sum()), 1), max(int(choice.size), 1)
+    out = []
+    for j, (_light, idx) in enumerate(passes):
+        e, i = exposures[idx[0]]
+        out.append({"exposure_us": float(e), "intensity": float(i), "decoded_pixels": int(decoded[j]),
+                    "decoded_share": round(float(decoded[j]) / total, 6),
+                    "pixel_share": round(float(chosen[j]) / size, 6)})  # fmt: skip
+    return {"passes": out}
+
+
 def decode_passes(
     frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
     sequence: PatternSequence,
