@@ -235,7 +235,9 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
     """Depth of the ray (mx, my, 1) nearest (projector px) to the projector ray of (cu, cv); NaN if none.
 
     Also returns ``g``: the depth error per px of equal, independent code errors on both axes (mm / px),
-    ``Zp sqrt(a1^2 + a2^2) / (a1^2 + a2^2)`` from the linearised least squares (Zp: projector-frame depth).
+    ``Zp sqrt(a1^2 + a2^2) / (a1^2 + a2^2)`` from the linearised least squares (Zp: projector-frame depth),
+    and ``e``: how far (u, v) lies off the pixel's epipolar line (projector px, the least-squares residual
+    ``|a1 b2 - a2 b1| / (|a| Zp)``); NaN where there is no point.
     """
     hp, wp = und.shape[0], und.shape[1]
     fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
@@ -243,7 +245,7 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
     fu = np.float64(cu) - origin
     fv = np.float64(cv) - origin
     if not (fu >= 0.0 and fv >= 0.0 and fu < wp - 1 and fv < hp - 1):
-        return np.nan, np.nan
+        return np.nan, np.nan, np.nan
     iu = int(fu)
     iv = int(fv)
     tu = fu - iu
@@ -273,27 +275,34 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
     b2 = fy * (yn * tcp[2] - tcp[1])
     nn = a1 * a1 + a2 * a2
     if not nn > 0.0:
-        return np.nan, np.nan
+        return np.nan, np.nan, np.nan
     z = (a1 * b1 + a2 * b2) / nn
     zp = tcp[2] + z * bz
-    return (z if zp > 0.0 else np.nan), zp / math.sqrt(nn)
+    rn = math.sqrt(nn)
+    return (z if zp > 0.0 else np.nan), zp / rn, abs(a1 * b2 - a2 * b1) / (rn * zp)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _finish_row(pz, gz, mx, my, qr, wr, has_w, noise, zmin, zmax, jump, inv_f, px, py, ps, pj):  # type: ignore[no-untyped-def]
-    """Depth range, 1-sigma error along the ray (mm), jump limit and x, y of every point of a row (one pass).
+def _finish_row(pz, gz, er, mx, my, qr, wr, has_w, noise, epi, zmin, zmax, jump, inv_f, px, py, ps, pj, pw):  # type: ignore[no-untyped-def]
+    """Epipolar check, depth range, 1-sigma error along the ray (mm), jump limit and x, y of every point of a row.
 
     ``noise`` = (phase_px, stripe var, read + rounding var, 1 / e- per DN), see ``uncertainty.CodeNoise``:
-    ``sigma = |dz/du| sqrt((phase_px^2 (read var + A / e-) / q^2 + stripe var) (1 + x^2 + y^2))`` with the mean
-    level ``A = white - q / 2`` (``q / 2`` without white). The jump limit is ``jump[0] + jump[1] z inv_f +
-    jump[2] sigma`` (the sigma term left out when ``jump[2]`` is 0: sigma may be unknown). Depths out of
-    range become NaN. Returns how many points were triangulated and how many are in range.
+    ``sigma = |dz/du| sqrt(su2 (1 + x^2 + y^2))``, ``su2 = phase_px^2 (read var + A / e-) / q^2 + stripe var``
+    (the code variance per axis, px^2) with the mean level ``A = white - q / 2`` (``q / 2`` without white).
+    ``epi`` = (k^2, floor^2 px^2, on): with both axes coded (on = 1), a point whose epipolar residual ``er``
+    (px) exceeds ``sqrt(k^2 su2 + floor^2)`` is dropped (never with an unknown su2). The jump limit is
+    ``jump[0] + jump[1] z inv_f + jump[2] sigma`` (the sigma term left out when ``jump[2]`` is 0: sigma may be
+    unknown). Dropped and out-of-range depths become NaN; ``pw`` gets each pixel's outcome (0 a point, 1 no
+    point in range, 2 off the epipolar line). Returns how many points were triangulated, how many passed the
+    epipolar check and how many of those are in range.
     """
     g2 = noise[0] * noise[0]
     svar, rvar, inv_e = noise[1], noise[2], noise[3]
     j0, jf, js = jump[0], jump[1] * inv_f, jump[2]
     use_s = js != 0.0
+    k2, f2, use_e = epi[0], epi[1], epi[2] != 0.0
     n_t = np.int64(0)
+    n_e = np.int64(0)
     n_r = np.int64(0)
     for c in range(pz.shape[0]):
         z = np.float64(pz[c])
@@ -304,16 +313,21 @@ def _finish_row(pz, gz, mx, my, qr, wr, has_w, noise, zmin, zmax, jump, inv_f, p
         su2 = g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
         sg = gz[c] * math.sqrt(su2 * (1.0 + x * x + y * y))
         fin = z == z
-        inr = fin & (z >= zmin) & (z <= zmax)
+        e = np.float64(er[c]) if use_e else 0.0
+        off = fin & (e * e > k2 * su2 + f2)  # false for an unknown (NaN) su2
+        cons = fin & ~off
+        inr = cons & (z >= zmin) & (z <= zmax)
         n_t += np.int64(fin)
+        n_e += np.int64(cons)
         n_r += np.int64(inr)
+        pw[c] = np.float32(0.0) if inr else (np.float32(2.0) if off else np.float32(1.0))
         z = z if inr else np.float64(np.nan)
         pz[c] = z
         ps[c] = sg
         pj[c] = j0 + jf * z + (js * sg if use_s else 0.0)
         px[c] = z * x
         py[c] = z * y
-    return n_t, n_r
+    return n_t, n_e, n_r
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -335,13 +349,14 @@ def _clear(p, lo, hi):  # type: ignore[no-untyped-def]
 @njit(nogil=True, cache=True, error_model="numpy")
 def _depth_row(  # type: ignore[no-untyped-def]
     r, c0, c1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
-    origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, jump, inv_f, mx, my, fc, ba, bz, scratch, scratch_i, p,
-    st,
+    origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, epi, jump, inv_f, mx, my, fc, ba, bz, scratch, scratch_i,
+    p, st,
 ):
-    """Camera-frame points of pixels c0 .. c1 - 1 of row ``r`` into padded columns 1 + c0 .. of ``p`` (5, W + 2).
+    """Camera-frame points of pixels c0 .. c1 - 1 of row ``r`` into padded columns 1 + c0 .. of ``p`` (6, W + 2).
 
-    Channels: x, y, z, sigma, jump limit (NaN: no point). ``st`` (3,) receives the row's decoded,
-    triangulated and in-range counts. Every stage runs over the decoded span of the row only.
+    Channels: x, y, z, sigma, jump limit (NaN: no point), outcome (see ``_finish_row``). ``st`` (4,) receives
+    the row's decoded, triangulated, epipolar-consistent and in-range counts. Every stage runs over the
+    decoded span of the row only.
     """
     ray_span(tx, ty, r, step, mx, my, c0, c1)
     mxs, mys = mx[c0:c1], my[c0:c1]
@@ -350,7 +365,9 @@ def _depth_row(  # type: ignore[no-untyped-def]
     pz = p[2, 1 + c0 : 1 + c1]
     ps = p[3, 1 + c0 : 1 + c1]
     pj = p[4, 1 + c0 : 1 + c1]
+    pw = p[5, 1 + c0 : 1 + c1]
     gz = scratch[3, c0:c1]
+    er = scratch[0, c0:c1]  # the epipolar residual (ray-ray; the light-surface path reuses the row as scratch)
     mr = mask[r, c0:c1]
     if ray:
         ur = u[r, c0:c1]
@@ -358,10 +375,12 @@ def _depth_row(  # type: ignore[no-untyped-def]
         for c in range(c1 - c0):
             z = np.nan
             g = np.nan
+            e = np.nan
             if mr[c]:
-                z, g = _z_ray(ur[c], vr[c], mxs[c], mys[c], und, origin, kmat, d, rcp, tcp)
+                z, g, e = _z_ray(ur[c], vr[c], mxs[c], mys[c], und, origin, kmat, d, rcp, tcp)
             pz[c] = z
             gz[c] = g
+            er[c] = e
     else:
         nc, nu = table.shape[0], table.shape[1]
         cell, tu, tv, q = scratch_i[0, c0:c1], scratch[0, c0:c1], scratch[1, c0:c1], scratch[2, c0:c1]
@@ -372,24 +391,27 @@ def _depth_row(  # type: ignore[no-untyped-def]
         _plane_depth(q, tu, bas, bzs, tcp[2], tcp[0] if axis == 0 else tcp[1], pz, gz)
     st[0] = _count_true(mr)
     wr = white[r, c0:c1] if has_w else white[0]
-    st[1], st[2] = _finish_row(pz, gz, mxs, mys, quality[r, c0:c1], wr, has_w, noise, zmin, zmax, jump, inv_f,
-                               px, py, ps, pj)  # fmt: skip
+    st[1], st[2], st[3] = _finish_row(pz, gz, er, mxs, mys, quality[r, c0:c1], wr, has_w, noise, epi, zmin, zmax,
+                                      jump, inv_f, px, py, ps, pj, pw)  # fmt: skip
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def depth_filtered(  # type: ignore[no-untyped-def]
     u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin,
-    kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, min_nb, nchunks, nthreads, depth,
-    sigma, counts, stats, spans,
+    kmat, d, rcp, tcp, axis, zmin, zmax, noise, epi, max_sigma, jump, inv_f, min_nb, nchunks, nthreads, depth,
+    sigma, counts, stats, spans, reason, has_r, rcodes,
 ):
     """Triangulate to camera-frame depth and sigma (H, W), dropping points with < ``min_nb`` near neighbours.
 
-    A neighbour is near when closer than the mean of the two points' limits ``jump[0] + jump[1] z inv_f +
-    jump[2] sigma`` (mm); after that filter, points with sigma over ``max_sigma`` are dropped.
-    ``counts[r + 1]`` receives the kept points of row r, ``stats[r]`` (5,) its decoded, triangulated,
-    in-range, with-neighbours and kept counts, ``spans[r]`` the columns (first, last + 1) that may hold
-    points. Each chunk of rows keeps the points of two rows (padded with a NaN column each side) in a small
-    ring, so no organised cloud is written; every row is processed over its decoded span only.
+    Points off their epipolar line (both axes; ``epi``, see ``_finish_row``) and out of range are dropped
+    first. A neighbour is near when closer than the mean of the two points' limits ``jump[0] + jump[1] z
+    inv_f + jump[2] sigma`` (mm); after that filter, points with sigma over ``max_sigma`` are dropped.
+    ``counts[r + 1]`` receives the kept points of row r, ``stats[r]`` (6,) its decoded, triangulated,
+    epipolar-consistent, in-range, with-neighbours and kept counts, ``spans[r]`` the columns (first, last +
+    1) that may hold points. With ``has_r``, ``reason`` (H, W) gets on every decoded pixel ``rcodes`` =
+    (point, out of range, off the epipolar line, filtered)[outcome]; other pixels are not touched. Each chunk
+    of rows keeps the points of two rows (padded with a NaN column each side) in a small ring, so no
+    organised cloud is written; every row is processed over its decoded span only.
     """
     h, w = depth.shape[0], depth.shape[1]
     counts[0] = 0
@@ -402,30 +424,30 @@ def depth_filtered(  # type: ignore[no-untyped-def]
         bz = np.empty(w, np.float64)
         scratch = np.empty((4, w), np.float64)
         scratch_i = np.empty((1, w), np.int32)
-        ring = np.full((2, 5, w + 2), np.nan, np.float32)  # (slot, x/y/z/sigma/jump, padded column)
+        ring = np.full((2, 6, w + 2), np.nan, np.float32)  # (slot, x/y/z/sigma/jump/outcome, padded column)
         held = np.zeros((2, 2), np.int64)  # padded columns [lo, hi) of each slot that may hold points
         nb = np.zeros((2, w + 2), np.int32)
         e = np.empty(w + 1, np.int32)
-        st = np.zeros(3, np.int64)
+        st = np.zeros(4, np.int64)
         for ch in range(t, nchunks, nthreads):
             r0 = ch * h // nchunks
             r1 = (ch + 1) * h // nchunks
             _depth_chunk(r0, r1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo,
-                         inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma,
+                         inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, epi, max_sigma,
                          jump, inv_f, min_nb, mx, my, fc, ba, bz, scratch, scratch_i, ring, held, nb, e, st, depth,
-                         sigma, counts, stats, spans)  # fmt: skip
+                         sigma, counts, stats, spans, reason, has_r, rcodes)  # fmt: skip
     return counts
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _depth_chunk(  # type: ignore[no-untyped-def]
     r0, r1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und,
-    origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, max_sigma, jump, inv_f, min_nb, mx, my, fc, ba, bz,
-    scratch, scratch_i, ring, held, nb, e, st, depth, sigma, counts, stats, spans,
+    origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, epi, max_sigma, jump, inv_f, min_nb, mx, my, fc, ba, bz,
+    scratch, scratch_i, ring, held, nb, e, st, depth, sigma, counts, stats, spans, reason, has_r, rcodes,
 ):
     """Rows r0..r1 - 1 of :func:`depth_filtered` (computes rows r0 - 1 and r1 too, for the filter).
 
-    ``ring`` (2, 5, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts,
+    ``ring`` (2, 6, W + 2) holds the points of rows r - 1 and r, ``nb`` (2, W + 2) their neighbour counts,
     ``held`` the padded column span of each slot; row r - 1 is complete once the pairs it shares with row r
     are counted. Outside a slot's span the ring is NaN and its counts are never read.
     """
@@ -444,14 +466,14 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
             _clear(p, o0, min(o1, lo))
             _clear(p, max(o0, hi), o1)
             _depth_row(r, c0, c1, u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo,
-                       inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, jump, inv_f, mx,
-                       my, fc, ba, bz, scratch, scratch_i, p, st)  # fmt: skip
+                       inv_dc, min_sin, und, origin, kmat, d, rcp, tcp, axis, zmin, zmax, noise, epi, jump, inv_f,
+                       mx, my, fc, ba, bz, scratch, scratch_i, p, st)  # fmt: skip
         held[s, 0], held[s, 1] = lo, hi
         if 0 <= r < h and r0 <= r < r1:
             if hi > lo:
-                stats[r, 0], stats[r, 1], stats[r, 2] = st[0], st[1], st[2]
+                stats[r, 0], stats[r, 1], stats[r, 2], stats[r, 3] = st[0], st[1], st[2], st[3]
             else:
-                stats[r, 0], stats[r, 1], stats[r, 2] = 0, 0, 0
+                stats[r, 0], stats[r, 1], stats[r, 2], stats[r, 3] = 0, 0, 0, 0
             spans[r, 0], spans[r, 1] = c0, c1
         if min_nb > 0:
             for c in range(lo, hi):
@@ -464,9 +486,22 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
             k_nb, k = keep_row(q[2, 1 : w + 1], q[3, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, max_sigma,
                                depth[r - 1], sigma[r - 1])  # fmt: skip
             counts[r] = k
-            stats[r - 1, 3] = k_nb
-            stats[r - 1, 4] = k
+            stats[r - 1, 4] = k_nb
+            stats[r - 1, 5] = k
+            if has_r:
+                _row_reasons(q[5], depth[r - 1], mask[r - 1], held[1 - s, 0] - 1, held[1 - s, 1] - 1, rcodes,
+                             reason[r - 1])  # fmt: skip
     return counts
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _row_reasons(outcome, dr, mr, c0, c1, rcodes, out):  # type: ignore[no-untyped-def]
+    """Reason of each decoded pixel of columns c0 .. c1 - 1 of a finished row: ``rcodes[outcome]``, and
+    ``rcodes[3]`` (filtered) for a point the neighbour or sigma filter removed. ``outcome`` is padded."""
+    for c in range(c0, c1):
+        if mr[c]:
+            k = np.int64(outcome[c + 1])
+            out[c] = rcodes[3] if (k == 0) & (dr[c] != dr[c]) else rcodes[k]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")

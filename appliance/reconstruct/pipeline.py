@@ -30,7 +30,7 @@ from appliance.reconstruct.residuals import Residual, ray_ray_residual
 from appliance.reconstruct.settings import ReconstructionSettings
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import ProjectorTriangulator
-from appliance.reconstruct.types import DecodedMaps, PointCloud, StageCounts
+from appliance.reconstruct.types import DecodedMaps, PointCloud, Reason, StageCounts
 from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
 
 F32 = npt.NDArray[np.float32]
@@ -39,6 +39,10 @@ MOST_REJECTED = 0.5
 MOST_UNDECODED = 0.9
 """The decode stage is said only beyond this share: an object on a dark background leaves most pixels unlit."""
 """A stage that rejects more than this share of its candidates is reported in words."""
+EPIPOLAR_SAID = 0.02
+"""Both axes coded: a share of the triangulated points off their epipolar lines beyond this is said in words."""
+EPIPOLAR_CALIBRATION = 0.5
+"""... and beyond this share it more likely means a calibration that no longer fits than reflections."""
 FIXED_JUMP_MM = 2.0
 """Jump limit (plus two footprints) where no per-point error is known (stereo, or no sequence given)."""
 
@@ -77,6 +81,26 @@ def _as_uint8(img: npt.NDArray[np.generic], shape: tuple[int, int], name: str) -
     if img.shape[:2] != shape:
         raise ScanError(f"white image of {name}: shape {img.shape}: must be {shape} (H, W)")
     return white_to_uint8(img)
+
+
+def _reason_map(maps: DecodedMaps) -> npt.NDArray[np.uint8] | None:
+    """The decoder's reason map, which the reconstruction completes in place (later stages add their reasons
+    on the decoded pixels that gave no point); None when the decode has none or it cannot be written."""
+    r = maps.reason
+    if r is None or r.shape != maps.shape or r.dtype != np.uint8 or not r.flags.c_contiguous or not r.flags.writeable:
+        return None
+    return r
+
+
+def _stereo_reasons(reason: npt.NDArray[np.uint8] | None, matched: npt.NDArray[np.bool_], z: F32) -> None:
+    """Camera-camera (organised on the reference camera): decoded pixels without a match are ``NOT_MATCHED``,
+    matched ones the filters removed ``FILTERED``, pixels with a point ``DECODED``."""
+    if reason is None:
+        return
+    decoded = reason == Reason.DECODED
+    reason[decoded & ~matched] = Reason.NOT_MATCHED
+    reason[decoded & matched] = Reason.FILTERED
+    reason[np.isfinite(z)] = Reason.DECODED
 
 
 def available_modes(calibration: Calibration, cameras: Iterable[str] | None = None) -> tuple[str, ...]:
@@ -142,7 +166,7 @@ def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> li
     for st in stages:
         n = st.remaining()
         for i, (stage, lost) in enumerate(st.rejected().items()):
-            limit = MOST_UNDECODED if stage == "decode" else MOST_REJECTED
+            limit = MOST_UNDECODED if stage == "decode" else EPIPOLAR_SAID if stage == "epipolar" else MOST_REJECTED
             if n[i] == 0 or lost <= limit * n[i]:
                 continue
             pct = f"{100.0 * lost / n[i]:.0f} %"
@@ -155,6 +179,8 @@ def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> li
                 msg = (f"{pct} of camera {cam}'s decoded pixels gave no point (codes off the projector's image, "
                        "rays along the coded light planes, points behind a device): the calibration may not fit "
                        "this rig or sequence; run scan3d verify or recalibrate")
+            elif stage == "epipolar":
+                msg = epipolar_warning(cam, lost, n[i])
             elif stage == "depth_range":
                 msg = (f"{pct} of camera {cam}'s points lie outside reconstruction.min_depth_mm .. max_depth_mm = "
                        f"{cfg.min_depth_mm:g} .. {cfg.max_depth_mm:g} mm: widen the range to where the object is")
@@ -174,6 +200,24 @@ def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> li
                        "neighbour_jump_sigmas")
             out.append(msg)
     return out
+
+
+def epipolar_warning(camera: str, dropped: int, triangulated: int) -> str:
+    """The plain-words line for points dropped off their epipolar lines (both projector axes coded).
+
+    A minority points at reflections (a second copy of the pattern), not at the calibration, which the
+    consistent pixels still judge; most of them at the calibration (then every pixel misses its line).
+    """
+    pct = f"{100.0 * dropped / triangulated:.0f} %" if dropped >= 0.01 * triangulated else \
+        f"{100.0 * dropped / triangulated:.1f} %"  # fmt: skip
+    if dropped > EPIPOLAR_CALIBRATION * triangulated:
+        return (f"{pct} of camera {camera}'s decoded pixels lie off their epipolar lines (reason 'off the epipolar "
+                "line'): more than reflections would; the calibration may no longer fit the rig: run scan3d "
+                "verify or recalibrate")
+    return (f"{pct} of camera {camera}'s decoded pixels were left out as lit a second time by reflected light "
+            "(their code lies off the pixel's epipolar line: a mirror-like or glossy surface re-projects the "
+            "pattern), not for a calibration fault: the calibration health judges the consistent pixels only. "
+            "Dull or tilt the shiny surface, or scan it from another side")
 
 
 class Reconstructor:
@@ -277,7 +321,7 @@ class Reconstructor:
                 self._depth[n] = np.full((cam.height, cam.width), np.nan, np.float32)
                 self._sigma[n] = np.full((cam.height, cam.width), np.nan, np.float32)
                 self._counts[n] = np.zeros(cam.height + 1, np.int64)
-                self._stats[n] = np.zeros((cam.height, 5), np.int64)
+                self._stats[n] = np.zeros((cam.height, 6), np.int64)
                 self._spans[n] = np.zeros((cam.height, 2), np.int64)
             else:
                 self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
@@ -314,6 +358,11 @@ class Reconstructor:
         counts = self._counts[n0]
         counts[0] = 0
         counts[1:] = np.count_nonzero(np.isfinite(fused.depth), axis=1)
+        reason = _reason_map(maps[n0])
+        if reason is not None:  # fusion drops disagreeing pixels and adds camera-camera-only ones
+            has = np.isfinite(fused.depth)
+            reason[(reason == Reason.DECODED) & ~has] = Reason.FILTERED
+            reason[has] = Reason.DECODED
         return fused.counts()
 
     def _stereo_report(self) -> dict[str, object] | None:
@@ -380,7 +429,8 @@ class Reconstructor:
         if self._stereo.report.refused:  # the only pair: nothing to write
             raise ScanError(self._stereo.report.refused)
         t1 = time.perf_counter()
-        matched = int(np.count_nonzero(np.isfinite(xyz[::1, ::1, 2])))
+        matched_map = np.isfinite(xyz[..., 2])
+        matched = int(np.count_nonzero(matched_map))
         const, fp, ks = self._jump[n0]
         sigma = self._stereo.sigma
         with_nb = self._stereo.filter_neighbours(xyz, cfg.min_neighbours, const, ks, fp, self._scratch[n0])
@@ -392,6 +442,7 @@ class Reconstructor:
             eye = self.calibration.devices[n0].center
             r = cfg.normal_radius_px
             estimate_normals(self._xyz[n0], eye, self._normals[n0], r, r * jump)
+        _stereo_reasons(_reason_map(maps[n0]), matched_map, xyz[..., 2])
         t2 = time.perf_counter()
         shape = self._xyz[n0].shape[:2]
         inten = None if white is None or n0 not in white else _as_uint8(white[n0], (shape[0], shape[1]), n0)
@@ -424,7 +475,7 @@ class Reconstructor:
                 maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours, const,
                 self._counts[n], noise=self.noise, white=None if white is None else white.get(n),
                 sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
-                stats=self._stats[n], spans=self._spans[n],
+                stats=self._stats[n], spans=self._spans[n], reason_out=_reason_map(maps[n]),
             )  # fmt: skip
         fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
@@ -432,7 +483,8 @@ class Reconstructor:
         for n in self.outputs:
             s = self._stats[n].sum(axis=0)
             h, w = self._depth[n].shape
-            stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[2]), int(s[3]), int(s[4])))
+            cons = int(s[2]) if self.axes == "xy" else None
+            stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[3]), int(s[4]), int(s[5]), cons))
         warnings = stage_warnings(stages, cfg)
         residuals = list(self._stereo.residuals) if self._stereo is not None else []
         if self.axes == "xy" and self.calibration.projector is not None:

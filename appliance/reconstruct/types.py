@@ -12,7 +12,9 @@ import numpy.typing as npt
 class Reason(IntEnum):
     """Why a camera pixel has no point (``DecodedMaps.reason``); 0 where it has one.
 
-    The decoder sets ``SHADOW`` .. ``WEAK_CODE``; later stages set theirs on pixels the decoder kept.
+    The decoder sets ``SHADOW`` .. ``WEAK_CODE`` (0 there: decoded); the reconstruction then sets its own on
+    the decoded pixels that gave no point (``NOT_MATCHED``, ``OUT_OF_RANGE``, ``FILTERED``, ``EPIPOLAR``), so
+    that after it 0 means "has a point" and every other pixel has exactly one reason.
     """
 
     DECODED = 0
@@ -27,10 +29,14 @@ class Reason(IntEnum):
     WEAK_CODE = 4
     #: camera-camera: no partner pixel on the other camera
     NOT_MATCHED = 5
-    #: triangulated outside the working range
+    #: no point inside the working range (depth range; or none at all: a code off the projector's image, a
+    #: point behind a device)
     OUT_OF_RANGE = 6
-    #: removed by a filter (neighbours disagree, sigma too large)
+    #: removed by a filter (neighbours disagree, sigma too large; camera-camera fusion: the two disagree)
     FILTERED = 7
+    #: both projector axes coded, but the (u, v) pair lies off the pixel's epipolar line by more than the code
+    #: noise allows: the light came another way (a mirror-like surface re-projecting the pattern)
+    EPIPOLAR = 8
 
 
 #: Plain-words name of each reason (sidecar keys, reports).
@@ -43,6 +49,7 @@ REASON_NAMES: dict[int, str] = {
     Reason.NOT_MATCHED: "not matched",
     Reason.OUT_OF_RANGE: "out of range",
     Reason.FILTERED: "filtered",
+    Reason.EPIPOLAR: "off the epipolar line",
 }
 
 
@@ -164,7 +171,7 @@ class PointCloud:
         )
 
 
-STAGES = ("decode", "geometry", "depth_range", "neighbours", "sigma")
+STAGES = ("decode", "geometry", "epipolar", "depth_range", "neighbours", "sigma")
 """The stages of a camera-projector reconstruction, in order, each rejecting some of the candidates left."""
 
 
@@ -189,6 +196,9 @@ class StageCounts:
         Points with enough near neighbours (``neighbours``).
     kept : int
         Points whose expected error is within ``max_sigma_mm`` (``sigma``): the points of the cloud.
+    consistent : int, optional
+        Triangulated points whose (u, v) lies on the pixel's epipolar line within the code noise (``epipolar``,
+        both projector axes coded); None: not checked (every triangulated point passes).
     """
 
     camera: str
@@ -198,10 +208,12 @@ class StageCounts:
     in_range: int
     with_neighbours: int
     kept: int
+    consistent: int | None = None
 
     def remaining(self) -> tuple[int, ...]:
         """Candidates before each stage and after the last: (pixels, decoded, ..., kept)."""
-        return (self.pixels, self.decoded, self.triangulated, self.in_range, self.with_neighbours, self.kept)
+        cons = self.triangulated if self.consistent is None else self.consistent
+        return (self.pixels, self.decoded, self.triangulated, cons, self.in_range, self.with_neighbours, self.kept)
 
     def rejected(self) -> dict[str, int]:
         """Candidates each stage rejected, by stage name (see :data:`STAGES`)."""
@@ -215,6 +227,7 @@ class StageCounts:
             "pixels": self.pixels,
             "decoded": self.decoded,
             "triangulated": self.triangulated,
+            "consistent": self.triangulated if self.consistent is None else self.consistent,
             "in_range": self.in_range,
             "with_neighbours": self.with_neighbours,
             "kept": self.kept,

@@ -34,7 +34,7 @@ PATCHES = "[0.03, 0.95, 0.05, 0.5, 0.08, 0.2, 0.03, 0.7, 0.12, 0.35]"
 _BASE = """
 sequence:
   kind: gray_phase
-  axes: x
+  axes: %(axes)s
   periods_px: [16]
 virtual_rig:
   cameras:
@@ -78,17 +78,18 @@ SCENES: dict[str, str] = {
 
 
 def scene_text(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0, gain_dn: float = WHITE_DN,
-               bounce: int = 0) -> str:
+               bounce: int = 0, axes: str = "x") -> str:
     """The config text of one hard scene at an exposure (µs; the reference is 10 000), ambient light, white
-    level (DN at albedo 1) and diffuse interreflection samples (0: off)."""
+    level (DN at albedo 1), diffuse interreflection samples (0: off) and coded axes ('x', or 'xy': both,
+    ray-ray triangulation with its per-pixel epipolar check)."""
     return _BASE % {"camera": CAMERA, "scene": SCENES[scene], "ambient": ambient_dn, "exposure": exposure_us,
-                    "gain": gain_dn, "bounce": bounce}
+                    "gain": gain_dn, "bounce": bounce, "axes": axes}
 
 
 def scene_config(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0,
-                 gain_dn: float = WHITE_DN, bounce: int = 0) -> AppConfig:
+                 gain_dn: float = WHITE_DN, bounce: int = 0, axes: str = "x") -> AppConfig:
     """The parsed config of :func:`scene_text`."""
-    return parse_config(scene_text(scene, exposure_us, ambient_dn, gain_dn, bounce), f"{scene}.yaml")
+    return parse_config(scene_text(scene, exposure_us, ambient_dn, gain_dn, bounce, axes), f"{scene}.yaml")
 
 
 @dataclass(frozen=True)

@@ -157,7 +157,8 @@ def test_stage_warnings_in_plain_words() -> None:
     (msg,) = stage_warnings([bad], cfg)
     assert msg.startswith("89 % of camera cam0's points lie outside reconstruction.min_depth_mm .. max_depth_mm")
     assert "300 .. 900 mm" in msg
-    assert bad.rejected() == {"decode": 100, "geometry": 10, "depth_range": 790, "neighbours": 5, "sigma": 0}
+    assert bad.rejected() == {"decode": 100, "geometry": 10, "epipolar": 0, "depth_range": 790, "neighbours": 5,
+                              "sigma": 0}  # fmt: skip
     # an object on a dark background: 70 % of the image decodes nothing, which is no fault; 95 % is
     dark = StageCounts("cam0", 1000, 300, 295, 290, 285, 285)
     assert stage_warnings([dark], cfg) == []
