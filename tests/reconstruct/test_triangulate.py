@@ -30,8 +30,9 @@ from appliance.reconstruct.filters import (
     to_point_cloud,
 )
 from appliance.reconstruct.pipeline import Reconstructor
-from appliance.reconstruct.triangulate import ProjectorTriangulator
-from appliance.reconstruct.types import DecodedMaps
+from appliance.reconstruct.triangulate import EPIPOLAR_FLOOR_PX, EPIPOLAR_SIGMAS, ProjectorTriangulator
+from appliance.reconstruct.types import DecodedMaps, Reason
+from appliance.reconstruct.uncertainty import CodeNoise
 
 
 @pytest.mark.parametrize("surface", ["plane", "sphere"])
@@ -207,3 +208,89 @@ def test_reconstructor_needs_a_projector() -> None:
     no_proj = Calibration({n: calib.devices[n] for n in calib.camera_names})
     with pytest.raises(CalibrationError, match="projector"):
         Reconstructor(no_proj, "x", ReconstructionConfig())
+
+
+# --- the epipolar check (both axes) ----------------------------------------------------------------------
+
+
+def _mirrored_codes(proj: CameraModel, truth: F64, point: F64, normal: F64) -> tuple[F64, F64]:
+    """Codes a mirror (plane through ``point``, ``normal``) puts on each true point: the real projector pixel
+    whose ray, reflected by the mirror, reaches it, i.e. the projection of the point mirrored in that plane."""
+    n = normal / np.linalg.norm(normal)
+    flat = truth.reshape(-1, 3)
+    mirrored = flat - 2.0 * ((flat - point) @ n)[:, None] * n
+    px, _ = proj.project(mirrored)
+    return px[:, 0].reshape(truth.shape[:2]), px[:, 1].reshape(truth.shape[:2])
+
+
+def _epipolar_residual(proj: CameraModel, cam: CameraModel, truth: F64, u: F64, v: F64) -> F64:
+    """Exact distance (projector px) of codes (u, v) from each pixel's epipolar line (through its true point)."""
+    flat = truth.reshape(-1, 3)
+    ray = flat - cam.center
+    near, _ = proj.project(flat)
+    far, _ = proj.project(flat + 50.0 * ray / np.linalg.norm(ray, axis=1, keepdims=True))
+    d = far - near
+    with np.errstate(invalid="ignore"):
+        across = ((u.ravel() - near[:, 0]) * d[:, 1] - (v.ravel() - near[:, 1]) * d[:, 0]) / np.linalg.norm(d, axis=1)
+    return np.abs(across).reshape(truth.shape[:2])  # type: ignore[no-any-return]
+
+
+def test_a_mirrored_copy_of_the_pattern_is_dropped_off_the_epipolar_line() -> None:
+    # the plane's left half receives a second copy of the pattern from a mirror (the codes of the mirrored
+    # projector); every pixel carries code noise of the modelled sigma (quality 40 DN: ~0.2 px per axis)
+    cam, proj, _ = procam_rig("h")
+    truth = true_points("h", "plane")
+    maps = codes(proj, truth, "xy")
+    noise = CodeNoise(16 * np.sqrt(2 / 4) / np.pi, 0.0, 2.0, 25.0)
+    sigma_u = float(noise.sigma_px(40.0))
+    gu, gv = _mirrored_codes(proj, truth, np.array([-40.0, 0.0, 640.0]), np.array([1.0, 0.25, -0.8]))
+    h, w = maps.shape
+    ghost = maps.mask & (np.arange(w)[None, :] < w // 2) & np.isfinite(gu) & np.isfinite(gv)
+    ghost &= (gu >= 0) & (gu <= proj.width - 1) & (gv >= 0) & (gv <= proj.height - 1)
+    rng = np.random.default_rng(3)
+    u = np.where(ghost, gu, maps.u) + rng.normal(0.0, sigma_u, (h, w))
+    v = np.where(ghost, gv, maps.v) + rng.normal(0.0, sigma_u, (h, w))
+    noisy = DecodedMaps(u.astype(np.float32), v.astype(np.float32), maps.mask, maps.quality,
+                        reason=np.where(maps.mask, 0, int(Reason.SHADOW)).astype(np.uint8))  # fmt: skip
+    tri = triangulator("h", "xy")
+    stats = np.empty((h, 6), np.int64)
+    depth, _counts = tri.triangulate_depth(noisy, noise=noise, stats=stats, reason_out=noisy.reason)
+    reason = noisy.reason
+    assert reason is not None
+    off = _epipolar_residual(proj, cam, truth, gu, gv)
+    limit = np.hypot(EPIPOLAR_SIGMAS * sigma_u, EPIPOLAR_FLOOR_PX)
+    clean = maps.mask & ~ghost
+    # no direct (clean) pixel is lost to the check; a ghost well off its line never becomes a point
+    assert not (reason[clean] == Reason.EPIPOLAR).any()
+    assert np.isfinite(depth[clean]).mean() > 0.999
+    far_off = ghost & (off > limit + 5 * sigma_u)
+    assert far_off.sum() > 0.9 * ghost.sum()  # this mirror is tilted out of the epipolar planes
+    assert (reason[far_off] == Reason.EPIPOLAR).all() and not np.isfinite(depth[far_off]).any()
+    # the ghosts kept lie on their epipolar line by geometry, within the limit: nothing can tell them apart
+    kept_ghost = ghost & np.isfinite(depth)
+    assert (off[kept_ghost] <= limit + 5 * sigma_u).all()
+    # every pixel has one reason; decoded ones without a point say which stage; the counts add up
+    assert set(np.unique(reason[maps.mask]).tolist()) <= {Reason.DECODED, Reason.EPIPOLAR, Reason.OUT_OF_RANGE,
+                                                          Reason.FILTERED}  # fmt: skip
+    assert np.array_equal(reason == Reason.DECODED, np.isfinite(depth))
+    s = stats.sum(axis=0)
+    assert s[1] - s[2] == int((reason == Reason.EPIPOLAR).sum())
+    # one coded axis has nothing to check: the same ghosts become points
+    xmaps = DecodedMaps(noisy.u, np.full_like(noisy.v, np.nan), maps.mask, maps.quality)
+    xdepth, _ = triangulator("h", "x").triangulate_depth(xmaps, noise=noise)
+    assert np.isfinite(xdepth[far_off]).mean() > 0.99
+
+
+def test_the_epipolar_floor_absorbs_a_small_calibration_error() -> None:
+    # the projector's true principal point is 0.3 px lower than the calibration says: residuals of ~0.3 px
+    # across every epipolar line, beyond 5 sigma of a high-contrast pixel (sigma 0.03 px) but under the floor
+    _cam, proj, _ = procam_rig("h")
+    truth = true_points("h", "plane")
+    k = proj.K.copy()
+    k[1, 2] += 0.3
+    real = CameraModel("projector", k, proj.dist, proj.width, proj.height, proj.R, proj.T)
+    maps = codes(real, truth, "xy")
+    maps = DecodedMaps(maps.u, maps.v, maps.mask, np.where(maps.mask, 250.0, 0.0).astype(np.float32))
+    noise = CodeNoise(16 * np.sqrt(2 / 4) / np.pi, 0.0, 2.0, 25.0)
+    depth, _ = triangulator("h", "xy").triangulate_depth(maps, noise=noise)
+    assert np.isfinite(depth[maps.mask]).mean() > 0.999
