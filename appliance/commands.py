@@ -245,10 +245,9 @@ def _write_report(
 def _note_compiling(command: str) -> None:
     """One line on stderr before a run that must compile the numba kernels first (after an install or an
     upgrade), so that a person knows why it is slow this once and where the compiled kernels go."""
-    from appliance._numba_cache import kernels_on_disk
-    from appliance.reconstruct._decode_kernels import decode_stack
+    from appliance.reconstruct.decode import kernels_compiled
 
-    state = kernels_on_disk(decode_stack)
+    state = kernels_compiled()
     if state is not None and not state[0]:
         print(f"scan3d {command}: compiling the numba kernels for this version (once, 30-60 s on a small PC; later "
               f"runs load them from {state[1]})", file=sys.stderr, flush=True)

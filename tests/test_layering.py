@@ -293,3 +293,46 @@ def test_daemon_rule_checker(importer: str, imported: str, caught: bool) -> None
     found = [f for f in daemon_importers([Edge(importer, imported, 1)])
              if f.split(":")[0] not in KNOWN_DAEMON_IMPORTERS]  # fmt: skip
     assert bool(found) is caught
+
+
+# --- private kernels stay in their package ---------------------------------------------------------------
+
+
+def private_kernel_imports(edges: list[Edge]) -> list[str]:
+    """Imports of another package's private numba kernels (``pkg._*kernels``), one line each.
+
+    A package's public functions check their inputs and call its kernels; a module elsewhere calls those functions
+    (e.g. ``reconstruct.decode.kernels_compiled``, not ``_decode_kernels.decode_stack``). Kernel modules may import
+    each other's kernels: numba inlines a jitted helper only through an import.
+    """
+    found = []
+    for e in edges:
+        package, _, leaf = e.imported.rpartition(".")
+        if not (leaf.startswith("_") and leaf.endswith("kernels")):
+            continue
+        importer_leaf = e.importer.rpartition(".")[2]
+        a_kernel_module = importer_leaf.startswith("_") and importer_leaf.endswith("kernels")
+        if e.importer.startswith(package + ".") or a_kernel_module:
+            continue
+        found.append(f"{e.importer}:{e.line} -> {e.imported}")
+    return sorted(found)
+
+
+def test_no_private_kernel_is_imported_across_packages() -> None:
+    found = private_kernel_imports(all_edges())
+    assert not found, "private kernels imported from outside their package (call its public function):\n" + \
+        "\n".join(found)
+
+
+@pytest.mark.parametrize(
+    ("importer", "imported", "caught"),
+    [
+        ("appliance.commands", "appliance.reconstruct._decode_kernels", True),
+        ("appliance.scan", "appliance.geometry._distortion_kernels", True),
+        ("appliance.reconstruct.decode_batch", "appliance.reconstruct._decode_kernels", False),
+        ("appliance.reconstruct._stereo_kernels", "appliance.geometry._distortion_kernels", False),
+        ("appliance.commands", "appliance.reconstruct.decode", False),
+    ],
+)
+def test_private_kernel_rule_checker(importer: str, imported: str, caught: bool) -> None:
+    assert bool(private_kernel_imports([Edge(importer, imported, 1)])) is caught

@@ -68,6 +68,7 @@ __all__ = [
     "StreamingDecoder",
     "decode",
     "empty_maps",
+    "kernels_compiled",
     "lit_threshold",
     "otsu_threshold",
     "plan_decode",
@@ -76,3 +77,18 @@ __all__ = [
     "reason_counts",
     "stripe_widths",
 ]
+
+
+def kernels_compiled() -> tuple[bool, str] | None:
+    """Whether numba holds the decoder's compiled kernels on disk for this version and this processor.
+
+    Returns
+    -------
+    (bool, str) or None
+        False when the first decode of this process compiles them (30-60 s on a small PC, once per version),
+        and the folder numba keeps them in; None when numba's cache cannot tell (another numba version).
+    """
+    from appliance._numba_cache import kernels_on_disk
+    from appliance.reconstruct import _decode_kernels
+
+    return kernels_on_disk(_decode_kernels.decode_stack)
