@@ -256,7 +256,8 @@ def report(ref: dict[str, Any], ocv: dict[str, Any], acc: list[dict[str, Any]], 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=9)
-    ap.add_argument("--skip", nargs="*", default=[], choices=["reference", "opencv", "stereo", "accuracy", "service"])
+    ap.add_argument("--skip", nargs="*", default=[],
+                    choices=["reference", "opencv", "stereo", "accuracy", "service", "hdr"])
     ap.add_argument("--readme", action="store_true", help="write the report into README.md")
     ap.add_argument("--json", type=Path, default=None, help="also write raw numbers as JSON")
     a = ap.parse_args()
@@ -284,6 +285,10 @@ def main() -> int:
             )
         except Exception as exc:
             extra["Service benchmark"] = f"not run: {exc}"
+    if "hdr" not in a.skip:
+        from bench_hdr import bench_hdr, report_line
+
+        extra["HDR scan on the virtual rig"] = report_line(bench_hdr(max(3, a.repeats // 3)))
     text = report(ref, ocv, acc, extra)
     if stereo:  # after the camera-projector figures, before accuracy
         marker = "**Accuracy on the virtual rig**"

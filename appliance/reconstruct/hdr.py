@@ -22,7 +22,7 @@ import numpy.typing as npt
 from appliance.errors import DecodeError, PatternError
 from appliance.patterns.sequence import Sequence as PatternSequence
 from appliance.reconstruct import _hdr_kernels as _k
-from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, empty_maps, plan_decode
+from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, plan_decode
 from appliance.reconstruct.decode_plan import DecodePlan
 from appliance.reconstruct.types import DecodedMaps, Reason
 
@@ -77,23 +77,52 @@ def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDAr
     n = len(passes)
     if n > 255:
         raise DecodeError(f"fuse exposures: {n} passes: at most 255")
-    mask = np.stack([m.mask for m in passes])
-    reason = np.stack([m.reason for m in passes if m.reason is not None])
-    choice = np.empty(shape, np.uint8)
-    out_reason = np.empty(shape, np.uint8)
-    _k.choose_pass(mask, reason, int(Reason.SATURATED), int(Reason.DECODED), choice, out_reason)
-    u = np.stack([m.u for m in passes])
-    v = np.stack([m.v for m in passes])
-    q = np.stack([m.quality for m in passes])
-    lev = np.stack([m.levels for m in passes if m.levels is not None])
-    out = DecodedMaps(
-        np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.bool_),
-        np.empty(shape, np.float32), ignored=sorted({s for m in passes for s in m.ignored}),
-        levels=np.empty((2, *shape), np.uint8), reason=out_reason,
+    stacks = _PassStacks(
+        np.stack([m.u for m in passes]), np.stack([m.v for m in passes]), np.stack([m.mask for m in passes]),
+        np.stack([m.quality for m in passes]), np.stack([m.levels for m in passes if m.levels is not None]),
+        np.stack([m.reason for m in passes if m.reason is not None]),
     )  # fmt: skip
-    assert out.levels is not None
-    _k.gather_pass(choice, mask, u, v, q, lev, out.u, out.v, out.mask, out.quality, out.levels)
-    return out, choice
+    return stacks.fuse(sorted({s for m in passes for s in m.ignored}))
+
+
+class _PassStacks:
+    """Every pass's maps stacked along a first axis (P, ...): the fusion kernels read them in place."""
+
+    def __init__(
+        self,
+        u: npt.NDArray[np.float32],
+        v: npt.NDArray[np.float32],
+        mask: npt.NDArray[np.bool_],
+        quality: npt.NDArray[np.float32],
+        levels: npt.NDArray[np.uint8],
+        reason: npt.NDArray[np.uint8],
+    ) -> None:
+        self.u, self.v, self.mask, self.quality, self.levels, self.reason = u, v, mask, quality, levels, reason
+
+    @classmethod
+    def empty(cls, n: int, shape: tuple[int, int]) -> _PassStacks:
+        return cls(np.empty((n, *shape), np.float32), np.empty((n, *shape), np.float32),
+                   np.empty((n, *shape), np.bool_), np.empty((n, *shape), np.float32),
+                   np.empty((n, 2, *shape), np.uint8), np.empty((n, *shape), np.uint8))  # fmt: skip
+
+    def maps(self, k: int) -> DecodedMaps:
+        """Pass ``k``'s maps as views of the stacks (a decoder's ``out``)."""
+        return DecodedMaps(self.u[k], self.v[k], self.mask[k], self.quality[k], levels=self.levels[k],
+                           reason=self.reason[k])  # fmt: skip
+
+    def fuse(self, ignored: list[str]) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
+        shape = (int(self.u.shape[1]), int(self.u.shape[2]))
+        choice = np.empty(shape, np.uint8)
+        out = DecodedMaps(
+            np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.bool_),
+            np.empty(shape, np.float32), ignored=ignored, levels=np.empty((2, *shape), np.uint8),
+            reason=np.empty(shape, np.uint8),
+        )  # fmt: skip
+        assert out.levels is not None and out.reason is not None
+        _k.choose_pass(self.mask, self.reason, int(Reason.SATURATED), int(Reason.DECODED), choice, out.reason)
+        _k.gather_pass(choice, self.mask, self.u, self.v, self.quality, self.levels, out.u, out.v, out.mask,
+                       out.quality, out.levels)  # fmt: skip
+        return out, choice
 
 
 def pick_per_pixel(images: Sequence[npt.NDArray[np.generic]], choice: npt.NDArray[np.uint8]) -> npt.NDArray[np.generic]:
@@ -231,8 +260,10 @@ class HdrStreamingDecoder:
 
     Each exposure pass has its own :class:`~appliance.reconstruct.decode.StreamingDecoder` (per-pixel sums and
     codes, allocated here, reused after :meth:`reset`); a pushed frame updates its pass's state and is not kept
-    (unless ``borrow_frames``), so the memory is that of one decoder per pass, not of the frames. The fusion
-    (:func:`fuse_exposures`) runs once, in :meth:`finish`.
+    (unless ``borrow_frames``), so the memory is that of one decoder per pass, not of the frames. A pass is
+    finished (its maps written into preallocated per-pass stacks) by the push that completes it, in the pushing
+    thread, while later passes are still being captured; :meth:`finish` then finishes what is left and fuses
+    (:func:`fuse_exposures`' kernels on the stacks, no copies).
 
     Parameters
     ----------
@@ -268,13 +299,20 @@ class HdrStreamingDecoder:
         for k, (_lv, idx) in enumerate(self.passes):
             for j, i in enumerate(idx):
                 self._route[i] = (k, j)
-        self._out = [empty_maps(self.shape) for _ in plans]
+        if len(plans) > 255:
+            raise DecodeError(f"HDR streaming decoder: {len(plans)} passes: at most 255")
+        self._stacks = _PassStacks.empty(len(plans), self.shape)
+        self._out = [self._stacks.maps(k) for k in range(len(plans))]
+        self._pushed = [0] * len(plans)
+        self._finished = [False] * len(plans)
         self.choice: npt.NDArray[np.uint8] | None = None
 
     def reset(self) -> None:
         """Forget the frames pushed so far; buffers are kept for the next scan."""
         for d in self._decoders:
             d.reset()
+        self._pushed = [0] * len(self._decoders)
+        self._finished = [False] * len(self._decoders)
         self.choice = None
 
     def push(self, index: int, frame: npt.NDArray[np.generic]) -> None:
@@ -283,6 +321,13 @@ class HdrStreamingDecoder:
             raise DecodeError(f"HDR streaming decoder: frame index {index}: must be in 0..{len(self._route) - 1}")
         k, j = self._route[index]
         self._decoders[k].push(j, frame)
+        self._pushed[k] += 1
+        if self._pushed[k] == len(self.passes[k][1]):  # the pass is complete: finish it now
+            self._finish_pass(k)
+
+    def _finish_pass(self, k: int) -> None:
+        self._decoders[k].finish(out=self._out[k])
+        self._finished[k] = True
 
     @property
     def borrowed(self) -> frozenset[int]:
@@ -310,7 +355,9 @@ class HdrStreamingDecoder:
                 f"HDR streaming decoder: {len(missing)} frame(s) not pushed (first: {missing[:12]}); push every "
                 "frame of every exposure pass before finish()"
             )
-        done = [d.finish(out=o) for d, o in zip(self._decoders, self._out, strict=True)]
-        fused, self.choice = fuse_exposures(done)
+        for k, done in enumerate(self._finished):
+            if not done:
+                self._finish_pass(k)
+        fused, self.choice = self._stacks.fuse(sorted({s for o in self._out for s in o.ignored}))
         return fused
 
