@@ -103,12 +103,13 @@ class SceneStats:
     over_5sigma: float
     z_rms: float
     dark_completeness: float
+    over_5mm: float = 0.0
 
     def line(self) -> str:
         return (f"{self.points} points, complete {100 * self.completeness:.1f} % (dark patches "
                 f"{100 * self.dark_completeness:.1f} %), RMS {self.rms_mm:.3f} mm, > 1 mm "
-                f"{100 * self.over_1mm:.3f} %, > 5 sigma {100 * self.over_5sigma:.3f} %, |err|/sigma RMS "
-                f"{self.z_rms:.2f}")
+                f"{100 * self.over_1mm:.3f} % (> 5 mm {100 * self.over_5mm:.3f} %), > 5 sigma "
+                f"{100 * self.over_5sigma:.3f} %, |err|/sigma RMS {self.z_rms:.2f}")
 
 
 def stats(cloud: PointCloud, rig: VirtualRig, camera: str = "cam0") -> SceneStats:
@@ -135,6 +136,7 @@ def stats(cloud: PointCloud, rig: VirtualRig, camera: str = "cam0") -> SceneStat
         over_5sigma=float(np.mean(~(z <= 5.0))) if len(z) else 0.0,
         z_rms=float(np.sqrt(np.mean(zf**2))) if zf.size else float("nan"),
         dark_completeness=float(has[dark].mean()) if dark.any() else float("nan"),
+        over_5mm=float(np.mean(err > 5.0)) if len(err) else 0.0,
     )
 
 
@@ -157,11 +159,14 @@ def capture(cfg: AppConfig, folder: Path, name: str, exposures_us: Sequence_[flo
 
 
 def decode(folder: Path, name: str, rig: VirtualRig) -> tuple[SceneStats, str]:
-    """``scan3d decode`` of a captured manifest (the service's reconstruction); statistics and its output."""
+    """``scan3d decode`` of a captured manifest (the service's reconstruction); statistics and its output.
+
+    The sidecar (``--report``) is ``folder/name.json``.
+    """
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
         rc = cli.main(["decode", str(folder / f"{name}.yaml"), "--calibration", str(folder / "cal.yaml"),
-                       "--out", str(folder / f"{name}.ply")])
+                       "--out", str(folder / f"{name}.ply"), "--report", str(folder / f"{name}.json")])
     assert rc == 0, out.getvalue()
     v = read_ply_vertices(folder / f"{name}.ply")
     n = len(v)

@@ -11,6 +11,7 @@ chooses).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -77,6 +78,61 @@ def test_mirror_groove_has_no_ghost_points(folder: Path) -> None:
     # a concave corner whose left face is a mirror (reflectance 0.6): the right face gets a second copy of the
     # pattern from the mirrored projector, and the camera sees the lit right face in the mirror
     s = measure(scene_config("mirror_groove"), folder, "mgroove")
+    print(s.line())
+    assert s.over_1mm <= 1e-3, s.line()
+    assert s.completeness >= 0.85, s.line()
+    _sigma_is_honest(s)
+
+
+# --- both projector axes: each pixel's (u, v) must lie on its epipolar line -------------------------------
+
+
+def _camera_block(folder: Path, name: str) -> tuple[dict[str, object], dict[str, object]]:
+    report = json.loads((folder / f"{name}.json").read_text())
+    return report, report["counts"]["cameras"]["cam0"]
+
+
+def test_default_scene_coded_on_both_axes_loses_nothing_to_the_epipolar_check(folder: Path) -> None:
+    s = measure(scene_config("default", axes="xy"), folder, "default_xy")
+    print(s.line())
+    report, cam = _camera_block(folder, "default_xy")
+    assert s.completeness >= 0.97 and s.over_1mm <= 1e-4, s.line()
+    _sigma_is_honest(s)
+    reasons = cam["reasons"]
+    assert isinstance(reasons, dict)
+    assert "off the epipolar line" not in reasons, reasons
+    assert reasons["decoded"] == cam["points"] and sum(reasons.values()) == cam["pixels"]
+    assert report["warnings"] == []
+
+
+def test_mirror_groove_on_both_axes_drops_ghosts_off_the_epipolar_line_and_says_why(folder: Path) -> None:
+    # one axis: every code meets every camera ray, nothing to check; both: a ghost's (u, v) comes from the
+    # mirrored projector and mostly misses the pixel's epipolar line in the real one
+    one = measure(scene_config("mirror_groove"), folder, "mgroove_x")
+    both = measure(scene_config("mirror_groove", axes="xy"), folder, "mgroove_xy")
+    print("x: ", one.line())
+    print("xy:", both.line())
+    assert both.over_5mm <= 0.5 * one.over_5mm, (one.line(), both.line())  # measured 6.7 % -> 2.4 %
+    report, cam = _camera_block(folder, "mgroove_xy")
+    reasons = cam["reasons"]
+    assert isinstance(reasons, dict) and isinstance(cam["pixels"], int)
+    assert reasons["off the epipolar line"] > 0.02 * cam["pixels"], reasons
+    assert reasons["decoded"] == cam["points"] and sum(reasons.values()) == cam["pixels"]
+    warnings = report["warnings"]
+    assert isinstance(warnings, list)
+    assert any("reflected light" in w and "not for a calibration fault" in w for w in warnings), warnings
+    health = report["calibration_health"]
+    assert isinstance(health, dict) and health["status"] == "ok", health
+
+
+@pytest.mark.xfail(strict=True, reason="issue 25 target not reached on both axes either: measured 11.7 % of the "
+                   "points > 1 mm (2.4 % > 5 mm), 3.7 % beyond 5 sigma, |err|/sigma RMS 20, 85.0 % complete. "
+                   "Left: 9.3 % at 1-5 mm on the matte face, which adds the direct and the mirrored pattern (the "
+                   "blend biases u and v alike, residual across the epipolar line p50 0.7 px: within 5 sigma); "
+                   "2.0 % > 20 mm on the mirror face near the epipolar plane y = 0, which this mirror (normal in "
+                   "the x-z plane, baseline along x) maps onto itself: residual p50 0.8 px, on the line by geometry")
+def test_mirror_groove_on_both_axes_has_no_ghost_points(folder: Path) -> None:
+    s = measure(scene_config("mirror_groove", axes="xy"), folder, "mgroove_xy2")
     print(s.line())
     assert s.over_1mm <= 1e-3, s.line()
     assert s.completeness >= 0.85, s.line()
