@@ -278,6 +278,49 @@ def test_no_service_part_takes_the_whole_daemon() -> None:
     assert not stale, f"no longer import the daemon, remove from KNOWN_DAEMON_IMPORTERS: {sorted(stale)}"
 
 
+SERVICE_DIR = PACKAGE / "service"
+SHARED_FIELDS = {"board"}  # the status board is every part's to write (each its own fields of it)
+
+
+def reaches_into_others(source: str, path: str = "<test>") -> list[str]:
+    """In one service module: a private attribute of anything but ``self``/``cls`` (``svc._make_scanner``), and an
+    assignment to a field of another object held by a part (``self.jobs.abort_reason = ...``), one line each."""
+    found = []
+    for node in ast.walk(ast.parse(source, path)):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            if not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+                found.append(f"{path}:{node.lineno}: {ast.unparse(node)} (a private attribute of another object)")
+        targets = (node.targets if isinstance(node, ast.Assign)
+                   else [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign)) else [])  # fmt: skip
+        for target in targets:
+            for t in ast.walk(target):
+                if (isinstance(t, ast.Attribute) and isinstance(t.value, ast.Attribute)
+                        and isinstance(t.value.value, ast.Name) and t.value.value.id == "self"
+                        and t.value.attr not in SHARED_FIELDS):  # fmt: skip
+                    found.append(f"{path}:{node.lineno}: {ast.unparse(t)} = ... (another part's field: call it)")
+    return found
+
+
+def test_no_service_part_reaches_into_another() -> None:
+    """A part changes another only by calling it, and calls nothing private of it (the daemon included)."""
+    found = [f for p in sorted(SERVICE_DIR.glob("*.py"))
+             for f in reaches_into_others(p.read_text(), p.relative_to(PACKAGE.parent).as_posix())]  # fmt: skip
+    assert not found, "service parts reaching into each other:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize(
+    ("source", "caught"),
+    [
+        ("def f(self):\n    self.svc._make_scanner(1)\n", True),
+        ("def f(self):\n    self.jobs.abort_reason = 'x'\n", True),
+        ("def f(self):\n    self.hardware.changed.set()\n", False),  # a call, not a write
+        ("def f(self):\n    self.board.share = {}\n    self._lamps = None\n", False),
+    ],
+)
+def test_reach_checker(source: str, caught: bool) -> None:
+    assert bool(reaches_into_others(source)) is caught
+
+
 @pytest.mark.parametrize(
     ("importer", "imported", "caught"),
     [

@@ -395,10 +395,10 @@ class Service:
             if not done:
                 log.warning("stopping: scan not finished within %.0f s; aborting it (no file is written)",
                             grace)
-                self.jobs.abort_reason = (f"aborted: the service is stopping and the scan did not finish within "
+                aborted = self.jobs.abort(f"aborted: the service is stopping and the scan did not finish within "
                                           f"service.stop_grace_s = {grace:g} s; no file was written")
-                current.cancel()
-                await asyncio.wait({current}, timeout=ABORT_WAIT_S)  # a wedged driver call may never return
+                if aborted is not None:  # a wedged driver call may never return
+                    await asyncio.wait({aborted}, timeout=ABORT_WAIT_S)
         self.jobs.abort_active(self.jobs.abort_reason)  # the waiting client gets its reply
         if self.jobs.after_scan:  # the last scan's state file (and ground-truth line) are still being written
             await asyncio.wait(set(self.jobs.after_scan), timeout=AFTER_SCAN_GRACE_S)
@@ -443,7 +443,7 @@ class Service:
             b.count("reloads")
             self.output.configure(old, new)
             if self.watcher is not None:
-                self.watcher.poll_s = new.service.config_poll_s
+                self.watcher.set_period(new.service.config_poll_s)
             if self.socket_override is None and new.service.control_socket != old.service.control_socket:
                 if self.control is not None:
                     await self.control.close()

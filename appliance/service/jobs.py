@@ -138,6 +138,16 @@ class ScanJobs:
         self.queue.clear()
         self.board.queue_length = 0
 
+    def abort(self, why: str) -> asyncio.Task[ScanRecord] | None:
+        """Cancel the running scan (stopping, past its grace): its record says ``why``, no file is written.
+        Returns the scan's task to wait for (None when no scan runs)."""
+        current = self.current
+        if current is None or current.done():
+            return None
+        self.abort_reason = why
+        current.cancel()
+        return current
+
     def abort_active(self, why: str) -> None:
         """Resolve the job in hand (if any) as failed with ``why`` (shutdown: its client gets a reply)."""
         job = self.active

@@ -57,6 +57,10 @@ class ConfigWatcher:
         self.stamp = file_stamp(self.path)
         self._lock = asyncio.Lock()
 
+    def set_period(self, poll_s: float) -> None:
+        """Poll every ``poll_s`` seconds from the next wait on (0: never; SIGHUP only)."""
+        self.poll_s = poll_s
+
     async def reload(self, why: str) -> tuple[bool, str]:
         """Load the file now; apply it when valid.
 
