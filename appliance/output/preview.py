@@ -33,6 +33,8 @@ REASON_STYLE: dict[int, tuple[str, tuple[int, int, int]]] = {
     Reason.NOT_MATCHED: ("not matched", (255, 255, 0)),
     Reason.OUT_OF_RANGE: ("out of range", (0, 255, 255)),
     Reason.FILTERED: ("filtered", (0, 140, 255)),
+    Reason.EPIPOLAR: ("off epipolar line", (0, 0, 255)),
+    Reason.MIXED: ("next to clipped", (200, 200, 200)),
 }
 """Per reason a pixel has no point: its legend label and stripe colour (BGR). Shadow is the plain no-point grey
 (nothing to fix); a reason missing here is drawn in :data:`OTHER_REASON_BGR`."""

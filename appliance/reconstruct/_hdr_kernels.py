@@ -2,35 +2,73 @@
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit, prange
 
 import appliance._numba_cache  # noqa: F401  (the cache folder, before any kernel is defined)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def choose_pass(mask, reason, r_sat, r_ok, choice, out_reason):  # type: ignore[no-untyped-def]
-    """Per pixel the brightest pass (highest index) that did not clip it: its result, decoded or not (a darker
-    pass has less signal, so where the brightest unclipped one found no reliable code, no darker one is trusted);
-    the darkest pass ("saturated") where every pass clipped it."""
+def choose_pass(mask, reason, r_sat, r_ok, r_mixed, choice, out_reason):  # type: ignore[no-untyped-def]
+    """Per pixel the brightest pass (highest index) in which neither the pixel nor any of its 8 neighbours
+    clipped: its result, decoded or not (a darker pass has less signal, so no darker one is trusted over its
+    verdict). A pixel that decoded only in passes where a neighbour clipped is ``r_mixed`` (the clipped
+    neighbour's light, of unknown level, reaches it through the lens blur: its code is the neighbour's as much
+    as its own); the darkest pass ("saturated") where every pass clipped the pixel itself."""
     n, h, w = mask.shape
     for y in prange(h):
         for x in range(w):
-            best = 0
+            best = -1
+            own = -1  # the brightest pass that did not clip the pixel itself
             for k in range(n - 1, -1, -1):
-                if reason[k, y, x] != r_sat:
+                if reason[k, y, x] == r_sat:
+                    continue
+                if own < 0:
+                    own = k
+                clean = True
+                for yy in range(max(y - 1, 0), min(y + 2, h)):
+                    for xx in range(max(x - 1, 0), min(x + 2, w)):
+                        if reason[k, yy, xx] == r_sat:
+                            clean = False
+                if clean:
                     best = k
                     break
-            choice[y, x] = best
-            out_reason[y, x] = r_ok if mask[best, y, x] else reason[best, y, x]
+            if own < 0:
+                choice[y, x] = 0
+                out_reason[y, x] = reason[0, y, x]
+                continue
+            decoded_unclean = False
+            for k in range(own, best, -1):  # passes brighter than the clean one, where a neighbour clipped
+                if mask[k, y, x]:
+                    decoded_unclean = True
+            if best < 0:
+                choice[y, x] = own
+                out_reason[y, x] = r_mixed if mask[own, y, x] else reason[own, y, x]
+            else:
+                choice[y, x] = best
+                if mask[best, y, x]:
+                    out_reason[y, x] = r_ok
+                else:
+                    out_reason[y, x] = r_mixed if decoded_unclean else reason[best, y, x]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def gather_pass(choice, mask, u, v, q, lev, ou, ov, omask, oq, olev):  # type: ignore[no-untyped-def]
-    """Copy each pixel's maps from the pass ``choice`` names."""
+def gather_pass(choice, reason, r_ok, mask, u, v, q, lev, ou, ov, omask, oq, olev):  # type: ignore[no-untyped-def]
+    """Copy each pixel's maps from the pass ``choice`` names; undecoded (NaN, 0) where the fused ``reason`` is
+    not ``r_ok``."""
     _, h, w = mask.shape
+    nan = np.float32(np.nan)
     for y in prange(h):
         for x in range(w):
             k = choice[y, x]
+            if reason[y, x] != r_ok:
+                ou[y, x] = nan
+                ov[y, x] = nan
+                omask[y, x] = False
+                oq[y, x] = 0.0
+                olev[0, y, x] = 0
+                olev[1, y, x] = 0
+                continue
             ou[y, x] = u[k, y, x]
             ov[y, x] = v[k, y, x]
             omask[y, x] = mask[k, y, x]

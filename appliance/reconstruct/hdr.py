@@ -3,12 +3,19 @@ per pixel.
 
 Each exposure is a full pass of the sequence and is decoded on its own (a clipped sample carries no code, see
 :mod:`appliance.reconstruct.decode`), so a pixel decodes in every pass where its light is neither clipped nor
-too dark. Per pixel the fusion takes the brightest pass that did not clip it: the longest exposure whose
-needed samples are all below full scale, which has the most contrast over the read noise. Its coordinates,
+too dark. Per pixel the fusion takes the brightest *clean* pass: the longest exposure in which neither the
+pixel nor any of its 8 neighbours clipped, which has the most contrast over the read noise. Its coordinates,
 quality (DN of that pass, so the per-point error model still applies) and grey value are taken whole, or, where
 that pass found no reliable code, its reason: a darker pass has less signal, so it is not trusted over the
-brighter one's verdict. Nothing is averaged across passes, so no pass's bias leaks into another's. A pixel
-every pass clipped is ``saturated``.
+brighter one's verdict. Nothing is averaged across passes, so no pass's bias leaks into another's.
+
+Why the neighbours: at a bright-dark edge (albedo 0.95 beside 0.03) the lens blur carries the bright side's
+light into the dark pixel; where the bright side clips, its true level is unknown and can be tens of times the
+dark pixel's own, so the dark pixel's code is the neighbour's more than its own. Measured on the dark-and-shiny
+scene with tune's three exposures: taking the brightest pass that did not clip the pixel itself left 1.27 % of
+the points beyond 5 sigma (|err|/sigma RMS 1.96), all of them within 1.5 px of such an edge; with clean passes,
+0.11 % (RMS 0.97). A pixel that decoded only where a neighbour clipped is ``mixed`` ("next to a clipped pixel");
+one every pass clipped is ``saturated``.
 """
 
 from __future__ import annotations
@@ -63,8 +70,9 @@ def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDAr
     Returns
     -------
     maps : DecodedMaps
-        Per pixel the brightest pass that did not clip it (``u``, ``v``, ``mask``, ``quality`` in that pass's DN,
-        ``levels``), and the fused ``reason``.
+        Per pixel the brightest pass that clipped neither it nor its 8 neighbours (``u``, ``v``, ``mask``,
+        ``quality`` in that pass's DN, ``levels``), and the fused ``reason`` (``MIXED`` where the pixel decoded only
+        in passes with a clipped neighbour: undecoded here).
     choice : ndarray, shape (H, W), uint8
         Index of the pass each pixel's result came from (the pass its reason came from where undecoded).
     """
@@ -119,9 +127,10 @@ class _PassStacks:
             reason=np.empty(shape, np.uint8),
         )  # fmt: skip
         assert out.levels is not None and out.reason is not None
-        _k.choose_pass(self.mask, self.reason, int(Reason.SATURATED), int(Reason.DECODED), choice, out.reason)
-        _k.gather_pass(choice, self.mask, self.u, self.v, self.quality, self.levels, out.u, out.v, out.mask,
-                       out.quality, out.levels)  # fmt: skip
+        _k.choose_pass(self.mask, self.reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED),
+                       choice, out.reason)  # fmt: skip
+        _k.gather_pass(choice, out.reason, int(Reason.DECODED), self.mask, self.u, self.v, self.quality,
+                       self.levels, out.u, out.v, out.mask, out.quality, out.levels)  # fmt: skip
         return out, choice
 
 

@@ -37,6 +37,9 @@ class Reason(IntEnum):
     #: both projector axes coded, but the (u, v) pair lies off the pixel's epipolar line by more than the code
     #: noise allows: the light came another way (a mirror-like surface re-projecting the pattern)
     EPIPOLAR = 8
+    #: multi-exposure: the pixel decoded only in passes where a neighbour clipped; that neighbour's light (of
+    #: unknown level) reaches it through the lens blur, so its code is partly the neighbour's (a bright-dark edge)
+    MIXED = 9
 
 
 #: Plain-words name of each reason (sidecar keys, reports).
@@ -50,6 +53,7 @@ REASON_NAMES: dict[int, str] = {
     Reason.OUT_OF_RANGE: "out of range",
     Reason.FILTERED: "filtered",
     Reason.EPIPOLAR: "off the epipolar line",
+    Reason.MIXED: "next to a clipped pixel",
 }
 
 
