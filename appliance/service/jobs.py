@@ -312,7 +312,7 @@ class ScanJobs:
                            cameras: list[str]) -> None:
         """After a scan: the share's state, the state file, and (a demonstration aid) the ground-truth error."""
         out = self.files
-        await out.after_scan()
+        await out.scan_written()
         if cloud is not None and virtual is not None:
             accuracy = await asyncio.to_thread(importlib.import_module, "appliance.sim.accuracy")
             report = await out.call(accuracy.compare_to_ground_truth, cloud, virtual, cameras)

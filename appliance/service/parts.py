@@ -188,7 +188,7 @@ class Files(Protocol):
         """The next scan number (persisted before it is used)."""
         ...
 
-    async def after_scan(self) -> None:
+    async def scan_written(self) -> None:
         """A scan's files are written: the share's status and the state file, the scan's memory back."""
         ...
 

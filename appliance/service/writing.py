@@ -80,7 +80,7 @@ class ScanOutput:
                 self.board.share = await self.call(self.writer.status)
                 self.board.changed()
 
-    async def after_scan(self) -> None:
+    async def scan_written(self) -> None:
         """A scan's files are written: look at the share again, save the state file, give the scan's
         temporaries back to the system (all in the writer thread, after the files)."""
         self.board.share = await self.call(self.writer.status)
