@@ -28,6 +28,7 @@ import yaml
 from appliance.config import AppConfig
 from appliance.config.loader import parse_config
 from appliance.errors import ConfigError, HardwareError
+from appliance.hardware.base import ExposureControl, exposure_control
 from appliance.output.atomic import write_bytes_atomic
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
@@ -162,6 +163,7 @@ async def probe(cfg: AppConfig, exposures_us: tuple[float, ...]) -> Probe:
     full: dict[str, float] = {}
     try:
         bufs: dict[str, npt.NDArray[Any]] = {}
+        controls: dict[str, ExposureControl] = {}
         for name, cam in rig.cameras.items():
             info = await cam.open()
             bits = pixel_format_bits(info.pixel_format)
@@ -169,28 +171,37 @@ async def probe(cfg: AppConfig, exposures_us: tuple[float, ...]) -> Probe:
             bufs[name] = np.zeros((2, info.height, info.width), np.uint8 if bits == 8 else np.uint16)
             white[name] = np.zeros((len(exposures_us), info.height, info.width))
             black[name] = np.zeros_like(white[name])
-            if not callable(getattr(cam, "set_exposure", None)):
+            control = exposure_control(cam)
+            if control is None:
                 raise HardwareError(f"camera {name!r}: cannot set its exposure between passes; scan3d tune "
-                                    "needs one that can (sim; aravis once it supports it)")
+                                    "needs one that can (sim, aravis, uvc with manual exposure)")
+            controls[name] = control
         await rig.projector.open()
         await rig.projector.load(seq)
         for k, exposure in enumerate(exposures_us):
             for name, cam in rig.cameras.items():
-                await cam.set_exposure(exposure)  # type: ignore[attr-defined]
+                await controls[name].set_exposure(exposure)
                 await cam.arm(2, bufs[name])
             await rig.projector.start()
             software = [c for c in rig.cameras.values() if c.needs_software_trigger]
             for i in range(2 if software else 0):
                 await asyncio.gather(*(c.trigger(i) for c in software))
             await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
-            for name, buf in bufs.items():
-                white[name][k] = buf[0]
-                black[name][k] = buf[1]
+            # the copies into float64 take ~10 ms a megapixel: off the event loop
+            await asyncio.to_thread(_store_probe, bufs, white, black, k)
     finally:
         for cam in rig.cameras.values():
             await cam.close()
         await rig.projector.close()
     return Probe(tuple(exposures_us), white, black, full)
+
+
+def _store_probe(bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray[np.float64]],
+                 black: dict[str, npt.NDArray[np.float64]], k: int) -> None:
+    """Copy each camera's probe frames (white, black) into pass ``k`` of ``white`` / ``black``."""
+    for name, buf in bufs.items():
+        white[name][k] = buf[0]
+        black[name][k] = buf[1]
 
 
 def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_ms: float,
