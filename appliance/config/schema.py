@@ -47,6 +47,15 @@ class SequenceConfig(_Strict):
     steps: int = Field(4, ge=3, le=16, description="Phase steps per period.")
     stripe_px: int = Field(1, ge=1, le=256, description="Gray stripe width for kind 'gray' (projector px).")
     inverses: bool = Field(True, description="Project the inverse of every Gray bit.")
+    code: Literal["gray", "xor"] = Field(
+        "gray",
+        description="Gray bits as plain Gray code, or as XOR codes: every bit above xor_base_bit projected XOR "
+        "that base bit, so every pattern stays fine-striped and interreflected light splits evenly between a "
+        "pattern and its inverse (the same frame count).",
+    )
+    xor_base_bit: int = Field(
+        0, ge=0, le=8, description="For code 'xor': the Gray bit the coarser bits are XORed with (0 = the finest)."
+    )
     exposures_us: tuple[int, ...] = Field(
         (),
         max_length=8,

@@ -8,13 +8,15 @@ from appliance.patterns.sequence import Sequence, exposure_capture, gray_code_se
 
 def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
     """The configured pattern sequence for a ``width`` x ``height`` projector (px)."""
+    xor_base = cfg.xor_base_bit if cfg.code == "xor" else None
     if cfg.kind == "gray":
-        return gray_code_sequence(width, height, cfg.axes, stripe=cfg.stripe_px, inverses=cfg.inverses)
+        return gray_code_sequence(width, height, cfg.axes, stripe=cfg.stripe_px, inverses=cfg.inverses,
+                                  xor_base=xor_base)
     if len(cfg.periods_px) == 1:
         return gray_phase_sequence(width, height, cfg.axes, period=cfg.periods_px[0], steps=cfg.steps,
-                                   inverses=cfg.inverses)
+                                   inverses=cfg.inverses, xor_base=xor_base)
     return gray_phase_sequence(width, height, cfg.axes, periods=cfg.periods_px, steps=cfg.steps,
-                               inverses=cfg.inverses)
+                               inverses=cfg.inverses, xor_base=xor_base)
 
 
 def build_capture(

@@ -241,6 +241,8 @@ def frame_to_dict(frame: Frame) -> dict[str, Any]:
         d: dict[str, Any] = {"pattern": "gray", "axis": frame.axis, "bit": frame.bit, "inverted": frame.inverted}
         if frame.stripe != 1:
             d["stripe"] = frame.stripe
+        if frame.xor_with is not None:
+            d["xor_with"] = frame.xor_with
         return d
     if isinstance(frame, PhaseFrame):
         d = {
@@ -262,7 +264,7 @@ def frame_to_dict(frame: Frame) -> dict[str, Any]:
 
 #: Keys any frame may carry (SEQUENCE-MANIFEST.md): its images, the camera exposure and projector intensity.
 _ANY_KEYS = {"pattern", "images", "exposure_us", "intensity"}
-_GRAY_KEYS = {"axis", "bit", "inverted", "stripe"} | _ANY_KEYS
+_GRAY_KEYS = {"axis", "bit", "inverted", "stripe", "xor_with"} | _ANY_KEYS
 _PHASE_KEYS = {"axis", "period", "step", "steps", "offset"} | _ANY_KEYS
 
 
@@ -279,6 +281,7 @@ def frame_from_dict(d: Mapping[str, Any], where: str) -> Frame:
                 bit=_whole(_need(d, "bit", where), "bit", where, 0, 30),
                 inverted=_flag(d.get("inverted", False), "inverted", where),
                 stripe=_whole(d.get("stripe", 1), "stripe", where, 1, 1 << 20),
+                xor_with=None if d.get("xor_with") is None else _whole(d["xor_with"], "xor_with", where, 0, 30),
             )
         if kind == "phase":
             _check_keys(d, _PHASE_KEYS, where)

@@ -27,7 +27,10 @@ def frame_profile(frame: Frame, size_px: int) -> npt.NDArray[np.float64]:
     if isinstance(frame, GrayFrame):
         code = c // frame.stripe
         gray = code ^ (code >> 1)
-        bit = ((gray >> frame.bit) & 1).astype(np.float64)
+        lit = gray >> frame.bit
+        if frame.xor_with is not None:  # a logical XOR code: the bit XOR the base bit
+            lit = lit ^ (gray >> frame.xor_with)
+        bit = (lit & 1).astype(np.float64)
         return np.asarray(1.0 - bit if frame.inverted else bit, dtype=np.float64)
     if isinstance(frame, PhaseFrame):
         arg = 2 * np.pi * c / frame.period + frame.offset + 2 * np.pi * frame.step / frame.steps

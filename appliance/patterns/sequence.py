@@ -21,13 +21,16 @@ Axis = Literal["x", "y"]
 class GrayFrame:
     """Bit ``bit`` (0 = least significant) of the reflected Gray code of ``floor(c / stripe)``.
 
-    A projector pixel is lit where the bit is 1 (0 when ``inverted``).
+    A projector pixel is lit where the bit is 1 (0 when ``inverted``). With ``xor_with`` the frame shows bit
+    ``bit`` XOR bit ``xor_with`` instead (a logical XOR code: every pattern keeps the base bit's high spatial
+    frequency, so indirect light splits evenly between a pattern and its inverse).
     """
 
     axis: Axis
     bit: int
     inverted: bool = False
     stripe: int = 1
+    xor_with: int | None = None
     pattern: Literal["gray"] = field(default="gray", init=False)
 
     def __post_init__(self) -> None:
@@ -37,6 +40,10 @@ class GrayFrame:
             raise PatternError(f"gray frame: bit = {self.bit}: must be in 0..30")
         if self.stripe < 1:
             raise PatternError(f"gray frame: stripe = {self.stripe}: must be >= 1 projector pixel")
+        if self.xor_with is not None and not (0 <= self.xor_with <= 30 and self.xor_with != self.bit):
+            raise PatternError(
+                f"gray frame: xor_with = {self.xor_with}: must be another bit (0..30, not {self.bit}) of the code"
+            )
 
 
 @dataclass(frozen=True)
@@ -159,9 +166,11 @@ class Sequence:
                 bits = {f.bit for f in grays}
                 inv = any(f.inverted for f in grays)
                 stripes = sorted({f.stripe for f in grays})
+                bases = sorted({f.xor_with for f in grays if f.xor_with is not None})
                 parts.append(
                     f"gray {axis} {len(bits)} bits{' +inv' if inv else ''}"
                     + (f" stripe {stripes[0]}" if stripes != [1] else "")
+                    + (f" xor bit {bases[0]}" if len(bases) == 1 else (f" xor bits {bases}" if bases else ""))
                 )
             periods = sorted(
                 {(f.period, f.steps) for f in self.frames if isinstance(f, PhaseFrame) and f.axis == axis}
@@ -183,6 +192,7 @@ def gray_code_frames(
     stripe: int = 1,
     bits: int | None = None,
     inverses: bool = True,
+    xor_base: int | None = None,
 ) -> tuple[Frame, ...]:
     """Gray code frames for one axis, most significant bit first, each optionally followed by its inverse.
 
@@ -198,13 +208,22 @@ def gray_code_frames(
         Number of bits; default: enough for every stripe.
     inverses : bool
         Add the inverse of each bit (recommended: robust thresholds and contrast rejection).
+    xor_base : int, optional
+        XOR codes (Gupta et al. 2011): every bit above ``xor_base`` is projected XOR the base bit, which is
+        projected plain (bits below it are finer than the base and stay plain). None: the plain Gray code.
     """
     n = gray_bits_needed(size_px, stripe) if bits is None else bits
+    if xor_base is not None and not 0 <= xor_base < n - 1:
+        raise PatternError(
+            f"gray code axis {axis}: xor base bit {xor_base}: must be in 0..{n - 2} (the code has {n} bits; "
+            "the base needs at least one coarser bit to XOR)"
+        )
     out: list[Frame] = []
     for bit in range(n - 1, -1, -1):
-        out.append(GrayFrame(axis, bit, False, stripe))
+        xor = xor_base if xor_base is not None and bit > xor_base else None
+        out.append(GrayFrame(axis, bit, False, stripe, xor))
         if inverses:
-            out.append(GrayFrame(axis, bit, True, stripe))
+            out.append(GrayFrame(axis, bit, True, stripe, xor))
     return tuple(out)
 
 
@@ -214,15 +233,18 @@ def phase_shift_frames(axis: Axis, period: float, steps: int = 4, offset: float 
 
 
 def gray_code_sequence(
-    width: int, height: int, axes: str = "x", *, stripe: int = 1, inverses: bool = True
+    width: int, height: int, axes: str = "x", *, stripe: int = 1, inverses: bool = True,
+    xor_base: int | None = None,
 ) -> Sequence:
-    """White, black, then a full Gray code (with inverses) on each of ``axes`` ('x', 'y' or 'xy')."""
+    """White, black, then a full Gray code (with inverses) on each of ``axes`` ('x', 'y' or 'xy');
+    ``xor_base``: XOR codes on that base bit (see :func:`gray_code_frames`)."""
     frames: list[Frame] = [WhiteFrame(), BlackFrame()]
     for axis in axes:
         if axis not in ("x", "y"):
             raise PatternError(f"gray_code_sequence: axes = {axes!r}: use 'x', 'y' or 'xy'")
         size = width if axis == "x" else height
-        frames.extend(gray_code_frames(size, axis, stripe=stripe, inverses=inverses))  # type: ignore[arg-type]
+        frames.extend(gray_code_frames(size, axis, stripe=stripe, inverses=inverses,  # type: ignore[arg-type]
+                                       xor_base=xor_base))
     return Sequence(width, height, tuple(frames))
 
 
@@ -235,6 +257,7 @@ def gray_phase_sequence(
     steps: int = 4,
     inverses: bool = True,
     periods: tuple[int, ...] | list[int] | None = None,
+    xor_base: int | None = None,
 ) -> Sequence:
     """The standard sequence: white, black, complementary Gray code (stripe = period / 2), phase shift.
 
@@ -257,6 +280,8 @@ def gray_phase_sequence(
         Project the inverse of every Gray bit.
     periods : sequence of int, optional
         Several fringe periods (projector pixels, each even, >= 4), projected coarsest first.
+    xor_base : int, optional
+        Project the Gray code as XOR codes on this base bit (see :func:`gray_code_frames`).
     """
     chosen = (period,) if periods is None else tuple(int(p) for p in periods)
     if not chosen:
@@ -272,7 +297,8 @@ def gray_phase_sequence(
         if axis not in ("x", "y"):
             raise PatternError(f"gray_phase_sequence: axes = {axes!r}: use 'x', 'y' or 'xy'")
         size = width if axis == "x" else height
-        frames.extend(gray_code_frames(size, axis, stripe=ordered[0] // 2, inverses=inverses))  # type: ignore[arg-type]
+        frames.extend(gray_code_frames(size, axis, stripe=ordered[0] // 2, inverses=inverses,  # type: ignore[arg-type]
+                                       xor_base=xor_base))
         for p in ordered:
             frames.extend(phase_shift_frames(axis, p, steps))  # type: ignore[arg-type]
     return Sequence(width, height, tuple(frames))

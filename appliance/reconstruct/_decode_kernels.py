@@ -12,8 +12,11 @@ Plan tables (built by ``decode.plan_decode``):
   or without white and black to the mean of the reference phase set ``mean_idx`` (frame indices).
   Each bit's contrast ``|d|`` is kept per pixel (uint16, clipped at 65535) for the final step, which
   finds the weak bits against the pixel's own contrast floor and drops the finest unresolved ones.
-- ``axis_tab`` int64 (2, 8): coded, has Gray, stripe (px), stripe count, tolerate one weak bit, size (px),
-  edge-aware unwrapping (a phase set with source -3), Gray bits.
+- ``axis_tab`` int64 (2, 10): coded, has Gray, stripe (px), stripe count, tolerate one weak bit, size (px),
+  edge-aware unwrapping (a phase set with source -3), Gray bits, XOR base bit (-1: plain Gray code), mask of
+  the bits projected XOR the base. An XOR axis folds its bits as projected (bit b XOR the base) and un-XORs
+  them in the final step; it never has edge-aware unwrapping, so its ``m1`` state carries the faint mask
+  (:func:`_fold_faint`) instead of the edge keys.
 - ``ph_tab`` int64 (S, 4): axis, steps, source (-2 axis centre, -1 Gray stripe centre, -3 Gray edge-aware,
   1 previous set), first row
   in ``ph_idx`` / ``ph_sin`` / ``ph_cos``; sets ordered coarse to fine within an axis.
@@ -42,6 +45,11 @@ FALLBACK_PERIOD_RATIO = 4.0
 #: stripe centre), with this margin for blur and noise, in stripes; farther means the Gray code and the phase
 #: saw different light (a second copy of the pattern by interreflection, a mixed pixel): the pixel is dropped.
 CONSISTENCY_MARGIN = 0.25
+#: XOR codes: at an edge of the base bit every XOR bit has an edge too, so all of them are weak at once. Such a
+#: pixel keeps its code (counted as one weak bit, the base's) where the base and every XOR bit still reach this
+#: fraction of the Gray contrast floor: their signs then agree on the side of the edge, and bit b = its XOR
+#: frame's bit XOR the base's is right on either side. Fainter, the signs are noise and the pixel is dropped.
+XOR_FAINT_RATIO = 0.5
 _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
@@ -180,7 +188,55 @@ def _fold_keys(c, bit, m1, m2):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+def _fold_faint(c, bit, relg, keep):  # type: ignore[no-untyped-def]
+    """XOR axes: clear bit ``bit`` of ``keep`` (initially :data:`BIG`) where the contrast ``c`` is below
+    :data:`XOR_FAINT_RATIO` of the Gray floor ``relg``."""
+    off = ~(np.uint32(1) << np.uint32(bit))
+    every = np.uint32(0xFFFFFFFF)
+    ratio = np.float32(XOR_FAINT_RATIO)
+    for x in range(c.shape[0]):
+        keep[x] &= every if c[x] >= ratio * relg[x] else off
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _faint_bit(axis_tab, a, bit):  # type: ignore[no-untyped-def]
+    """Whether Gray bit ``bit`` of axis ``a`` is the XOR base or projected XOR it (its contrast folds into the faint
+    mask)."""
+    base = axis_tab[a, 8]
+    return base >= 0 and (bit == base or ((axis_tab[a, 9] >> bit) & 1) != 0)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _xor_weak(weak, keep, base, xmask):  # type: ignore[no-untyped-def]
+    """XOR axes: where the base bit is weak (an edge of the base, where every XOR bit flips too) and no bit of the
+    base and XOR bits is faint, the XOR bits' weakness is the base's: only the base counts as weak. Where one of
+    them is faint the pixel fails (every bit weak): a wrong base sign would flip every XOR bit at once."""
+    bb = np.uint32(1) << np.uint32(base)
+    xm = np.uint32(xmask)
+    need = np.uint32(bb | xm)
+    every = np.uint32(0xFFFFFFFF)
+    for x in range(weak.shape[0]):
+        w = np.uint32(weak[x])
+        edge = (w & bb) != np.uint32(0)
+        clear = (np.uint32(keep[x]) & need) == need
+        weak[x] = (np.uint32(w & ~xm) if clear else every) if edge else w
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _xor_code(code, fl, base, xmask, out, ok):  # type: ignore[no-untyped-def]
+    """The Gray code of an XOR axis: its XOR bits XOR the base bit; a pixel whose base bit was dropped (finer than
+    the optics resolve: ``fl`` > base) cannot un-XOR and fails."""
+    b = np.uint32(base)
+    xm = np.uint32(xmask)
+    zero = np.uint32(0)
+    for x in range(code.shape[0]):
+        c = np.uint32(code[x])
+        out[x] = c ^ (xm if ((c >> b) & _U1) != zero else zero)
+        ok[x] = ok[x] & (fl[x] <= b)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2, faint=False):  # type: ignore[no-untyped-def]
     """Batch: a bit's signed contrast row ``d`` into the code and the axis' gate state (``cf`` scratch)."""
     on = np.uint32(1 << bit)
     off = np.uint32(0)
@@ -191,16 +247,20 @@ def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2):  # type: ignore[no-
     _fold_weak(cf, bit, relg, weak, qa)
     if keys:
         _fold_keys(cf, bit, m1, m2)
+    elif faint:
+        _fold_faint(cf, bit, relg, m1)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_cst(cst, bit, relg, keys, cf, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+def _fold_cst(cst, bit, relg, keys, cf, weak, qa, m1, m2, faint=False):  # type: ignore[no-untyped-def]
     """Streaming: a bit's stored contrasts (uint8 or uint16) into the axis' gate state, as :func:`_fold_d` does."""
     for x in range(cst.shape[0]):
         cf[x] = np.float32(cst[x])
     _fold_weak(cf, bit, relg, weak, qa)
     if keys:
         _fold_keys(cf, bit, m1, m2)
+    elif faint:
+        _fold_faint(cf, bit, relg, m1)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -416,7 +476,7 @@ def _unlit_outside(u, v, mask, quality, lev0, lev1, c0, c1):  # type: ignore[no-
 @njit(nogil=True, cache=True, error_model="numpy")
 def _finish_row(  # type: ignore[no-untyped-def]
     lit_row, code, weak, qg, m1, m2, ssum, csum, quantum, axis_tab, ph_tab, ph_period, finest, u_row, v_row,
-    mask_row, quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1,
+    mask_row, quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1, xc_row,
 ):  # fmt: skip
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
@@ -426,7 +486,8 @@ def _finish_row(  # type: ignore[no-untyped-def]
     (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits; ``ssum``/``csum`` (S, W) the phase sums,
     float64, or int32 in units of ``quantum`` (1.0 for float64);
     ``u_row``, ``v_row``, ``mask_row``, ``quality_row`` (W,) out; ``lev0_row``/``lev1_row`` uint8 (W,) out: Gray
-    bits dropped on x / y; ``scratch`` float32 (10, W), ``fl_row`` uint32 (W,), ``ok_row`` bool (W,) are scratch.
+    bits dropped on x / y; ``scratch`` float32 (10, W), ``fl_row`` uint32 (W,), ``ok_row`` bool (W,) are scratch;
+    ``xc_row`` uint32 (W,) holds an XOR axis' Gray code (``code`` stays as folded: streaming state).
     """
     lit = lit_row[c0:c1]
     fl = fl_row[c0:c1]
@@ -452,7 +513,13 @@ def _finish_row(  # type: ignore[no-untyped-def]
         ca = code[a, c0:c1]
         if axis_tab[a, 1] != 0:
             tol = 1 if axis_tab[a, 4] != 0 else 0
+            base = axis_tab[a, 8]
+            if base >= 0:
+                _xor_weak(weak[a, c0:c1], m1[a, c0:c1], base, axis_tab[a, 9])
             _gray_level(weak[a, c0:c1], tol, axis_tab[a, 7], finest, fl, ok)
+            if base >= 0:
+                _xor_code(code[a, c0:c1], fl, base, axis_tab[a, 9], xc_row[c0:c1], ok)
+                ca = xc_row[c0:c1]
             _gray_index(ca, fl, stripe, axis_tab[a, 3], cg, ok)
             qa = qg[a, c0:c1]  # the weakest contrasts, lowered in place by the phase gates (qg is per-row state)
         else:
@@ -647,7 +714,7 @@ def _gray_row(  # type: ignore[no-untyped-def]
             else:
                 _mean_diff(one, msum, nmean, sign, d)
         _fold_d(d, bit, relg, axis_tab[a, 6] != 0, cf, code[a, c0:c1], weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1],
-                m2[a, c0:c1])
+                m2[a, c0:c1], _faint_bit(axis_tab, a, bit))
 
 
 _N5 = np.uint16(5)
@@ -779,6 +846,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
         csum = np.empty((nset, w), ph_sin.dtype)
         scratch = np.empty((10, w), np.float32)
         fl = np.empty(w, np.uint32)
+        xc = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
@@ -821,7 +889,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
             _phase_row(frames, y, c0, c1, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
                 lit, code, weak, qg, m1, m2, ssum, csum, quantum, axis_tab, ph_tab, ph_period, finest,
-                u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1,
+                u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc,
             )  # fmt: skip
 
 
@@ -927,6 +995,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
         qg = np.empty((2, w), np.float32)
         scratch = np.empty((10, w), np.float32)
         fl = np.empty(w, np.uint32)
+        xc = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
         lit = np.empty(w, np.bool_)
         vnone = np.empty(w, np.float32)
@@ -952,10 +1021,11 @@ def stream_finish(  # type: ignore[no-untyped-def]
             for g in range(gray_tab.shape[0]):
                 a = gray_tab[g, 0]
                 _fold_cst(cst[g, y, c0:c1], gray_tab[g, 1], scratch[8, c0:c1], axis_tab[a, 6] != 0, cf[c0:c1],
-                          weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1])  # fmt: skip
+                          weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1],
+                          _faint_bit(axis_tab, a, gray_tab[g, 1]))  # fmt: skip
             _finish_row(
                 lit, code[:, y, :], weak, qg, m1, m2, ssr, csr, quantum, axis_tab, ph_tab, ph_period,
-                finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1,
+                finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc,
             )  # fmt: skip
 
 

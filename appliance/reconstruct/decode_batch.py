@@ -95,8 +95,10 @@ def _nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
 
 
 def _narrow(plan: DecodePlan, dtype: np.dtype[Any]) -> bool:
-    """8-bit frames, at most 15 Gray bits per axis, no mean thresholding: Gray bits fold in 16-bit lanes."""
-    return bool(dtype == np.uint8 and all(g.bits <= 15 for g in plan.gray) and not plan.mean_frames)
+    """8-bit frames, at most 15 Gray bits per axis, no mean thresholding, no XOR codes (whose faint mask the
+    16-bit lanes do not fold): Gray bits fold in 16-bit lanes."""
+    return bool(dtype == np.uint8 and all(g.bits <= 15 and g.xor_base < 0 for g in plan.gray)
+                and not plan.mean_frames)
 
 
 #: Clipped-map flags that drop a decoded pixel: a clipped phase sample biases its coordinate by up to a

@@ -99,12 +99,17 @@ DEFAULT_PARAMS = DecodeParams()
 
 @dataclass(frozen=True)
 class GrayAxisPlan:
-    """The Gray code of one axis: ``frames[bit] = (pattern index, inverse index)``, -1 where absent."""
+    """The Gray code of one axis: ``frames[bit] = (pattern index, inverse index)``, -1 where absent.
+
+    ``xor_bits`` are projected XOR bit ``xor_base`` (a logical XOR code; -1 and () for a plain Gray code).
+    """
 
     axis: Axis
     stripe: int
     bits: int
     frames: tuple[tuple[int, int], ...]
+    xor_base: int = -1
+    xor_bits: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -132,8 +137,9 @@ class DecodeTables:
         Frame indices of white and black (-1: absent).
     gray_tab : ndarray, shape (G, 4), int64
         Per Gray row: axis (0 x, 1 y), bit, pattern frame, inverse frame (-1: absent).
-    axis_tab : ndarray, shape (2, 8), int64
-        Per axis: coded, Gray-coded, stripe, stripe count, >= 2 bits, axis size, edge from weak bit, bits.
+    axis_tab : ndarray, shape (2, 10), int64
+        Per axis: coded, Gray-coded, stripe, stripe count, >= 2 bits, axis size, edge from weak bit, bits,
+        XOR base bit (-1: plain Gray code), mask of the bits projected XOR the base.
     ph_tab : ndarray, shape (S, 4), int64
         Per phase set: axis, steps, unwrapping source (1 coarser set, -1 Gray, -2 axis, -3 Gray edge), first row.
     ph_period : ndarray, shape (S,), float64
@@ -232,7 +238,8 @@ def _ranges(values: Iterable[int]) -> str:
 
 def _describe(frame: Any) -> str:
     if isinstance(frame, GrayFrame):
-        return f"gray {frame.axis} bit {frame.bit}{' inverted' if frame.inverted else ''}"
+        xor = f" xor bit {frame.xor_with}" if frame.xor_with is not None else ""
+        return f"gray {frame.axis} bit {frame.bit}{xor}{' inverted' if frame.inverted else ''}"
     if isinstance(frame, PhaseFrame):
         return f"phase {frame.axis} period {frame.period:g} step {frame.step}/{frame.steps}"
     return str(frame.pattern)
@@ -280,6 +287,14 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
         elif isinstance(f, BlackFrame):
             blacks.append(i)
         elif isinstance(f, GrayFrame):
+            other = gray[f.axis].get((f.bit, f.inverted))
+            if other is not None and sequence.frames[other].xor_with is None:  # type: ignore[union-attr]
+                # the plain frame of a bit decodes it; an XOR frame of the same bit is left over
+                ignored.append(f"frame {i}: {_describe(f)}: the plain frame {other} of the bit is used; unused")
+                continue
+            if other is not None:
+                ignored.append(f"frame {other}: {_describe(sequence.frames[other])}: the plain frame {i} of "
+                               "the bit is used; unused")
             gray[f.axis][(f.bit, f.inverted)] = i
             stripes[f.axis].add(f.stripe)
         elif isinstance(f, PhaseFrame):
@@ -332,9 +347,18 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
             )
             continue
         frames_of_bit: list[tuple[int, int]] = []
+        xor_of: dict[int, int] = {}  # bit -> the base it is projected XOR with
         for b in range(needed):
             pos = gray[axis].get((b, False), -1)
             neg = gray[axis].get((b, True), -1)
+            with_ = {sequence.frames[i].xor_with for i in (pos, neg) if i >= 0}  # type: ignore[union-attr]
+            if len(with_) > 1:
+                problems.append(
+                    f"gray code axis {axis}: bit {b}'s pattern and inverse disagree on xor_with "
+                    f"({sorted(with_, key=str)}); give both frames the same xor_with"
+                )
+            elif with_ and (k := next(iter(with_))) is not None:
+                xor_of[b] = int(k)
             if (pos < 0 or neg < 0) and not has_wb:
                 if mean_key is None:
                     problems.append(
@@ -344,7 +368,20 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
                     )
                 needs_mean = True
             frames_of_bit.append((pos, neg))
-        gray_plans[axis] = GrayAxisPlan(axis, stripe, needed, tuple(frames_of_bit))
+        bases = sorted(set(xor_of.values()))
+        if len(bases) > 1:
+            problems.append(
+                f"gray code axis {axis}: frames are XORed with different bits {bases}; use one base bit per axis"
+            )
+            continue
+        if bases and (bases[0] >= needed or bases[0] in xor_of):
+            problems.append(
+                f"gray code axis {axis}: xor_with = {bases[0]}: the base bit must be one of the code's "
+                f"{needed} bits, projected plain (without xor_with); add its plain frames or fix the manifest"
+            )
+            continue
+        gray_plans[axis] = GrayAxisPlan(axis, stripe, needed, tuple(frames_of_bit),
+                                        bases[0] if bases else -1, tuple(sorted(xor_of)))
 
     phase_plans: list[PhaseSetPlan] = []
     for axis in _AXES:
@@ -399,6 +436,12 @@ def plan_decode(sequence: Sequence) -> DecodePlan:
             if source is None:
                 problems.append(f"{name}: cannot be unwrapped: {why}")
                 continue
+            if source == "gray" and g is not None and g.xor_base >= 0 and 2 * g.stripe > period:
+                problems.append(
+                    f"{name}: an XOR-coded Gray code needs a stripe of at most half the period (stripe "
+                    f"{g.stripe} px); use a stripe of {int(period) // 2} px or the plain Gray code"
+                )
+                continue
             frames_idx = tuple(phases[pk][s] for s in range(steps))
             phase_plans.append(PhaseSetPlan(axis, period, steps, offset, frames_idx, source))
             previous = period
@@ -426,7 +469,8 @@ def _gray_stripe(plan: DecodePlan, axis: Axis) -> int:
 def _tables(plan: DecodePlan) -> DecodeTables:
     seq = plan.sequence
     gray_rows: list[tuple[int, int, int, int]] = []
-    axis_tab = np.zeros((2, 8), np.int64)
+    axis_tab = np.zeros((2, 10), np.int64)
+    axis_tab[:, 8] = -1
     for a, axis in enumerate(_AXES):
         axis_tab[a, 5] = seq.axis_size(axis)
         axis_tab[a, 2] = 1
@@ -436,6 +480,8 @@ def _tables(plan: DecodePlan) -> DecodeTables:
         a = _AXES.index(g.axis)
         axis_tab[a, 1:5] = (1, g.stripe, -(-seq.axis_size(g.axis) // g.stripe), int(g.bits >= 2))
         axis_tab[a, 7] = g.bits
+        axis_tab[a, 8] = g.xor_base
+        axis_tab[a, 9] = sum(1 << b for b in g.xor_bits)
         gray_rows.extend((a, b, pos, neg) for b, (pos, neg) in enumerate(g.frames))
     ph_tab = np.zeros((len(plan.phase), 4), np.int64)
     ph_idx: list[int] = []

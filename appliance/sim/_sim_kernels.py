@@ -476,6 +476,25 @@ def shade_gray(coord: np.ndarray, gain: np.ndarray, ambient: np.ndarray, stripe:
             out[i] = ambient[i]
 
 
+@njit(nogil=True, cache=True, parallel=True)
+def shade_gray_xor(coord: np.ndarray, gain: np.ndarray, ambient: np.ndarray, stripe: float, bit: int, base: int,
+                   inverted: bool, sigma: float, gamma: float, out: np.ndarray) -> None:
+    """:func:`shade_gray` of Gray bit ``bit`` XOR bit ``base`` (an XOR code frame). Blurred, ``a + b - 2ab`` of the
+    two blurred bits: exact where at most one of them has an edge within the blur's reach (Gray bits never
+    flip at the same code, so for stripes of at least 6 sigma)."""
+    for i in prange(out.shape[0]):
+        g = gain[i]
+        if g > 0.0:
+            a = gray_blurred(coord[i], stripe, bit, sigma)
+            b = gray_blurred(coord[i], stripe, base, sigma)
+            light = a + b - 2.0 * a * b
+            if inverted:
+                light = 1.0 - light
+            out[i] = ambient[i] + g * _apply_gamma(light, gamma)
+        else:
+            out[i] = ambient[i]
+
+
 TRIG_STEPS = 1 << 16
 """Entries per turn of :data:`TRIG` (linear interpolation between them is good to 1.2e-9)."""
 

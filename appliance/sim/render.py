@@ -5,7 +5,8 @@ The projector image is never rasterised. For a camera pixel that sees projector 
 
 - Gray bit: the bit of ``floor((u + 0.5) / stripe)``'s Gray code (exactly the projector pixels of
   :func:`appliance.patterns.render.frame_profile`), its edges blurred by the projector defocus, a Gaussian
-  of sigma ``projector_blur_px``: a sum of ``Φ`` terms over the nearby edges (Φ tabulated to 3e-7).
+  of sigma ``projector_blur_px``: a sum of ``Φ`` terms over the nearby edges (Φ tabulated to 3e-7). An XOR
+  code frame (``xor_with``): the two blurred bits ``a``, ``b`` combined as ``a + b - 2ab``.
 - Phase step: ``(1 + m cos(2π u / P + offset + 2π step / steps)) / 2`` with
   ``m = sinc(1 / P) exp(-2π² σ² / P²)``: the fundamental of the pixelated, blurred sinusoid. The pixel
   aliases it leaves out (frequencies ``1 ± 1/P``) are 1.3e-4 of the modulation for ``P = 16``,
@@ -58,6 +59,7 @@ class FrameLight:
     stripe: float = 1.0
     bit: int = 0
     inverted: bool = False
+    xor_with: int = -1
     freq: float = 0.0
     phase0: float = 0.0
     modulation: float = 1.0
@@ -70,7 +72,8 @@ def frame_light(frame: Frame, projector_blur_px: float) -> FrameLight:
     if isinstance(frame, BlackFrame):
         return FrameLight(_BLACK)
     if isinstance(frame, GrayFrame):
-        return FrameLight(_GRAY, frame.axis, float(frame.stripe), frame.bit, frame.inverted)
+        xor = -1 if frame.xor_with is None else frame.xor_with
+        return FrameLight(_GRAY, frame.axis, float(frame.stripe), frame.bit, frame.inverted, xor)
     if isinstance(frame, PhaseFrame):
         f = 1.0 / frame.period
         sinc = math.sin(math.pi * f) / (math.pi * f)
@@ -129,6 +132,8 @@ def _shade_locked(frame: Frame, coord: F64 | F32, gain: F64 | F32, ambient: F64 
     fl = frame_light(frame, sigma)
     if fl.kind in (_WHITE, _BLACK):
         _k.shade_const(1.0 if fl.kind == _WHITE else 0.0, gain, ambient, gamma, out)
+    elif fl.kind == _GRAY and fl.xor_with >= 0:
+        _k.shade_gray_xor(coord, gain, ambient, fl.stripe, fl.bit, fl.xor_with, fl.inverted, sigma, gamma, out)
     elif fl.kind == _GRAY:
         _k.shade_gray(coord, gain, ambient, fl.stripe, fl.bit, fl.inverted, sigma, gamma, out)
     else:
