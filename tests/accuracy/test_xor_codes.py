@@ -1,0 +1,62 @@
+"""XOR codes (``sequence.code: xor``) on the virtual rig's scenes, rendered into a manifest with ``xor_with``
+frames and reconstructed by ``scan3d decode``, against the exact truth (see ``hard_scenes.py``).
+
+Measured when written (camera 480x384, Gray stripe 8 + phase period 16, base bit 0; plain Gray / XOR):
+
+| scene | complete | RMS | > 1 mm |
+|---|---|---|---|
+| default | 97.7 / 90.1 % | 0.108 / 0.108 mm | 0.001 / 0.001 % |
+| diffuse groove (8 bounce samples) | 97.7 / 91.0 % | 0.254 / 0.249 mm | 0.75 / 0.69 % |
+| mirror groove | 92.2 / 81.1 % | 94 / 93 mm | 17.2 / 14.2 % |
+
+XOR costs completeness: a pixel within ~0.1 projector px of an edge of the base bit cannot tell which side of
+the edge its XOR bits belong to and is dropped (2 % of the lit pixels here, every 16 projector px), and the
+8-neighbour filter then drops its neighbours' points too.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from hard_scenes import SceneStats, measure, scene_text
+
+from appliance.config import AppConfig, parse_config
+
+SIGMA_RMS = (0.7, 1.4)
+
+
+def xor_config(scene: str, base: int = 0, **kwargs: float) -> AppConfig:
+    """A hard scene's config with its Gray code projected as XOR codes on Gray bit ``base``."""
+    text = scene_text(scene, **kwargs)  # type: ignore[arg-type]
+    assert "  kind: gray_phase\n" in text
+    text = text.replace("  kind: gray_phase\n", f"  kind: gray_phase\n  code: xor\n  xor_base_bit: {base}\n")
+    return parse_config(text, f"{scene}-xor.yaml")
+
+
+def _sigma_is_honest(s: SceneStats) -> None:
+    assert SIGMA_RMS[0] <= s.z_rms <= SIGMA_RMS[1], s.line()
+    assert s.over_5sigma <= 1e-3, s.line()
+
+
+def test_scan3d_decode_of_an_xor_manifest_holds_the_default_scene(tmp_path: Path) -> None:
+    s = measure(xor_config("default"), tmp_path, "xor")
+    print(s.line())
+    frames = yaml.safe_load((tmp_path / "xor.yaml").read_text())["frames"]
+    xors = [f for f in frames if f.get("pattern") == "gray" and "xor_with" in f]
+    assert len(xors) == 14 and {f["xor_with"] for f in xors} == {0}  # bits 1..7, each with its inverse
+    assert s.over_1mm <= 1e-4 and s.rms_mm <= 0.15, s.line()
+    assert s.completeness >= 0.88, s.line()  # plain Gray: 97.7 %; see the module docstring
+    _sigma_is_honest(s)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 0.69 % of the points > 1 mm (plain Gray 0.75 %), 91.0 % complete: "
+                   "the sampled one-bounce light biases the phase (the plain Gray code has no wrong bit there: "
+                   "every decoded coordinate within 2 projector px), which no choice of Gray code changes")
+def test_xor_codes_hold_the_diffuse_groove(tmp_path: Path) -> None:
+    s = measure(xor_config("diffuse_groove", bounce=8), tmp_path, "dgroove")
+    print(s.line())
+    assert s.completeness >= 0.97 and s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
