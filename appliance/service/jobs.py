@@ -278,7 +278,8 @@ class ScanJobs:
         rec = ScanRecord(scan_id, started.isoformat(), event.source, True, len(result.cloud),
                          outcome.location, [str(p) for p in outcome.files],
                          {k: round(v, 1) for k, v in timings.items()},
-                         calibration_health=_health_summary(result.calibration_health))
+                         calibration_health=_health_summary(result.calibration_health),
+                         both_seen=seen if isinstance(seen := (result.stereo or {}).get("both_seen"), dict) else {})
         if outcome.location == "spool":
             b.count("spooled")
             b.error("share", f"scan {scan_id} spooled: {outcome.reason}")

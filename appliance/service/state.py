@@ -75,6 +75,9 @@ class ScanRecord:
     timings_ms: dict[str, float] = field(default_factory=dict)
     error: str = ""
     calibration_health: dict[str, Any] = field(default_factory=dict)
+    # camera-camera scans: of the reference camera's pixels both cameras see, how many got a point
+    # ({"pixels", "reconstructed", "share"}, the sidecar's extra.stereo.both_seen); empty otherwise
+    both_seen: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass

@@ -10,8 +10,10 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import aiohttp
+import pytest
 from faces_helpers import TOKEN, Chromium, appliance_copy, free_port, running_service, token_file
 
 SHOT = os.environ.get("SCAN3D_STATUS_PAGE_SCREENSHOT")  # set to write the README's screenshot
@@ -139,6 +141,77 @@ def test_page_follows_the_service_live(tmp_path: Path) -> None:
                 shot = tmp_path / "phone.png"
                 await browser.screenshot(shot)
                 assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+                errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
+                assert not errors, errors
+            finally:
+                await browser.disconnect()
+
+    try:
+        asyncio.run(main())
+    finally:
+        browser.kill()
+
+
+def _two_camera_config(tmp: Path, **service: Any) -> Path:
+    """The face tests' small rig with a second camera 120 mm to the left, both axes coded, mode ``both``."""
+    import yaml
+    from faces_helpers import SMALL_RIG
+
+    cfg = appliance_copy(tmp, top={"sequence": {"axes": "xy"}, "reconstruction": {"mode": "both"}}, **service)
+    doc = yaml.safe_load(cfg.read_text())
+    doc["cameras"]["cam1"] = {"type": "sim"}
+    doc["virtual_rig"]["cameras"]["cam1"] = {**SMALL_RIG["cameras"]["cam0"], "position_mm": [-120, 0, 0]}
+    cfg.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def two_camera_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """One scan of the two-camera rig outside any test's loop guard: numba compiles (a cold cache) or loads the
+    camera-camera kernels here, holding the interpreter for seconds, not inside the service under test."""
+    from appliance.config import load_config
+    from appliance.scan import scan_once
+
+    asyncio.run(scan_once(load_config(_two_camera_config(tmp_path_factory.mktemp("warm")))))
+
+
+@pytest.mark.usefixtures("two_camera_kernels")
+def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None:
+    """A two-camera rig in mode ``both``: each scan's record carries the camera-camera matcher's both-seen figure
+    (the sidecar's extra.stereo.both_seen), and the page shows it under the last scan and in the scans table."""
+    port = free_port()
+    cfg = _two_camera_config(tmp_path, http={"listen": f"127.0.0.1:{port}",
+                                             "token_file": str(token_file(tmp_path))})
+    base = f"http://127.0.0.1:{port}"
+    browser = Chromium("about:blank")
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            try:
+                async with http.post(f"{base}/api/trigger?wait=1", headers={"Authorization": f"Bearer {TOKEN}"}) as r:
+                    reply = await r.json()
+                scan = reply["scan"]
+                assert scan["ok"], reply
+                seen = scan["both_seen"]
+                assert seen["pixels"] > 10_000 and 0.9 < seen["share"] <= 1.0, seen
+                assert seen["reconstructed"] == round(seen["share"] * seen["pixels"])
+                async with http.get(f"{base}/api/status") as r:
+                    assert (await r.json())["last_scans"][-1]["both_seen"] == seen
+                sidecar = next(p for p in map(Path, scan["files"]) if p.suffix == ".json")
+                assert json.loads(await asyncio.to_thread(sidecar.read_text))["extra"]["stereo"]["both_seen"] == seen
+                await browser.connect()
+                await browser.call("Page.navigate", url=base + "/")
+                el = "document.getElementById"
+                shown = f"(({el}('both-seen') || {{}}).textContent || '')"  # '' until the page is there
+                t0 = time.monotonic()
+                while f"{100 * seen['share']:.1f} %" not in await browser.evaluate(shown):
+                    assert time.monotonic() - t0 < 10, await browser.evaluate(shown)
+                    await asyncio.sleep(0.05)
+                line = await browser.evaluate(shown)
+                assert f"{seen['pixels']:,} pixels both cameras see" in line, line
+                row = await browser.evaluate(f"[...{el}('scans').rows[0].cells].map(c => c.textContent)")
+                assert row[0] == scan["scan_id"] and row[7] == f"{100 * seen['share']:.1f} %", row
+                assert svc.board.last_scans[-1].both_seen == seen
                 errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
                 assert not errors, errors
             finally:

@@ -23,6 +23,17 @@ function text(id, value) { $(id).textContent = value; }
 
 function fmtMs(v) { return typeof v === "number" ? `${Math.round(v)} ms` : "–"; }
 
+// camera-camera scans: {pixels, reconstructed, share} of the pixels both cameras see (empty otherwise)
+function fmtBothSeen(b) {
+  return b && typeof b.share === "number" ? `${(100 * b.share).toFixed(1)} %` : "–";
+}
+
+function bothSeenLine(b) {
+  if (!b || typeof b.share !== "number") return "camera-camera: not measured (one camera, or mode projector)";
+  return `camera-camera: ${(100 * b.share).toFixed(1)} % of the ${Number(b.pixels).toLocaleString()} pixels ` +
+    `both cameras see got a point (${Number(b.reconstructed).toLocaleString()})`;
+}
+
 function fmtTime(iso) {
   if (!iso) return "–";
   return iso.replace("T", " ").replace(/\.\d+/, "").replace(/\+00:00$/, "");
@@ -122,7 +133,7 @@ function showScans(scans) {
   if (!scans.length) {
     const tr = body.insertRow();
     const td = tr.insertCell();
-    td.colSpan = 8; td.className = "muted"; td.textContent = "none yet";
+    td.colSpan = 9; td.className = "muted"; td.textContent = "none yet";
   }
   for (const s of scans) {
     const t = s.timings_ms || {};
@@ -130,7 +141,7 @@ function showScans(scans) {
     if (!s.ok) tr.className = "failed";
     const cells = [s.scan_id || "(refused)", fmtTime(s.started_utc), s.ok ? String(s.points) : s.error,
       fmtMs(t.trigger_to_file_ms), fmtMs(t.capture_ms), fmtMs(t.reconstruct_ms), fmtMs(t.write_ms),
-      s.location || "–"];
+      fmtBothSeen(s.both_seen), s.location || "–"];
     for (const c of cells) tr.insertCell().textContent = c;
   }
   const ok = scans.filter((s) => s.ok);
@@ -140,6 +151,7 @@ function showScans(scans) {
 
 function showLast(scan) {
   text("last-id", scan.scan_id);
+  text("both-seen", bothSeenLine(scan.both_seen));
   if (scan.scan_id === lastScanShown) return;
   lastScanShown = scan.scan_id;
   const base = `/api/scans/${encodeURIComponent(scan.scan_id)}`;
