@@ -25,11 +25,11 @@ from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
-from appliance.reconstruct.fuse import fuse_depths
+from appliance.reconstruct.fuse import fuse_points_into
 from appliance.reconstruct.residuals import Residual, ray_ray_residual
 from appliance.reconstruct.settings import ReconstructionSettings
 from appliance.reconstruct.stereo import StereoTriangulator
-from appliance.reconstruct.triangulate import ProjectorTriangulator
+from appliance.reconstruct.triangulate import EPIPOLAR_SIGMAS, ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps, PointCloud, Reason, StageCounts
 from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
 
@@ -133,7 +133,7 @@ class Reconstruction:
         The calibration-health inputs: residuals wherever the scan was overdetermined (both projector axes,
         two cameras with rows coded, two cameras and a projector).
     fusion : dict of str to int
-        Mode ``'both'``: reference-camera pixels by source (see ``fuse_depths``); else empty.
+        Mode ``'both'``: reference-camera pixels by source (see ``fuse_points_into``); else empty.
     stereo : dict, optional
         What the camera-camera matcher did, stage by stage (modes ``'stereo'`` and ``'both'``).
     """
@@ -211,9 +211,9 @@ def epipolar_warning(camera: str, dropped: int, triangulated: int) -> str:
     pct = f"{100.0 * dropped / triangulated:.0f} %" if dropped >= 0.01 * triangulated else \
         f"{100.0 * dropped / triangulated:.1f} %"  # fmt: skip
     if dropped > EPIPOLAR_CALIBRATION * triangulated:
-        return (f"{pct} of camera {camera}'s decoded pixels lie off their epipolar lines (reason 'off the epipolar "
-                "line'): more than reflections would; the calibration may no longer fit the rig: run scan3d "
-                "verify or recalibrate")
+        return (f"{pct} of camera {camera}'s decoded pixels lie off their epipolar lines: more than reflections "
+                "would, so the check was not applied (the points are kept for the calibration health to judge); "
+                "the calibration may no longer fit the rig: run scan3d verify or recalibrate")
     return (f"{pct} of camera {camera}'s decoded pixels were left out as lit a second time by reflected light "
             "(their code lies off the pixel's epipolar line: a mirror-like or glossy surface re-projects the "
             "pattern), not for a calibration fault: the calibration health judges the consistent pixels only. "
@@ -274,8 +274,9 @@ class Reconstructor:
                     f"reconstruction.mode = {cfg.mode}: the calibration has no 'projector'; "
                     "calibrate it or use mode stereo"
                 )
-            for n in names:
-                self._proj_tri[n] = ProjectorTriangulator(calibration.devices[n], projector, axes)
+            first: ProjectorTriangulator | None = None
+            for n in names:  # the projector's table is built once, for every camera
+                first = self._proj_tri[n] = ProjectorTriangulator(calibration.devices[n], projector, axes, like=first)
             self.outputs = list(names)
         if cfg.mode in ("stereo", "both"):
             if "stereo" not in modes:
@@ -286,7 +287,7 @@ class Reconstructor:
             self._stereo = StereoTriangulator(
                 cam0,
                 cam1,
-                RayTable(cam0),
+                self._proj_tri[names[0]].rays if names[0] in self._proj_tri else RayTable(cam0),  # one table a camera
                 max_epipolar_px=cfg.stereo_max_epipolar_px,
                 projector=calibration.projector,
                 drift=cfg.stereo_drift,
@@ -332,7 +333,6 @@ class Reconstructor:
             cam = calibration.devices[names[0]]
             self._xyz[names[0]] = np.empty((cam.height, cam.width, 3), np.float32)
             self._scratch[names[0]] = np.empty((cam.height, cam.width), np.bool_)
-            self._zs = np.empty((cam.height, cam.width), np.float32)
 
     def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> dict[str, int]:
         """Mode ``'both'``: camera-camera on the reference camera, fused with its camera-projector depth by
@@ -347,23 +347,9 @@ class Reconstructor:
         if cfg.max_sigma_mm is not None:
             self._stereo.filter_sigma(xyz, cfg.max_sigma_mm, self._scratch[n0])
         cam = self.calibration.devices[n0]
-        r, t = cam.R[2].astype(np.float32), np.float32(cam.T[2])
-        np.multiply(xyz[..., 0], r[0], out=self._zs)
-        self._zs += xyz[..., 1] * r[1]
-        self._zs += xyz[..., 2] * r[2]
-        self._zs += t
-        fused = fuse_depths(self._depth[n0], self._sigma[n0], self._zs, self._stereo.sigma)
-        self._depth[n0][...] = fused.depth
-        self._sigma[n0][...] = fused.sigma
-        counts = self._counts[n0]
-        counts[0] = 0
-        counts[1:] = np.count_nonzero(np.isfinite(fused.depth), axis=1)
-        reason = _reason_map(maps[n0])
-        if reason is not None:  # fusion drops disagreeing pixels and adds camera-camera-only ones
-            has = np.isfinite(fused.depth)
-            reason[(reason == Reason.DECODED) & ~has] = Reason.FILTERED
-            reason[has] = Reason.DECODED
-        return fused.counts()
+        # in place, one pass: fusion drops disagreeing pixels (reason filtered) and adds camera-camera-only ones
+        return fuse_points_into(self._depth[n0], self._sigma[n0], xyz, self._stereo.sigma, cam.R[2], float(cam.T[2]),
+                                self._counts[n0], _reason_map(maps[n0]), (Reason.DECODED, Reason.FILTERED))
 
     def _stereo_report(self) -> dict[str, object] | None:
         return None if self._stereo is None else self._stereo.report.as_dict()
@@ -469,14 +455,23 @@ class Reconstructor:
         cfg = self.cfg
         max_sigma = math.inf if cfg.max_sigma_mm is None else cfg.max_sigma_mm
         t0 = time.perf_counter()
+        unchecked: dict[str, tuple[int, int]] = {}
         for n, tri in self._proj_tri.items():
             const, fp, ks = self._jump[n]
-            tri.triangulate_depth(
-                maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours, const,
-                self._counts[n], noise=self.noise, white=None if white is None else white.get(n),
-                sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
-                stats=self._stats[n], spans=self._spans[n], reason_out=_reason_map(maps[n]),
-            )  # fmt: skip
+            for epi_sigmas in (EPIPOLAR_SIGMAS, math.inf):
+                tri.triangulate_depth(
+                    maps[n], self._depth[n], cfg.min_depth_mm, cfg.max_depth_mm, cfg.min_neighbours, const,
+                    self._counts[n], noise=self.noise, white=None if white is None else white.get(n),
+                    sigma_out=self._sigma[n], jump_footprints=fp, jump_sigmas=ks, max_sigma_mm=max_sigma,
+                    stats=self._stats[n], spans=self._spans[n], reason_out=_reason_map(maps[n]),
+                    epipolar_sigmas=epi_sigmas,
+                )  # fmt: skip
+                tri_n, cons_n = int(self._stats[n][:, 1].sum()), int(self._stats[n][:, 2].sum())
+                if self.axes != "xy" or tri_n - cons_n <= EPIPOLAR_CALIBRATION * tri_n or unchecked.get(n):
+                    break
+                # most pixels off their lines is no reflection but a calibration that no longer fits: keep the
+                # points (as one axis would) so that the calibration health judges them all, and say so
+                unchecked[n] = (tri_n - cons_n, tri_n)
         fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
         stages = []
@@ -486,6 +481,7 @@ class Reconstructor:
             cons = int(s[2]) if self.axes == "xy" else None
             stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[3]), int(s[4]), int(s[5]), cons))
         warnings = stage_warnings(stages, cfg)
+        warnings += [epipolar_warning(n, off, tri_n) for n, (off, tri_n) in unchecked.items()]
         residuals = list(self._stereo.residuals) if self._stereo is not None else []
         if self.axes == "xy" and self.calibration.projector is not None:
             for n, tri in self._proj_tri.items():

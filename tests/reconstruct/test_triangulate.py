@@ -294,3 +294,29 @@ def test_the_epipolar_floor_absorbs_a_small_calibration_error() -> None:
     noise = CodeNoise(16 * np.sqrt(2 / 4) / np.pi, 0.0, 2.0, 25.0)
     depth, _ = triangulator("h", "xy").triangulate_depth(maps, noise=noise)
     assert np.isfinite(depth[maps.mask]).mean() > 0.999
+
+
+def test_a_calibration_off_everywhere_is_not_taken_for_reflections() -> None:
+    # the projector's principal point is 4 px lower than the calibration says: every pixel misses its line by
+    # ~4 px. The check would drop the whole scan and leave the calibration health nothing to judge; instead the
+    # points are kept, the health residual shows the error, and the warning names the calibration
+    from appliance.calibration.scan_health import assess_scan
+
+    cam, proj, _ = procam_rig("h")
+    truth = true_points("h", "plane")
+    k = proj.K.copy()
+    k[1, 2] += 4.0
+    real = CameraModel("projector", k, proj.dist, proj.width, proj.height, proj.R, proj.T)
+    maps = codes(real, truth, "xy")
+    maps.reason = np.where(maps.mask, 0, int(Reason.SHADOW)).astype(np.uint8)
+    calib = Calibration({"cam0": cam, "projector": proj})
+    cfg = ReconstructionConfig(min_depth_mm=400, max_depth_mm=800)
+    rec = Reconstructor(calib, "xy", cfg, noise=CodeNoise(16 * np.sqrt(2 / 4) / np.pi, 0.0, 2.0, 25.0)).run(
+        {"cam0": maps}, None
+    )
+    assert len(rec.cloud) > 0.9 * maps.mask.sum()
+    assert not (maps.reason == Reason.EPIPOLAR).any()
+    assert any("calibration may no longer fit" in w for w in rec.warnings), rec.warnings
+    (res,) = [r for r in rec.residuals if r.kind == "ray_ray"]
+    assert res.abs_median_px > 2.0
+    assert assess_scan(rec.residuals, calib, None, 0.6)["status"] == "bad"
