@@ -20,6 +20,17 @@ from a :class:`~appliance.geometry.rays.RayTable` (camera frame, so the unknown 
   linearised projector reprojection error in pixels (least squares over the two equations), i.e. the
   point of the camera ray nearest to the coded projector ray, weighted by fx and fy.
 
+Epipolar check (both axes): a direct reflection's (u, v) lies on the pixel's epipolar line in the projector
+up to the code noise, so a pixel whose least-squares residual across it exceeds ``sqrt((5 sigma_u)^2 +
+(0.5 px)^2)`` gives no point (reason ``EPIPOLAR``): a mirror-like surface re-projects the pattern as a second,
+virtual projector whose codes generally miss the real one's lines. It cannot see a ghost whose code happens to
+lie on the line: where the mirror maps an epipolar plane onto itself (a mirror whose normal is perpendicular
+to the baseline's epipolar plane through it), or a blend of the direct and the mirrored pattern that shifts u
+and v alike. With one coded axis nothing can be checked: every code defines a light surface that every
+camera ray meets, so a ghost is a point on the ray like any other (only the depth range, the neighbour
+filter and the decoder's Gray-against-phase check can drop it). When the check would drop most of a camera's
+pixels the pipeline reruns without it: that is a calibration that no longer fits, for the health to judge.
+
 Residual error (with exact codes): the table interpolation error is measured when the table is built
 (:attr:`ProjectorTriangulator.table_error`, normalised units; the depth error is about
 ``z**2 / baseline_mm * table_error``, e.g. 1e-8 -> 2e-5 mm at 600 mm and 175 mm baseline), plus float32
