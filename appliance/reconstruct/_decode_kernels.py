@@ -208,18 +208,20 @@ def _faint_bit(axis_tab, a, bit):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _xor_weak(weak, keep, base, xmask):  # type: ignore[no-untyped-def]
-    """XOR axes: where the base bit is weak (an edge of the base, where every XOR bit flips too) and no bit of the
-    base and XOR bits is faint, the XOR bits' weakness is the base's: only the base counts as weak. Where one of
-    them is faint the pixel fails (every bit weak): a wrong base sign would flip every XOR bit at once."""
+    """XOR axes: at an edge of the base bit every XOR bit flips too, so the base and any of them may be weak. Where
+    the base is weak, or two or more of these bits are, and none of them is faint, their weakness is the base's:
+    only the base counts as weak. Where one of them is faint the pixel fails (every bit weak): a wrong sign there
+    would flip XOR bits far from the edge. One weak XOR bit alone (the base strong) is that bit's own edge."""
     bb = np.uint32(1) << np.uint32(base)
-    xm = np.uint32(xmask)
-    need = np.uint32(bb | xm)
+    need = np.uint32(bb | np.uint32(xmask))
     every = np.uint32(0xFFFFFFFF)
+    zero = np.uint32(0)
     for x in range(weak.shape[0]):
         w = np.uint32(weak[x])
-        edge = (w & bb) != np.uint32(0)
+        e = np.uint32(w & need)
+        edge = ((e & bb) != zero) | (np.uint32(e & np.uint32(e - _U1)) != zero)
         clear = (np.uint32(keep[x]) & need) == need
-        weak[x] = (np.uint32(w & ~xm) if clear else every) if edge else w
+        weak[x] = (np.uint32((w & ~need) | bb) if clear else every) if edge else w
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
