@@ -3,12 +3,30 @@
 from __future__ import annotations
 
 from appliance.config.schema import SequenceConfig
+from appliance.errors import ConfigError, PatternError
 from appliance.patterns.sequence import Sequence, exposure_capture, gray_code_sequence, gray_phase_sequence
 
 
 def build_sequence(cfg: SequenceConfig, width: int, height: int) -> Sequence:
-    """The configured pattern sequence for a ``width`` x ``height`` projector (px)."""
+    """The configured pattern sequence for a ``width`` x ``height`` projector (px).
+
+    Raises
+    ------
+    ConfigError
+        ``sequence.xor_base_bit`` leaves no coarser Gray bit to XOR on this projector.
+    """
     xor_base = cfg.xor_base_bit if cfg.code == "xor" else None
+    try:
+        return _build(cfg, width, height, xor_base)
+    except PatternError as exc:
+        if xor_base is None:
+            raise
+        raise ConfigError(
+            f"sequence.xor_base_bit = {xor_base}: {exc}; choose a lower base bit (0 = the finest)"
+        ) from exc
+
+
+def _build(cfg: SequenceConfig, width: int, height: int, xor_base: int | None) -> Sequence:
     if cfg.kind == "gray":
         return gray_code_sequence(width, height, cfg.axes, stripe=cfg.stripe_px, inverses=cfg.inverses,
                                   xor_base=xor_base)

@@ -84,3 +84,15 @@ def test_xor_codes_hold_the_diffuse_groove(tmp_path: Path) -> None:
     print(s.line())
     assert s.completeness >= 0.97 and s.over_1mm <= 1e-3, s.line()
     _sigma_is_honest(s)
+
+
+def test_a_base_bit_without_a_coarser_bit_is_one_clear_line(tmp_path: Path) -> None:
+    # 1280 px in stripes of 8 px: 8 Gray bits, so the base can be bit 0..6
+    (tmp_path / "bad.yaml").write_text("sequence:\n  kind: gray_phase\n  code: xor\n  xor_base_bit: 7\n")
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        rc = cli.main(["scan", "--config", str(tmp_path / "bad.yaml"), "--out", str(tmp_path / "o")])
+    text = out.getvalue()
+    assert rc != 0 and "Traceback" not in text
+    assert "sequence.xor_base_bit = 7: gray code axis x: xor base bit 7: must be in 0..6" in text, text
+    assert "choose a lower base bit" in text
