@@ -13,6 +13,7 @@ from appliance.patterns.sequence import (
     BlackFrame,
     Frame,
     GrayFrame,
+    PhaseFrame,
     Sequence,
     WhiteFrame,
     gray_code_frames,
@@ -151,3 +152,18 @@ def test_plan_checks_xor_frames() -> None:
     plan = plan_decode(both)
     assert plan.gray[0].xor_bits == ()
     assert any("xor bit 0" in s and "unused" in s for s in plan.ignored)
+
+
+@pytest.mark.parametrize("white_black", [True, False])
+def test_xor_frames_without_inverses(white_black: bool) -> None:
+    # single XOR frames thresholded at (white + black) / 2, or without white and black at the phase set's mean
+    seq = gray_phase_sequence(512, 256, "x", period=16, inverses=False, xor_base=0)
+    if not white_black:
+        seq = Sequence(seq.width, seq.height, tuple(f for f in seq.frames if isinstance(f, GrayFrame | PhaseFrame)))
+    frames = render(seq, noise=1.0)
+    maps = decode(frames, seq)
+    xx, yy = grid()
+    assert maps.mask.mean() > 0.9
+    err = (maps.u - u_true(xx, yy))[maps.mask]
+    assert np.abs(err).max() < 0.5
+    assert _same(maps, _stream(seq, frames, seed=9))
