@@ -49,6 +49,12 @@ def _cmd_scan(a: argparse.Namespace) -> int:
 def _cmd_tune(a: argparse.Namespace) -> int:
     import asyncio
 
+    from appliance.service import client
+
+    # a running service owns the rig: the tune goes through it (its cameras cannot be opened twice)
+    if a.socket is not None or (not a.local and client.service_answers(client.socket_for(a.config, None))):
+        return client.tune_command(a.config, a.socket, time_budget_ms=a.time_budget_ms, apply=a.apply)
+
     from appliance.config import load_config
     from appliance.procedures.tune import tune_command
 
@@ -193,6 +199,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--apply", action="store_true",
                     help="write the choice into the configuration file (validated, atomic; a service reloads it)")
     config_arg(sp)
+    where = sp.add_mutually_exclusive_group()
+    where.add_argument("--socket", type=Path, default=None,
+                       help="tune through the service on this control socket (default: through the service when "
+                       "one answers on the config's service.control_socket, else on the rig directly)")
+    where.add_argument("--local", action="store_true",
+                       help="probe the rig directly, never through a running service")
 
     sp = cmd("validate-config", _cmd_validate, "check a configuration file and print what is wrong")
     sp.add_argument("file", type=Path, nargs="?", default=None)

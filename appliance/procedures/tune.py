@@ -19,7 +19,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -32,6 +32,9 @@ from appliance.hardware.base import ExposureControl, exposure_control
 from appliance.output.atomic import write_bytes_atomic
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
+
+if TYPE_CHECKING:
+    from appliance.hardware.registry import Rig
 
 PROBE_FACTORS = (0.25, 1.0, 4.0)
 """Exposures of the probe, relative to the configured exposure."""
@@ -66,12 +69,15 @@ class Probe:
         DN per exposure.
     full_scale : dict of str to float
         The sensor's largest value (DN) per camera.
+    projector_size : (int, int)
+        The projector's width and height (px): the sequence's frame count depends on it.
     """
 
     exposures_us: tuple[float, ...]
     white: dict[str, npt.NDArray[np.float64]]
     black: dict[str, npt.NDArray[np.float64]]
     full_scale: dict[str, float]
+    projector_size: tuple[int, int] = (1280, 800)
 
 
 @dataclass(frozen=True)
@@ -149,51 +155,80 @@ def base_exposure_us(cfg: AppConfig) -> float:
 
 
 async def probe(cfg: AppConfig, exposures_us: tuple[float, ...]) -> Probe:
-    """White and black frames of every configured camera at each exposure (µs) on the configured rig."""
+    """White and black frames of every configured camera at each exposure (µs) on the configured rig (built,
+    opened and closed here)."""
     from appliance.hardware.registry import build_rig
-    from appliance.scan import load_calibration_for, pixel_format_bits
+    from appliance.scan import load_calibration_for
 
     loop = asyncio.get_running_loop()
     rig = await loop.run_in_executor(None, build_rig, cfg)
     calibration = await loop.run_in_executor(None, load_calibration_for, cfg, rig)
     proj = calibration.devices["projector"]
-    seq = Sequence(proj.width, proj.height, (WhiteFrame(), BlackFrame()))
-    white: dict[str, npt.NDArray[np.float64]] = {}
-    black: dict[str, npt.NDArray[np.float64]] = {}
-    full: dict[str, float] = {}
     try:
-        bufs: dict[str, npt.NDArray[Any]] = {}
-        controls: dict[str, ExposureControl] = {}
-        for name, cam in rig.cameras.items():
-            info = await cam.open()
-            bits = pixel_format_bits(info.pixel_format)
-            full[name] = float((1 << bits) - 1)
-            bufs[name] = np.zeros((2, info.height, info.width), np.uint8 if bits == 8 else np.uint16)
-            white[name] = np.zeros((len(exposures_us), info.height, info.width))
-            black[name] = np.zeros_like(white[name])
-            control = exposure_control(cam)
-            if control is None:
-                raise HardwareError(f"camera {name!r}: cannot set its exposure between passes; scan3d tune "
-                                    "needs one that can (sim, aravis, uvc with manual exposure)")
-            controls[name] = control
-        await rig.projector.open()
-        await rig.projector.load(seq)
-        for k, exposure in enumerate(exposures_us):
-            for name, cam in rig.cameras.items():
-                await controls[name].set_exposure(exposure)
-                await cam.arm(2, bufs[name])
-            await rig.projector.start()
-            software = [c for c in rig.cameras.values() if c.needs_software_trigger]
-            for i in range(2 if software else 0):
-                await asyncio.gather(*(c.trigger(i) for c in software))
-            await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
-            # the copies into float64 take ~10 ms a megapixel: off the event loop
-            await asyncio.to_thread(_store_probe, bufs, white, black, k)
+        return await probe_rig(rig, (proj.width, proj.height), exposures_us)
     finally:
         for cam in rig.cameras.values():
             await cam.close()
         await rig.projector.close()
-    return Probe(tuple(exposures_us), white, black, full)
+
+
+async def probe_rig(rig: Rig, projector_size: tuple[int, int], exposures_us: tuple[float, ...]) -> Probe:
+    """White and black frames of every camera of ``rig`` at each exposure (µs).
+
+    The devices are opened (opening is idempotent: an open rig, the service's, is used as it is) and left open;
+    the projector is left with the probe's two frames loaded and the cameras at the last exposure, so the
+    caller closes the rig or rebuilds it.
+
+    Parameters
+    ----------
+    rig : Rig
+        The cameras and the projector.
+    projector_size : (int, int)
+        The projector's width and height (px).
+    exposures_us : tuple of float
+        The probe's exposures (µs).
+    """
+    from appliance.scan import pixel_format_bits
+
+    seq = Sequence(projector_size[0], projector_size[1], (WhiteFrame(), BlackFrame()))
+    white: dict[str, npt.NDArray[np.float64]] = {}
+    black: dict[str, npt.NDArray[np.float64]] = {}
+    full: dict[str, float] = {}
+    bufs: dict[str, npt.NDArray[Any]] = {}
+    controls: dict[str, ExposureControl] = {}
+    for name, cam in rig.cameras.items():
+        info = await cam.open()
+        bits = pixel_format_bits(info.pixel_format)
+        full[name] = float((1 << bits) - 1)
+        control = exposure_control(cam)
+        if control is None:
+            raise HardwareError(f"camera {name!r}: cannot set its exposure between passes; scan3d tune "
+                                "needs one that can (sim, aravis, uvc with manual exposure)")
+        controls[name] = control
+        # a few MB per camera: allocated off the event loop
+        bufs[name], white[name], black[name] = await asyncio.to_thread(
+            _probe_buffers, len(exposures_us), info.height, info.width, bits)
+    await rig.projector.open()
+    await rig.projector.load(seq)
+    for k, exposure in enumerate(exposures_us):
+        for name, cam in rig.cameras.items():
+            await controls[name].set_exposure(exposure)
+            await cam.arm(2, bufs[name])
+        await rig.projector.start()
+        software = [c for c in rig.cameras.values() if c.needs_software_trigger]
+        for i in range(2 if software else 0):
+            await asyncio.gather(*(c.trigger(i) for c in software))
+        await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
+        # the copies into float64 take ~10 ms a megapixel: off the event loop
+        await asyncio.to_thread(_store_probe, bufs, white, black, k)
+    return Probe(tuple(exposures_us), white, black, full, (int(projector_size[0]), int(projector_size[1])))
+
+
+def _probe_buffers(n: int, height: int, width: int, bits: int) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64],
+                                                                         npt.NDArray[np.float64]]:
+    """A camera's frame buffer for the probe's two frames, and its white and black images per exposure."""
+    frames = np.zeros((2, height, width), np.uint8 if bits == 8 else np.uint16)
+    return frames, np.zeros((n, height, width)), np.zeros((n, height, width))
 
 
 def _store_probe(bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray[np.float64]],
@@ -290,11 +325,31 @@ def scan_time_ms(exposures_us: list[float], frames_per_pass: int) -> float:
 
 async def tune(cfg: AppConfig, time_budget_ms: float) -> TuneChoice:
     """Probe the configured rig and choose its exposures (see the module docstring)."""
-    if not (time_budget_ms > 0 and math.isfinite(time_budget_ms)):
-        raise ConfigError(f"scan3d tune: --time-budget-ms = {time_budget_ms}: must be a positive number of ms")
+    check_time_budget(time_budget_ms)
     base = base_exposure_us(cfg)
     pr = await probe(cfg, tuple(base * f for f in PROBE_FACTORS))
-    seq = build_sequence(cfg.sequence, 1280, 800)  # the frame count does not depend on the projector size
+    return await _choose_for(cfg, pr, time_budget_ms, base)
+
+
+async def tune_rig(cfg: AppConfig, rig: Rig, projector_size: tuple[int, int], time_budget_ms: float) -> TuneChoice:
+    """:func:`tune` on a rig that is already built (the service's, open): probe it, choose (in a thread).
+
+    The rig is left as :func:`probe_rig` leaves it: the caller rebuilds it (or closes it).
+    """
+    check_time_budget(time_budget_ms)
+    base = base_exposure_us(cfg)
+    pr = await probe_rig(rig, projector_size, tuple(base * f for f in PROBE_FACTORS))
+    return await _choose_for(cfg, pr, time_budget_ms, base)
+
+
+def check_time_budget(time_budget_ms: float) -> None:
+    """Raise :class:`ConfigError` unless ``time_budget_ms`` is a positive, finite number of ms."""
+    if not (time_budget_ms > 0 and math.isfinite(time_budget_ms)):
+        raise ConfigError(f"scan3d tune: --time-budget-ms = {time_budget_ms}: must be a positive number of ms")
+
+
+async def _choose_for(cfg: AppConfig, pr: Probe, time_budget_ms: float, base: float) -> TuneChoice:
+    seq = build_sequence(cfg.sequence, *pr.projector_size)  # the Gray bits depend on the projector's size
     return await asyncio.to_thread(choose, pr, cfg.reconstruction.min_contrast_dn, len(seq), time_budget_ms, base)
 
 
@@ -324,8 +379,20 @@ def with_exposures(text: str, exposures_us: tuple[int, ...]) -> str:
             indent = lines[end][: len(lines[end]) - len(lines[end].lstrip())]
         end += 1
     for i in range(start + 1, end):
-        if _EXPOSURES_KEY.match(lines[i].rstrip("\r\n")):
-            lines[i] = f"{indent}exposures_us: {value}  # chosen by scan3d tune\n"
+        m = _EXPOSURES_KEY.match(lines[i].rstrip("\r\n"))
+        if m:
+            # a block-style list under the key goes with it ("- 10000" lines, indented or at the key's level)
+            key_indent = len(m.group(1))
+            j = i + 1
+            while j < end:
+                body = lines[j].lstrip(" \t")
+                ind = len(lines[j]) - len(body)
+                if body.strip() and not (ind > key_indent or (ind == key_indent and body.startswith("-"))):
+                    break
+                j += 1
+            while j > i + 1 and not lines[j - 1].strip():  # blank lines after the list stay
+                j -= 1
+            lines[i:j] = [f"{indent}exposures_us: {value}  # chosen by scan3d tune\n"]
             return "".join(lines)
     lines.insert(start + 1, f"{indent}exposures_us: {value}  # chosen by scan3d tune\n")
     return "".join(lines)

@@ -1,4 +1,5 @@
-"""``scan3d status`` and ``scan3d trigger``: clients of the control socket."""
+"""``scan3d status``, ``scan3d trigger`` and ``scan3d tune`` (with a service running): clients of the control
+socket."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from appliance.service.control import request
 
 STATUS_TIMEOUT_S = 10.0
 TRIGGER_WAIT_TIMEOUT_S = 660.0
+TUNE_TIMEOUT_S = 200.0  # the service's probe (up to its TUNE_TIMEOUT_S) and the apply's reload
 
 
 def socket_for(config: Path | None, socket: Path | None) -> Path:
@@ -91,12 +93,46 @@ def format_status(st: dict[str, Any]) -> str:
                          f"trigger to file {_ms(t.get('trigger_to_file_ms'))} ms")
         else:
             lines.append(f"  {r['scan_id'] or '(refused)'}  FAILED ({r['trigger']}): {r['error']}"[:200])
+    last_ok = next((r for r in reversed(scans) if r.get("ok")), None)
+    if last_ok is not None:
+        lines.extend(scan_findings_lines(last_ok))
     err = st.get("last_error")
     if err:
         lines.append(f"last error  {err['time_utc']} [{err['where']}]")
         lines.append(f"  {err['message']}"[:400])
         lines.append(f"  what to do: {err['advice']}")
     return "\n".join(lines)
+
+
+def _pct(v: Any) -> str:
+    return f"{100 * float(v):.1f} %" if isinstance(v, (int, float)) else "?"
+
+
+def scan_findings_lines(rec: dict[str, Any]) -> list[str]:
+    """Why the pixels of a scan have no point (per camera the reasons' shares of the image, largest first), its
+    exposures and what each pass gave, and its plain-words warnings: lines for ``scan3d status``."""
+    out: list[str] = []
+    reasons = rec.get("reasons") or {}
+    if isinstance(reasons, dict) and reasons:
+        out.append(f"why pixels of {rec.get('scan_id')} have no point (share of the image)")
+        for cam, shares in reasons.items():
+            if not isinstance(shares, dict):
+                continue
+            top = sorted(((k, v) for k, v in shares.items() if k != "decoded" and isinstance(v, (int, float))),
+                         key=lambda kv: -kv[1])
+            head = f"  {cam:<8} {_pct(shares.get('decoded', 0.0))} with a point"  # a zero share is left out
+            out.append((head + ("; " if top else "") + ", ".join(f"{k} {_pct(v)}" for k, v in top))[:200])
+    hdr = rec.get("hdr") or {}
+    if isinstance(hdr, dict) and hdr.get("exposures_us"):
+        ex = ", ".join(f"{float(e):g}" for e in hdr["exposures_us"])
+        out.append(f"exposures {ex} µs; share of the decoded pixels each pass gave:")
+        for cam, passes in (hdr.get("cameras") or {}).items():
+            parts = [f"{float(p.get('exposure_us', 0)):g} µs {_pct(p.get('decoded_share'))}" for p in passes
+                     if isinstance(p, dict)]
+            out.append(f"  {cam:<8} " + ", ".join(parts))
+    for w in rec.get("warnings") or []:
+        out.append(f"warning   {w}"[:300])
+    return out
 
 
 def status_command(config: Path | None, socket: Path | None, *, as_json: bool = False) -> int:
@@ -147,3 +183,45 @@ def trigger_command(config: Path | None, socket: Path | None, *, wait: bool = Fa
         raise _not_the_protocol(path, reply) from exc
     print("\n".join(lines))
     return 0
+
+
+def tune_command(config: Path | None, socket: Path | None, *, time_budget_ms: float, apply: bool) -> int:
+    """``scan3d tune`` through the running service: it probes its own rig (busy meanwhile) and prints the choice;
+    with ``apply``, the service writes it into its configuration file and reloads it.
+
+    Exit status 1 when the service refused the tune or the written file did not reload.
+    """
+    path = socket_for(config, socket)
+    print(f"scan3d tune: through the service at {path} (it refuses triggers while it probes)", flush=True)
+    reply = request(path, {"cmd": "tune", "time_budget_ms": time_budget_ms, "apply": apply}, TUNE_TIMEOUT_S)
+    if not isinstance(reply.get("ok"), bool):
+        raise _not_the_protocol(path, reply)
+    tune = reply.get("tune")
+    if isinstance(tune, dict):
+        for line in tune.get("lines", []):
+            print(line)
+        applied = tune.get("applied")
+        if isinstance(applied, dict) and applied.get("reloaded"):
+            print(f"written: {applied.get('path')}: sequence.exposures_us = {applied.get('exposures_us')}; "
+                  "the service reloaded it")
+    if not reply["ok"]:
+        print(f"scan3d tune: {' '.join(str(reply.get('error', 'refused')).split())}"[:400])
+        return 1
+    return 0
+
+
+def service_answers(path: Path) -> bool:
+    """True when something accepts connections on the control socket ``path`` (a running service)."""
+    import socket as sock
+
+    if not Path(path).exists():
+        return False
+    s = sock.socket(sock.AF_UNIX, sock.SOCK_STREAM)
+    s.settimeout(1.0)
+    try:
+        s.connect(str(path))
+    except OSError:
+        return False
+    finally:
+        s.close()
+    return True

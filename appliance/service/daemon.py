@@ -12,9 +12,10 @@ and exits 0.
 The parts, one module each: :mod:`~appliance.service.rig` (connecting the hardware: the one owner of the rig
 and its scanner, built by the factory handed in), :mod:`~appliance.service.jobs` (the scan job queue and
 worker), :mod:`~appliance.service.writing` (share, spool, persistent state), :mod:`~appliance.service.publish`
-(STATUS=, mDNS TXT, lamps), :mod:`~appliance.service.health` (the watchdog's check) and
-:mod:`~appliance.service.handlers` (control-socket commands). This module builds and wires them: each gets the
-status board and the small protocol of :mod:`~appliance.service.parts` it needs, never the service itself.
+(STATUS=, mDNS TXT, lamps), :mod:`~appliance.service.health` (the watchdog's check),
+:mod:`~appliance.service.tuning` (``scan3d tune`` on the rig) and :mod:`~appliance.service.handlers`
+(control-socket commands). This module builds and wires them: each gets the status board and the small
+protocol of :mod:`~appliance.service.parts` it needs, never the service itself.
 The event loop never blocks: devices, numba work and file writes run in threads.
 """
 
@@ -50,6 +51,7 @@ from appliance.service.publish import Publisher
 from appliance.service.reload import ConfigWatcher
 from appliance.service.rig import RigManager, build_scanner, current_threading_layer, select_threading_layer
 from appliance.service.state import Phase, ScanRecord, State, StatusBoard
+from appliance.service.tuning import Tuner
 from appliance.service.writing import STATE_FILE, ScanOutput
 
 __all__ = ["STATE_FILE", "Service", "TriggerEvent", "run_service"]
@@ -133,6 +135,7 @@ class Service:
         self.publisher = Publisher(self.board, self, self.notifier, self.hardware)
         self.jobs = ScanJobs(self.board, self, self.hardware, self.output, self.publisher, self.scan_lock,
                              max_scans=scans, ground_truth=ground_truth)
+        self.tuner = Tuner(self.board, self, self.hardware, self.scan_lock)
         self.handlers = ControlHandlers(self.board, self)
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
@@ -237,6 +240,14 @@ class Service:
         if self.watcher is None:
             return False, "not started"
         return await self.watcher.reload(why)
+
+    async def tune(self, time_budget_ms: float, apply: bool) -> dict[str, Any]:
+        """``scan3d tune`` on the rig: probe, choose the exposures and, with ``apply``, write and reload them."""
+        return await self.tuner.tune(time_budget_ms, apply)
+
+    async def tune_apply(self, exposures_us: list[int] | None) -> dict[str, Any]:
+        """Write the last tune's choice into the configuration file and reload it."""
+        return await self.tuner.apply(exposures_us)
 
     # --- what the rig part reports (appliance.service.parts.RigHost) ------------------------------
 

@@ -57,6 +57,14 @@ class ServiceView(Protocol):
         """Start a scan under the busy policy; the control socket's reply (``ok``, ``result``, ``scan``)."""
         ...
 
+    async def tune(self, time_budget_ms: float) -> dict[str, Any]:
+        """``scan3d tune`` on the rig (the control socket's ``tune`` reply: ``ok``, ``tune`` or ``error``)."""
+        ...
+
+    async def tune_apply(self, exposures_us: list[int] | None) -> dict[str, Any]:
+        """Write the last tune's choice into the configuration file and reload it (``ok``, ``applied``)."""
+        ...
+
     def subscribe(self) -> asyncio.Queue[Event]:
         """A queue of events: ``{"type": "state", ...}`` and ``{"type": "scan", ...}``."""
         ...
@@ -144,6 +152,14 @@ def downsample_cloud(ply: Path, max_points: int = CLOUD_SAMPLE_MAX_POINTS) -> by
     return out.tobytes()
 
 
+def _outcome(exc: ApplianceError) -> str:
+    """``refused`` (busy, not ready, nothing to apply), ``invalid`` (a bad value or file) or ``failed``."""
+    from appliance.errors import ConfigError
+    from appliance.service.tuning import TuneRefused
+
+    return "refused" if isinstance(exc, TuneRefused) else "invalid" if isinstance(exc, ConfigError) else "failed"
+
+
 class ServiceHost(Protocol):
     """What :class:`ServiceFaces` needs of the service (``appliance.service.daemon.Service`` has it)."""
 
@@ -157,6 +173,14 @@ class ServiceHost(Protocol):
 
     async def status_async(self) -> dict[str, Any]:
         """What ``scan3d status --json`` shows."""
+        ...
+
+    async def tune(self, time_budget_ms: float, apply: bool) -> dict[str, Any]:
+        """``scan3d tune`` on the rig (raises ApplianceError when refused)."""
+        ...
+
+    async def tune_apply(self, exposures_us: list[int] | None) -> dict[str, Any]:
+        """Write the last tune's choice and reload (raises ApplianceError when refused or invalid)."""
         ...
 
     def subscribe(self, on_state: Callable[[StatusBoard], None] | None = None,
@@ -219,6 +243,22 @@ class ServiceFaces:
         if not rec.ok:
             reply["error"] = rec.error
         return reply
+
+    async def tune(self, time_budget_ms: float) -> dict[str, Any]:
+        """``scan3d tune`` on the rig; a refusal or failure is ``ok: false`` with its one line."""
+        try:
+            return {"ok": True, "tune": await self.host.tune(time_budget_ms, False)}
+        except ApplianceError as exc:
+            return {"ok": False, "error": str(exc), "result": _outcome(exc)}
+
+    async def tune_apply(self, exposures_us: list[int] | None) -> dict[str, Any]:
+        """Write the last tune's choice and reload; a refusal or an invalid file is ``ok: false``."""
+        try:
+            applied = await self.host.tune_apply(exposures_us)
+        except ApplianceError as exc:
+            return {"ok": False, "error": str(exc), "result": _outcome(exc)}
+        ok = bool(applied.get("reloaded"))
+        return {"ok": ok, "applied": applied, **({} if ok else {"error": f"reload failed: {applied.get('error')}"})}
 
     def subscribe(self) -> asyncio.Queue[Event]:
         """A bounded queue of events (the oldest is dropped when full)."""

@@ -1,4 +1,5 @@
-"""What the control socket's commands do: ``status``, ``last_error``, ``reload``, ``trigger`` (``wait``)."""
+"""What the control socket's commands do: ``status``, ``last_error``, ``reload``, ``trigger`` (``wait``),
+``tune`` (``time_budget_ms``, ``apply``: ``scan3d tune`` on the service's rig)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from appliance.hardware.base import TriggerEvent
 from appliance.service.parts import ControlHost
 from appliance.service.state import StatusBoard
 
-COMMANDS = ("status", "trigger", "reload", "ping", "last_error")
+COMMANDS = ("status", "trigger", "tune", "reload", "ping", "last_error")
+DEFAULT_TIME_BUDGET_MS = 2000.0
 
 
 class ControlHandlers:
@@ -43,11 +45,24 @@ class ControlHandlers:
             return await self._reload()
         if cmd == "trigger":
             return await self._trigger(req)
+        if cmd == "tune":
+            return await self._tune(req)
         return {"ok": False, "error": f"unknown command {cmd!r}; use {', '.join(COMMANDS[:-1])} or {COMMANDS[-1]}"}
 
     async def _reload(self) -> dict[str, Any]:
         ok, msg = await self.host.reload("control socket")
         return {"ok": ok, "error": msg} if not ok else {"ok": True}
+
+    async def _tune(self, req: dict[str, Any]) -> dict[str, Any]:
+        budget = req.get("time_budget_ms", DEFAULT_TIME_BUDGET_MS)
+        if isinstance(budget, bool) or not isinstance(budget, (int, float)):
+            return {"ok": False, "error": f"tune: time_budget_ms = {budget!r}: must be a number of ms (e.g. 2000)"}
+        reply = await self.host.tune(float(budget), bool(req.get("apply", False)))
+        applied = reply.get("applied")
+        if isinstance(applied, dict) and not applied.get("reloaded"):
+            return {"ok": False, "tune": reply, "error": f"tune: written to {applied.get('path')} but the reload "
+                    f"failed: {applied.get('error')}"}
+        return {"ok": True, "tune": reply}
 
     async def _trigger(self, req: dict[str, Any]) -> dict[str, Any]:
         ev = TriggerEvent("control", time.monotonic_ns(), str(req.get("detail", "")))

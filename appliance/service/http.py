@@ -6,6 +6,9 @@
 - ``GET /api/status`` the same JSON as ``scan3d status --json``;
 - ``POST /api/trigger[?wait=1]`` a scan under the busy policy; needs ``Authorization: Bearer <token>``
   (the content of ``service.http.token_file``); 401 otherwise (logged, the token never is);
+- ``POST /api/tune[?time_budget_ms=MS]`` ``scan3d tune`` on the rig (busy meanwhile: triggers are refused);
+  ``POST /api/tune/apply`` (body ``{"exposures_us": [...]}``, the last tune's choice) writes it into the
+  configuration file and reloads it; both need the token, 409 when refused (busy, nothing to apply);
 - ``GET /api/scans?limit=N`` the last scans; ``GET /api/scans/<id>/{preview.png,cloud.ply,sidecar.json}`` the
   files of a known scan id only, ``.../cloud.bin`` a downsampled cloud (float32 x y z, mm) for the page;
 - ``GET /api/events`` server-sent events (``state`` and ``scan``);
@@ -163,6 +166,8 @@ class HttpFace:
         app.router.add_get("/static/{name}", self._static_file)
         app.router.add_get("/api/status", self._status)
         app.router.add_post("/api/trigger", self._trigger)
+        app.router.add_post("/api/tune", self._tune)
+        app.router.add_post("/api/tune/apply", self._tune_apply)
         app.router.add_get("/api/scans", self._scans)
         app.router.add_get("/api/scans/{scan_id}/{file}", self._scan_file)
         app.router.add_get("/api/events", self._events)
@@ -250,15 +255,54 @@ class HttpFace:
         st = await self.view.status()
         return web.json_response(st)
 
+    def _unauthorized(self, request: web.Request) -> web.Response | None:
+        """The 401 reply for a write without the right token (logged; the token never is); None when allowed."""
+        if self._authorized(request):
+            return None
+        self.unauthorized += 1
+        why = ("no token is configured (service.http.token_file)" if self._token is None
+               else "missing or wrong bearer token")
+        log.warning("HTTP: POST %s from %s refused: 401 (%s)", request.path, request.remote or "?", why)
+        return web.json_response({"ok": False, "error": f"unauthorized: {why}"}, status=401,
+                                 headers={"WWW-Authenticate": 'Bearer realm="scan3d"'})
+
+    async def _tune(self, request: web.Request) -> web.StreamResponse:
+        refused = self._unauthorized(request)
+        if refused is not None:
+            return refused
+        text = request.query.get("time_budget_ms", "2000")
+        try:
+            budget = float(text)
+        except ValueError:
+            return web.json_response({"ok": False, "error": f"time_budget_ms = {text!r}: must be a number of ms"},
+                                     status=400)
+        log.info("HTTP: tune from %s (budget %g ms)", request.remote or "?", budget)
+        reply = await self.view.tune(budget)
+        return web.json_response(reply, status=_status_of(reply))
+
+    async def _tune_apply(self, request: web.Request) -> web.StreamResponse:
+        refused = self._unauthorized(request)
+        if refused is not None:
+            return refused
+        exposures: list[int] | None = None
+        if request.body_exists:
+            try:
+                body = json.loads(await request.read() or b"{}")
+                given = body.get("exposures_us") if isinstance(body, dict) else None
+                if given is not None:
+                    exposures = [int(e) for e in given]
+            except (ValueError, TypeError):
+                return web.json_response({"ok": False, "error": 'the body is {"exposures_us": [whole numbers of '
+                                          'µs]}, the last tune\'s choice'}, status=400)
+        log.info("HTTP: apply the tune's choice from %s", request.remote or "?")
+        reply = await self.view.tune_apply(exposures)
+        return web.json_response(reply, status=_status_of(reply))
+
     async def _trigger(self, request: web.Request) -> web.StreamResponse:
         peer = request.remote or "?"
-        if not self._authorized(request):
-            self.unauthorized += 1
-            why = ("no token is configured (service.http.token_file)" if self._token is None
-                   else "missing or wrong bearer token")
-            log.warning("HTTP: POST /api/trigger from %s refused: 401 (%s)", peer, why)
-            return web.json_response({"ok": False, "error": f"unauthorized: {why}"}, status=401,
-                                     headers={"WWW-Authenticate": 'Bearer realm="scan3d"'})
+        refused = self._unauthorized(request)
+        if refused is not None:
+            return refused
         wait = request.query.get("wait", "") in ("1", "true", "yes")
         log.info("HTTP: trigger from %s%s", peer, " (waiting)" if wait else "")
         reply = await self.view.trigger(wait, "http")
@@ -322,6 +366,13 @@ class HttpFace:
         with contextlib.suppress(ConnectionResetError, RuntimeError):
             await resp.write_eof()
         return resp
+
+
+def _status_of(reply: dict[str, Any]) -> int:
+    """200 when done; 409 refused (busy, nothing to apply), 400 an invalid value or file, 500 failed."""
+    if reply.get("ok"):
+        return 200
+    return {"refused": 409, "invalid": 400}.get(str(reply.get("result", "")), 500)
 
 
 def _sse(event: dict[str, Any]) -> bytes:

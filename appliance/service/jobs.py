@@ -21,7 +21,7 @@ from appliance.hardware.base import TriggerEvent
 from appliance.output.scanfiles import make_scan_id
 from appliance.output.share import WriteOutcome, estimate_scan_bytes
 from appliance.service.parts import Files, JobsHost, Lamps, RigView
-from appliance.service.state import ScanRecord, State, StatusBoard
+from appliance.service.state import ScanRecord, State, StatusBoard, scan_findings
 
 if TYPE_CHECKING:
     from appliance.reconstruct.types import PointCloud
@@ -105,6 +105,8 @@ class ScanJobs:
             why = "the service is stopping"
         elif not self.rig.ready:
             why = f"not ready ({b.state}: {b.detail})"
+        elif b.state == State.TUNING:  # never queued: a scan behind a tune would use the settings it replaces
+            why = "tuning (scan3d tune is measuring the scene on the rig); trigger again when it is done"
         elif self.busy:
             if service.busy_policy == "queue" and len(self.queue) < service.queue_max:
                 job = Job(event)
@@ -279,7 +281,8 @@ class ScanJobs:
                          outcome.location, [str(p) for p in outcome.files],
                          {k: round(v, 1) for k, v in timings.items()},
                          calibration_health=_health_summary(result.calibration_health),
-                         both_seen=seen if isinstance(seen := (result.stereo or {}).get("both_seen"), dict) else {})
+                         both_seen=seen if isinstance(seen := (result.stereo or {}).get("both_seen"), dict) else {},
+                         **scan_findings(meta.counts, meta.warnings, meta.extra))
         if outcome.location == "spool":
             b.count("spooled")
             b.error("share", f"scan {scan_id} spooled: {outcome.reason}")

@@ -17,6 +17,7 @@ protocol               what it is (who implements it)
 :class:`JobsHost`      where a finished scan goes (the daemon: its scan listeners)
 :class:`HealthHost`    the control socket to probe (the daemon)
 :class:`ControlHost`   what the control socket's commands do (the daemon)
+:class:`TuneHost`      the configuration file and its reload, for ``scan3d tune`` (the daemon)
 :class:`RigView`       the rig as the others see it: ready, idle state, scanner (the rig part)
 :class:`Files`         the writer thread and what runs there (the writer)
 :class:`Lamps`         the refused-trigger blink (the publisher)
@@ -133,6 +134,27 @@ class ControlHost(Protocol):
 
     async def reload(self, why: str) -> tuple[bool, str]:
         """Load the configuration file now: (applied, error message)."""
+        ...
+
+    async def tune(self, time_budget_ms: float, apply: bool) -> dict[str, Any]:
+        """``scan3d tune`` on the service's rig (see :class:`~appliance.service.tuning.Tuner`)."""
+        ...
+
+    async def tune_apply(self, exposures_us: list[int] | None) -> dict[str, Any]:
+        """Write the last tune's choice into the configuration file and reload it."""
+        ...
+
+
+class TuneHost(Configured, Protocol):
+    """What the tuner needs beside the rig: the configuration file and its reload."""
+
+    @property
+    def config_path(self) -> Path:
+        """The configuration file the service runs (and reloads)."""
+        ...
+
+    async def reload(self, why: str) -> tuple[bool, str]:
+        """Load the configuration file now and apply it when valid: (applied, error message)."""
         ...
 
 

@@ -2,8 +2,9 @@
 
 States: ``starting`` (phases load config → connect hardware → warm kernels), ``idle``, ``scanning``
 (projecting and capturing), ``processing`` (decode finish, triangulation), ``writing`` (files to the share or
-spool), ``fault`` (hardware absent or failed; retried with backoff), ``stopping``. Every change notifies the
-listeners (sd_notify STATUS, mDNS TXT, controller lamps), so the state is published, not just logged.
+spool), ``tuning`` (``scan3d tune`` probing the scene on the rig; triggers are refused), ``fault`` (hardware
+absent or failed; retried with backoff), ``stopping``. Every change notifies the listeners (sd_notify STATUS,
+mDNS TXT, controller lamps), so the state is published, not just logged.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ class State(enum.StrEnum):
     SCANNING = "scanning"
     PROCESSING = "processing"
     WRITING = "writing"
+    TUNING = "tuning"
     FAULT = "fault"
     STOPPING = "stopping"
 
@@ -47,7 +49,7 @@ class Phase(enum.StrEnum):
     STOPPING = "stopping"
 
 
-BUSY_STATES = frozenset({State.SCANNING, State.PROCESSING, State.WRITING})
+BUSY_STATES = frozenset({State.SCANNING, State.PROCESSING, State.WRITING, State.TUNING})
 
 
 @dataclass
@@ -78,6 +80,40 @@ class ScanRecord:
     # camera-camera scans: of the reference camera's pixels both cameras see, how many got a point
     # ({"pixels", "reconstructed", "share"}, the sidecar's extra.stereo.both_seen); empty otherwise
     both_seen: dict[str, Any] = field(default_factory=dict)
+    # why pixels have no point: per camera the sidecar's reason_shares ({reason: share of the image, 0..1})
+    reasons: dict[str, dict[str, float]] = field(default_factory=dict)
+    # the sidecar's plain-words warnings (a dominant reason with what to do, a stage that dropped most)
+    warnings: list[str] = field(default_factory=list)
+    # multi-exposure scans: {"exposures_us": [...], "cameras": {cam: [{exposure_us, decoded_share,
+    # pixel_share}, ...]}} (the sidecar's extra.hdr, darkest pass first); empty without sequence.exposures_us
+    hdr: dict[str, Any] = field(default_factory=dict)
+
+
+def scan_findings(counts: dict[str, Any], warnings: list[str], extra: dict[str, Any]) -> dict[str, Any]:
+    """What a scan's sidecar says of its missing pixels, as :class:`ScanRecord` fields (``reasons``,
+    ``warnings``, ``hdr``).
+
+    Parameters
+    ----------
+    counts : dict
+        The sidecar's ``counts`` (``cameras.<cam>.reason_shares``).
+    warnings : list of str
+        The sidecar's ``warnings``.
+    extra : dict
+        The sidecar's ``extra`` (``hdr``: the exposures and, per camera, what each pass gave).
+    """
+    cams = counts.get("cameras", {}) if isinstance(counts.get("cameras"), dict) else {}
+    reasons = {str(n): {str(k): float(v) for k, v in c.get("reason_shares", {}).items()}
+               for n, c in cams.items() if isinstance(c, dict)}
+    hdr: dict[str, Any] = {}
+    block = extra.get("hdr")
+    if isinstance(block, dict) and block.get("exposures_us"):
+        per = block.get("cameras", {}) if isinstance(block.get("cameras"), dict) else {}
+        keep = ("exposure_us", "decoded_share", "pixel_share")
+        hdr = {"exposures_us": [float(e) for e in block["exposures_us"]],
+               "cameras": {str(n): [{k: p.get(k) for k in keep} for p in c.get("passes", []) if isinstance(p, dict)]
+                           for n, c in per.items() if isinstance(c, dict)}}  # fmt: skip
+    return {"reasons": reasons, "warnings": [str(w) for w in warnings], "hdr": hdr}
 
 
 @dataclass
@@ -229,7 +265,7 @@ class StatusBoard:
 
     @property
     def busy(self) -> bool:
-        """True while a scan runs (scanning, processing or writing)."""
+        """True while a scan runs (scanning, processing or writing) or a tune probes the rig."""
         return self.state in BUSY_STATES
 
     def last_scan_id(self) -> str:
