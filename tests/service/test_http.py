@@ -241,3 +241,42 @@ def test_a_reload_starts_moves_and_stops_the_face(tmp_path: Path, loop_guard: No
             assert svc.board.counters["reloads"] == 3
 
     asyncio.run(main())
+
+
+def test_tune_and_apply_need_the_token_and_write_the_choice(tmp_path: Path, loop_guard: None) -> None:
+    """POST /api/tune probes the rig (busy meanwhile) and answers the choice; POST /api/tune/apply writes the
+    choice it was shown into the configuration file and the service reloads it; both guarded like a trigger."""
+    cfg, base = http_config(tmp_path)
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            for url in ("/api/tune", "/api/tune/apply"):
+                async with http.post(base + url) as r:
+                    assert r.status == 401 and r.headers["WWW-Authenticate"].startswith("Bearer")
+            async with http.post(f"{base}/api/tune/apply", headers=AUTH) as r:
+                assert r.status == 409 and "run a tune first" in (await r.json())["error"]
+            async with http.post(f"{base}/api/tune?time_budget_ms=later", headers=AUTH) as r:
+                assert r.status == 400
+            async with http.post(f"{base}/api/tune?time_budget_ms=-5", headers=AUTH) as r:
+                assert r.status == 400 and "must be a positive number" in (await r.json())["error"]
+            async with http.post(f"{base}/api/tune?time_budget_ms=3000", headers=AUTH) as r:
+                assert r.status == 200
+                reply = await r.json()
+            chosen = reply["tune"]["choice"]["exposures_us"]
+            assert chosen and reply["tune"]["time_budget_ms"] == 3000
+            assert any(x.startswith("choice: sequence.exposures_us") for x in reply["tune"]["lines"])
+            async with http.post(f"{base}/api/tune/apply", headers=AUTH, json={"exposures_us": [1, 2]}) as r:
+                assert r.status == 409 and "is not the last tune's choice" in (await r.json())["error"]
+            async with http.post(f"{base}/api/tune/apply", headers=AUTH, data=b'{"exposures_us": "lots"}') as r:
+                assert r.status == 400
+            assert "exposures_us" not in (yaml.safe_load(await asyncio.to_thread(cfg.read_text))["sequence"] or {})
+            async with http.post(f"{base}/api/tune/apply", headers=AUTH, json={"exposures_us": chosen}) as r:
+                assert r.status == 200
+                applied = (await r.json())["applied"]
+            assert applied["reloaded"] and applied["exposures_us"] == chosen
+            doc = yaml.safe_load(await asyncio.to_thread(cfg.read_text))
+            assert doc["sequence"]["exposures_us"] == chosen
+            assert list(svc.cfg.sequence.exposures_us) == chosen
+            await wait_until(lambda: svc.board.state == "idle", 60)
+
+    asyncio.run(main())

@@ -221,3 +221,68 @@ def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None
         asyncio.run(main())
     finally:
         browser.kill()
+
+
+def test_page_says_why_pixels_have_no_point_and_tunes(tmp_path: Path) -> None:
+    """Under the last scan, the page shows per camera the share with a point and why the others have none (the
+    record's reasons, which are the sidecar's reason_shares); the Tune button probes the rig (the service busy
+    in state ``tuning`` meanwhile) and shows the choice, and Apply writes it into the configuration file."""
+    import yaml
+
+    from appliance.service.state import State
+
+    port = free_port()
+    cfg = appliance_copy(tmp_path, http={"listen": f"127.0.0.1:{port}", "token_file": str(token_file(tmp_path))})
+    base = f"http://127.0.0.1:{port}"
+    browser = Chromium("about:blank")
+    states: list[str] = []
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            svc.board.subscribe(lambda b: states.append(str(b.state)))
+            try:
+                async with http.post(f"{base}/api/trigger?wait=1", headers={"Authorization": f"Bearer {TOKEN}"}) as r:
+                    scan = (await r.json())["scan"]
+                shares = scan["reasons"]["cam0"]
+                side = next(p for p in map(Path, scan["files"]) if p.suffix == ".json")
+                sidecar = json.loads(await asyncio.to_thread(side.read_text))
+                assert shares == sidecar["counts"]["cameras"]["cam0"]["reason_shares"] and "shadow" in shares
+                await browser.connect()
+                await browser.call("Page.navigate", url=base + "/")
+                el = "document.getElementById"
+
+                async def until(expr: str, timeout_s: float) -> str:
+                    t0 = time.monotonic()
+                    while not await browser.evaluate(expr):
+                        seen = await browser.evaluate(f"[...['reasons', 'tune-status', 'tune-result', 'state']]"
+                                                      f".map(i => ({el}(i) || {{}}).textContent).join(' | ')")
+                        assert time.monotonic() - t0 < timeout_s, f"{expr}: {seen}"
+                        await asyncio.sleep(0.05)
+                    return str(await browser.evaluate(f"{el}('reasons').textContent"))
+
+                line = await until(f"({el}('reasons') || {{}}).textContent && {el}('reasons').textContent"
+                                   ".includes('with a point')", 10)
+                assert f"cam0: {100 * shares['decoded']:.1f} % with a point" in line, line
+                assert f"shadow {100 * shares['shadow']:.1f} %" in line, line
+                await until(f"{el}('state').textContent === 'idle' && !{el}('tune').disabled", 10)
+                await browser.evaluate(f"window.prompt = () => '{TOKEN}'; {el}('tune').click()")
+                await until(f"{el}('tune-result').textContent.includes('choice: sequence.exposures_us')", 30)
+                assert State.TUNING in states  # busy while it probed
+                result = await browser.evaluate(f"{el}('tune-result').textContent")
+                assert "cannot recover" in result and "expected scan time" in result, result
+                await browser.evaluate(f"{el}('tune-apply').click()")
+                await until(f"{el}('tune-status').textContent.startsWith('applied:')", 30)
+                doc = yaml.safe_load(await asyncio.to_thread(cfg.read_text))
+                ex = ", ".join(str(e) for e in doc["sequence"]["exposures_us"])
+                assert f"choice: sequence.exposures_us = [{ex}]" in result
+                assert list(svc.cfg.sequence.exposures_us) == doc["sequence"]["exposures_us"]
+                errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
+                assert not errors, errors
+                await until(f"{el}('state').textContent === 'idle'", 30)  # the rig rebuilt with the choice
+            finally:
+                await browser.disconnect()
+
+    try:
+        asyncio.run(main())
+    finally:
+        browser.kill()

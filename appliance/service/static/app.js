@@ -34,6 +34,42 @@ function bothSeenLine(b) {
     `both cameras see got a point (${Number(b.reconstructed).toLocaleString()})`;
 }
 
+function pct(v) { return typeof v === "number" ? `${(100 * v).toFixed(1)} %` : "?"; }
+
+// why the pixels of a scan have no point: per camera {reason: share of the image} (the sidecar's reason_shares;
+// "decoded" is the share with a point, a zero share is left out), largest first
+function reasonLines(reasons) {
+  return Object.entries(reasons || {}).map(([cam, shares]) => {
+    const rest = Object.entries(shares || {}).filter(([k, v]) => k !== "decoded" && typeof v === "number")
+      .sort((a, b) => b[1] - a[1]).map(([k, v]) => `${k} ${pct(v)}`);
+    return `${cam}: ${pct((shares || {}).decoded || 0)} with a point` + (rest.length ? `; ${rest.join(", ")}` : "");
+  });
+}
+
+// a multi-exposure scan: {exposures_us, cameras: {cam: [{exposure_us, decoded_share, pixel_share}]}}
+function hdrLine(hdr) {
+  if (!hdr || !hdr.exposures_us || !hdr.exposures_us.length) return "";
+  const cams = Object.entries(hdr.cameras || {}).map(([cam, passes]) =>
+    `${cam} ` + passes.map((p) => `${p.exposure_us} µs ${pct(p.decoded_share)}`).join(", "));
+  return `exposures ${hdr.exposures_us.join(", ")} µs; share of the decoded pixels each pass gave: ${cams.join("; ")}`;
+}
+
+function showFindings(scan) {
+  const lines = reasonLines(scan.reasons);
+  text("reasons", lines.length ? `why pixels have no point (share of the image): ${lines.join(" | ")}` : "");
+  const h = hdrLine(scan.hdr);
+  $("hdr").hidden = !h;
+  text("hdr", h);
+  const ul = $("warnings");
+  ul.replaceChildren();
+  for (const w of scan.warnings || []) {
+    const li = document.createElement("li");
+    li.textContent = w;
+    ul.append(li);
+  }
+  ul.hidden = !(scan.warnings || []).length;
+}
+
 function fmtTime(iso) {
   if (!iso) return "–";
   return iso.replace("T", " ").replace(/\.\d+/, "").replace(/\+00:00$/, "");
@@ -62,6 +98,7 @@ function showState(s) {
   showError(s.last_error);
   $("trigger").disabled = s.state !== "idle" && s.state !== "scanning" && s.state !== "processing" &&
     s.state !== "writing";
+  if (!tuneRunning) $("tune").disabled = s.state !== "idle";
 }
 
 function showError(err) {
@@ -152,6 +189,7 @@ function showScans(scans) {
 function showLast(scan) {
   text("last-id", scan.scan_id);
   text("both-seen", bothSeenLine(scan.both_seen));
+  showFindings(scan);
   if (scan.scan_id === lastScanShown) return;
   lastScanShown = scan.scan_id;
   const base = `/api/scans/${encodeURIComponent(scan.scan_id)}`;
@@ -318,15 +356,21 @@ async function refreshConfig() {
 
 // --- trigger ------------------------------------------------------------------------------------------
 
-async function trigger() {
+function askToken() {  // the token for writes from this page, asked once and remembered
   let token = localStorage.getItem(TOKEN_KEY);
   if (!token) {
     token = window.prompt("Token for scans from this page (the content of service.http.token_file):");
-    if (!token) return;
+    if (!token) return null;
     localStorage.setItem(TOKEN_KEY, token.trim());
     token = token.trim();
   }
   $("forget").hidden = false;
+  return token;
+}
+
+async function trigger() {
+  const token = askToken();
+  if (!token) return;
   text("trigger-result", "…");
   try {
     const r = await fetch("/api/trigger", { method: "POST", headers: { Authorization: `Bearer ${token}` } });
@@ -339,6 +383,64 @@ async function trigger() {
     text("trigger-result", body.ok ? `scan ${body.result}` : (body.error || `HTTP ${r.status}`));
   } catch (e) {
     text("trigger-result", `no answer: ${e.message}`);
+  }
+}
+
+// --- tune (the capture assistant) ----------------------------------------------------------------------
+
+let tuneRunning = false;
+let tuneChoice = null;  // the exposures (µs) of the last tune shown: what Apply writes
+
+async function postTune(url, init) {  // {status, body}; a 401 forgets the token
+  const token = askToken();
+  if (!token) return null;
+  const r = await fetch(url, { method: "POST", ...init,
+    headers: { Authorization: `Bearer ${token}`, ...((init && init.headers) || {}) } });
+  const body = await r.json().catch(() => ({}));
+  if (r.status === 401) localStorage.removeItem(TOKEN_KEY);
+  return { status: r.status, body };
+}
+
+async function tune() {
+  const budget = Number($("tune-budget").value) || 2000;
+  tuneRunning = true; $("tune").disabled = true; $("tune-apply").hidden = true; tuneChoice = null;
+  text("tune-status", `probing the scene (budget ${budget} ms)…`);
+  try {
+    const res = await postTune(`/api/tune?time_budget_ms=${encodeURIComponent(budget)}`);
+    if (!res) { text("tune-status", "no token"); return; }
+    if (res.status === 401) { text("tune-status", "wrong token (asked again on the next press)"); return; }
+    if (!res.body.ok) { text("tune-status", res.body.error || `HTTP ${res.status}`); return; }
+    const t = res.body.tune;
+    $("tune-result").hidden = false;
+    text("tune-result", (t.lines || []).join("\n"));
+    tuneChoice = t.choice.exposures_us;
+    text("tune-status", `probed in ${Math.round(t.probe_ms)} ms; Apply writes sequence.exposures_us = ` +
+      `[${tuneChoice.join(", ")}] into the configuration file (validated, then reloaded)`);
+    $("tune-apply").hidden = false;
+  } catch (e) {
+    text("tune-status", `no answer: ${e.message}`);
+  } finally {
+    tuneRunning = false;
+    $("tune").disabled = $("state").textContent !== "idle";
+  }
+}
+
+async function applyTune() {
+  if (!tuneChoice) return;
+  text("tune-status", "writing and reloading…");
+  try {
+    const res = await postTune("/api/tune/apply", { body: JSON.stringify({ exposures_us: tuneChoice }),
+      headers: { "Content-Type": "application/json" } });
+    if (!res) return;
+    if (res.body.ok) {
+      const a = res.body.applied;
+      text("tune-status", `applied: ${a.path}: sequence.exposures_us = [${a.exposures_us.join(", ")}]; reloaded`);
+      $("tune-apply").hidden = true;
+    } else {
+      text("tune-status", res.body.error || `HTTP ${res.status}`);
+    }
+  } catch (e) {
+    text("tune-status", `no answer: ${e.message}`);
   }
 }
 
@@ -369,6 +471,8 @@ function connectEvents() {
 
 document.addEventListener("DOMContentLoaded", () => {
   $("trigger").addEventListener("click", trigger);
+  $("tune").addEventListener("click", tune);
+  $("tune-apply").addEventListener("click", applyTune);
   $("forget").addEventListener("click", () => { localStorage.removeItem(TOKEN_KEY); $("forget").hidden = true; });
   $("forget").hidden = !localStorage.getItem(TOKEN_KEY);
   setupCloudControls();
