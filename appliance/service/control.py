@@ -2,7 +2,8 @@
 
 Each request is one JSON object on one line, ``{"cmd": "status"}``; each reply is one JSON object on one line
 with ``"ok": true|false``. Commands: ``status``, ``trigger`` (``"wait": true`` replies when the scan is done),
-``reload``, ``ping``, ``last_error``. A connection may send several requests; a malformed line gets an error reply.
+``tune`` (``"time_budget_ms"``, ``"apply"``: ``scan3d tune`` on the service's rig), ``reload``, ``ping``,
+``last_error``. A connection may send several requests; a malformed line gets an error reply.
 """
 
 from __future__ import annotations
