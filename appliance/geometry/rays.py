@@ -43,6 +43,12 @@ class RayTable:
 
     def __init__(self, camera: CameraModel) -> None:
         self.camera = camera
+        self._normalized: F32 | None = self._compute()
+        self.origin: F64 = camera.center
+        self._row_tables: dict[int, tuple[F32, F32, float]] = {}
+
+    def _compute(self) -> F32:
+        camera = self.camera
         h, w = camera.height, camera.width
         norm = np.empty((h, w, 2), np.float32)
         xs = np.arange(w, dtype=np.float64)
@@ -52,9 +58,19 @@ class RayTable:
             gx, gy = np.meshgrid(xs, np.arange(r0, r1, dtype=np.float64))
             und = camera.undistort_pixels(np.stack([gx.ravel(), gy.ravel()], axis=1))
             norm[r0:r1] = und.reshape(r1 - r0, w, 2)
-        self.normalized: F32 = norm
-        self.origin: F64 = camera.center
-        self._row_tables: dict[int, tuple[F32, F32, float]] = {}
+        return norm
+
+    @property
+    def normalized(self) -> F32:
+        """The per-pixel table (see the class); computed again on first use after :meth:`release`."""
+        if self._normalized is None:
+            self._normalized = self._compute()
+        return self._normalized
+
+    def release(self) -> None:
+        """Give back the per-pixel table (8 bytes a pixel, 10.5 MB at 1280x1024) where only the
+        :meth:`row_table` is read per scan; the row tables already built are kept."""
+        self._normalized = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -140,3 +140,122 @@ def fuse_depths(
     source = np.empty(shape, np.uint8)
     _fuse(arrs[0], arrs[1], arrs[2], arrs[3], float(max_sigmas), bool(keep_disagreeing), depth, sigma, source)
     return FusedDepth(depth, sigma, source == 4, source)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def _fuse_into(z1, s1, xyz, s2, rz, tz, k, keep_disagree, reason, has_r, decoded, filtered, counts, tally):  # type: ignore[no-untyped-def]
+    h, w = z1.shape[0], z1.shape[1]
+    for r in prange(h):
+        kept = 0
+        for c in range(w):
+            a = np.float64(z1[r, c])
+            sa = np.float64(s1[r, c])
+            # the camera-camera point's depth along the camera's optical axis (its z in the camera frame)
+            b = rz[0] * xyz[r, c, 0] + rz[1] * xyz[r, c, 1] + rz[2] * xyz[r, c, 2] + tz
+            sb = np.float64(s2[r, c])
+            ha = a == a and sa > 0.0  # a sigma that is NaN, 0 or negative is no estimate
+            hb = b == b and sb > 0.0
+            src = 0
+            if ha and hb:
+                va = sa * sa
+                vb = sb * sb
+                if abs(a - b) > k * np.sqrt(va + vb):
+                    src = 4
+                    if keep_disagree:  # the more certain one
+                        z1[r, c] = a if va <= vb else b
+                        s1[r, c] = sa if va <= vb else sb
+                    else:
+                        z1[r, c] = np.nan
+                        s1[r, c] = np.nan
+                else:
+                    wa = 1.0 / va
+                    wb = 1.0 / vb
+                    z1[r, c] = (a * wa + b * wb) / (wa + wb)
+                    s1[r, c] = 1.0 / np.sqrt(wa + wb)
+                    src = 3
+            elif ha:
+                src = 1
+            elif hb:
+                z1[r, c] = b
+                s1[r, c] = sb
+                src = 2
+            else:
+                z1[r, c] = np.nan
+                s1[r, c] = np.nan
+            tally[r, src] += 1
+            has = z1[r, c] == z1[r, c]
+            kept += has
+            if has_r:
+                if has:
+                    reason[r, c] = decoded
+                elif reason[r, c] == decoded:
+                    reason[r, c] = filtered
+        counts[r + 1] = kept
+    counts[0] = 0
+
+
+def fuse_points_into(
+    depth: F32,
+    sigma: F32,
+    xyz: F32,
+    sigma_xyz: F32,
+    axis_z: npt.NDArray[np.float64],
+    offset_z: float,
+    counts: npt.NDArray[np.int64],
+    reason: npt.NDArray[np.uint8] | None = None,
+    reason_codes: tuple[int, int] = (0, 0),
+    max_sigmas: float = DISAGREE_SIGMAS,
+    keep_disagreeing: bool = False,
+) -> dict[str, int]:
+    """:func:`fuse_depths` of a depth map and an organised cloud of the same camera, in place, in one pass.
+
+    What the fused reconstruction needs without a full-image temporary: the cloud's depth along the camera's
+    optical axis is taken per pixel, and the fused depth and sigma overwrite the first estimate.
+
+    Parameters
+    ----------
+    depth, sigma : ndarray, shape (H, W), float32, C-contiguous
+        First estimate (camera-projector): depth (mm) and its 1-sigma error (mm), NaN where none;
+        overwritten by the fused depth and sigma.
+    xyz : ndarray, shape (H, W, 3), float32
+        Second estimate (camera-camera) as world points (mm) organised on the same pixels, NaN where none.
+    sigma_xyz : ndarray, shape (H, W), float32
+        Its 1-sigma error along the ray (mm).
+    axis_z : ndarray, shape (3,), float64
+        The camera's optical axis in the world frame (third row of its R): depth = ``axis_z . p + offset_z``.
+    offset_z : float
+        The camera's T[2] (mm).
+    counts : ndarray, shape (H + 1,), int64
+        Receives ``counts[r + 1]`` = pixels with a fused depth in row r, ``counts[0]`` = 0.
+    reason : ndarray, shape (H, W), uint8, optional
+        Reason map, updated: a pixel with a fused depth becomes ``reason_codes[0]`` (decoded), a decoded one
+        that lost its depth (disagreement) ``reason_codes[1]`` (filtered).
+    reason_codes : tuple of int
+        (decoded, filtered) reason values.
+    max_sigmas, keep_disagreeing
+        As in :func:`fuse_depths`.
+
+    Returns
+    -------
+    dict of str to int
+        Pixels by source (``first``, ``second``, ``fused``, ``disagree``), as :meth:`FusedDepth.counts`.
+    """
+    h, w = depth.shape
+    for name, a, shape in (("depth", depth, (h, w)), ("sigma", sigma, (h, w)), ("xyz", xyz, (h, w, 3)),
+                           ("sigma_xyz", sigma_xyz, (h, w))):  # fmt: skip
+        if a.shape != shape or a.dtype != np.float32 or not a.flags.c_contiguous:
+            raise ValueError(f"fuse_points_into: {name} is {a.shape} {a.dtype}: must be C-contiguous float32 {shape}")
+    if counts.shape != (h + 1,) or counts.dtype != np.int64:
+        raise ValueError(f"fuse_points_into: counts is {counts.shape} {counts.dtype}: must be int64 {(h + 1,)}")
+    if not max_sigmas > 0:
+        raise ValueError(f"fuse_points_into: max_sigmas = {max_sigmas}: must be > 0")
+    has_r = reason is not None
+    rmap = reason if reason is not None else np.zeros((1, 1), np.uint8)
+    if has_r and rmap.shape != (h, w):
+        raise ValueError(f"fuse_points_into: reason is {rmap.shape}: must be {(h, w)}")
+    tally = np.zeros((h, 5), np.int64)
+    _fuse_into(depth, sigma, xyz, sigma_xyz, np.ascontiguousarray(axis_z, np.float64), float(offset_z),
+               float(max_sigmas), bool(keep_disagreeing), rmap, has_r, np.uint8(reason_codes[0]),
+               np.uint8(reason_codes[1]), counts, tally)  # fmt: skip
+    c = tally.sum(axis=0)
+    return {"first": int(c[1]), "second": int(c[2]), "fused": int(c[3]), "disagree": int(c[4])}

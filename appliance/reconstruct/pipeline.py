@@ -25,7 +25,7 @@ from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
-from appliance.reconstruct.fuse import fuse_depths
+from appliance.reconstruct.fuse import fuse_points_into
 from appliance.reconstruct.residuals import Residual, ray_ray_residual
 from appliance.reconstruct.settings import ReconstructionSettings
 from appliance.reconstruct.stereo import StereoTriangulator
@@ -133,7 +133,7 @@ class Reconstruction:
         The calibration-health inputs: residuals wherever the scan was overdetermined (both projector axes,
         two cameras with rows coded, two cameras and a projector).
     fusion : dict of str to int
-        Mode ``'both'``: reference-camera pixels by source (see ``fuse_depths``); else empty.
+        Mode ``'both'``: reference-camera pixels by source (see ``fuse_points_into``); else empty.
     stereo : dict, optional
         What the camera-camera matcher did, stage by stage (modes ``'stereo'`` and ``'both'``).
     """
@@ -274,8 +274,9 @@ class Reconstructor:
                     f"reconstruction.mode = {cfg.mode}: the calibration has no 'projector'; "
                     "calibrate it or use mode stereo"
                 )
-            for n in names:
-                self._proj_tri[n] = ProjectorTriangulator(calibration.devices[n], projector, axes)
+            first: ProjectorTriangulator | None = None
+            for n in names:  # the projector's table is built once, for every camera
+                first = self._proj_tri[n] = ProjectorTriangulator(calibration.devices[n], projector, axes, like=first)
             self.outputs = list(names)
         if cfg.mode in ("stereo", "both"):
             if "stereo" not in modes:
@@ -286,7 +287,7 @@ class Reconstructor:
             self._stereo = StereoTriangulator(
                 cam0,
                 cam1,
-                RayTable(cam0),
+                self._proj_tri[names[0]].rays if names[0] in self._proj_tri else RayTable(cam0),  # one table a camera
                 max_epipolar_px=cfg.stereo_max_epipolar_px,
                 projector=calibration.projector,
                 drift=cfg.stereo_drift,
@@ -332,7 +333,10 @@ class Reconstructor:
             cam = calibration.devices[names[0]]
             self._xyz[names[0]] = np.empty((cam.height, cam.width, 3), np.float32)
             self._scratch[names[0]] = np.empty((cam.height, cam.width), np.bool_)
-            self._zs = np.empty((cam.height, cam.width), np.float32)
+        if self._depth_path and axes != "xy":  # a scan reads the row tables only (xy: the residual reads all)
+            for tri in self._proj_tri.values():
+                tri.rays.row_table()
+                tri.rays.release()
 
     def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> dict[str, int]:
         """Mode ``'both'``: camera-camera on the reference camera, fused with its camera-projector depth by
@@ -347,23 +351,9 @@ class Reconstructor:
         if cfg.max_sigma_mm is not None:
             self._stereo.filter_sigma(xyz, cfg.max_sigma_mm, self._scratch[n0])
         cam = self.calibration.devices[n0]
-        r, t = cam.R[2].astype(np.float32), np.float32(cam.T[2])
-        np.multiply(xyz[..., 0], r[0], out=self._zs)
-        self._zs += xyz[..., 1] * r[1]
-        self._zs += xyz[..., 2] * r[2]
-        self._zs += t
-        fused = fuse_depths(self._depth[n0], self._sigma[n0], self._zs, self._stereo.sigma)
-        self._depth[n0][...] = fused.depth
-        self._sigma[n0][...] = fused.sigma
-        counts = self._counts[n0]
-        counts[0] = 0
-        counts[1:] = np.count_nonzero(np.isfinite(fused.depth), axis=1)
-        reason = _reason_map(maps[n0])
-        if reason is not None:  # fusion drops disagreeing pixels and adds camera-camera-only ones
-            has = np.isfinite(fused.depth)
-            reason[(reason == Reason.DECODED) & ~has] = Reason.FILTERED
-            reason[has] = Reason.DECODED
-        return fused.counts()
+        # in place, one pass: fusion drops disagreeing pixels (reason filtered) and adds camera-camera-only ones
+        return fuse_points_into(self._depth[n0], self._sigma[n0], xyz, self._stereo.sigma, cam.R[2], float(cam.T[2]),
+                                self._counts[n0], _reason_map(maps[n0]), (Reason.DECODED, Reason.FILTERED))
 
     def _stereo_report(self) -> dict[str, object] | None:
         return None if self._stereo is None else self._stereo.report.as_dict()

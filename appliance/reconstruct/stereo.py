@@ -125,6 +125,7 @@ STAGES = {
     C.ST_THREE_VIEW: "does not project onto its projector code",
 }
 _N_STATUS = C.ST_OK + 1
+_NO_V = np.full((1, 1), np.nan, np.float32)
 
 
 @dataclass
@@ -418,17 +419,14 @@ class StereoTriangulator:
         self._r0z = np.ascontiguousarray(cam0.R[2])
         self._t0z = float(cam0.T[2])
         self._c0 = c0
-        # per-scan buffers, reused
+        # per-scan buffers, reused; those of coded rows (v) on the first scan that has them
         self._u0r = np.empty((hr, wr0), np.float32)
         self._u1r = np.empty((hr, wr1), np.float32)
-        self._v1r = np.full((hr, wr1), np.nan, np.float32)
-        self._v1s = np.full((hr, wr1), np.nan, np.float32)
-        self._scr1 = np.empty((hr, wr1), np.float32)
         self._lev0 = np.empty((h, w), np.float32)
-        self._v0s = np.empty((h, w), np.float32)
-        self._scr0 = np.empty((h, w), np.float32)
+        # the three-view errors are taken after the last match (rematch included), when no level is read again
+        self._err3 = self._lev0
         self._epi = np.empty((h, w), np.float32)
-        self._err3 = np.empty((h, w), np.float32)
+        self._vbufs: dict[str, F32] = {}
         self.sigma = np.empty((h, w), np.float32)
         """1-sigma error of each point of the last :meth:`triangulate` along cam0's ray (mm); NaN where none."""
         self._status = np.zeros((h, w), np.uint8)
@@ -440,6 +438,15 @@ class StereoTriangulator:
         self.residuals: list[Residual] = []
         """Epipolar (rows coded) and three-view (projector) residuals of the last :meth:`triangulate`, before
         any correction: what the scan says about the calibration (:mod:`appliance.reconstruct.residuals`)."""
+
+    def _vbuf(self, name: str) -> F32:
+        """A buffer of coded rows: ``v1r``, ``v1s``, ``scr1`` (rectified grid of cam1) or ``v0s``, ``scr0`` (cam0)."""
+        buf = self._vbufs.get(name)
+        if buf is None:
+            hr, wr1 = self.rect_shape[0], self.rect_shape[2]
+            buf = self._vbufs[name] = np.empty((hr, wr1) if name in ("v1r", "v1s", "scr1") else self.rays0.shape,
+                                               np.float32)  # fmt: skip
+        return buf
 
     def _table(self, name: str, nk: int) -> F32:
         tab = self._tabs.get(name)
@@ -531,7 +538,7 @@ class StereoTriangulator:
         nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
         C.remap_codes(u0, mask0, self._map0, spread, self._u0r)
         if use_v:  # cam1's u and v in one pass
-            C.remap_pair(u1, v1, mask1, self._map1, spread, 1.5 * vstep + 3.0 * vper, self._u1r, self._v1r)
+            C.remap_pair(u1, v1, mask1, self._map1, spread, 1.5 * vstep + 3.0 * vper, self._u1r, self._vbuf("v1r"))
         else:
             C.remap_codes(u1, mask1, self._map1, spread, self._u1r)
         C.to_levels(self._u0r, lev_origin, 1.0 / dl)
@@ -548,14 +555,15 @@ class StereoTriangulator:
             for raw, sm in ((cross0, s0), (cross1, s1)):
                 C.smooth_crossings(raw, levels, False, MAX_RES_PX, sm)
                 C.smooth_crossings(sm, SMOOTH_ROWS, True, MAX_RES_PX, raw)  # back into the raw table
-        v0m, v1m = v0, self._v1r
+        v0m, v1m = _NO_V, _NO_V  # not read without v
         if use_v:
+            v0m, v1m = v0, self._vbuf("v1r")
             if vgrid is not None and vgrid.quantised:
                 radius = int(min(8, max(1, math.ceil(vgrid.stripe_px))))
                 span = (2 * radius + 1) * vper + 2.0 * vstep
-                C.box_mean(v0, radius, span, self._scr0, self._v0s)
-                C.box_mean(self._v1r, radius, span, self._scr1, self._v1s)
-                v0m, v1m = self._v0s, self._v1s
+                v0m, v1m = self._vbuf("v0s"), self._vbuf("v1s")
+                C.box_mean(v0, radius, span, self._vbuf("scr0"), v0m)
+                C.box_mean(self._vbuf("v1r"), radius, span, self._vbuf("scr1"), v1m)
         tol = np.array([max_gap, MAX_ROW_JUMP_PX, MAX_OWN_PX, margin])
         noise_p = self._noise_params(grid, noise, levels if grid.quantised else 0)
         shift = np.zeros(3)

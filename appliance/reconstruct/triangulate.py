@@ -127,6 +127,9 @@ class ProjectorTriangulator:
         Coded projector axes: ``'x'`` columns (ray / light-surface), ``'y'`` rows, ``'xy'`` ray-ray.
     rays : RayTable, optional
         The camera's ray table, when it is already computed.
+    like : ProjectorTriangulator, optional
+        Another camera's triangulator of the same projector: its projector table (both axes coded: 8 bytes
+        per projector pixel) is shared, not built again.
 
     Raises
     ------
@@ -135,7 +138,12 @@ class ProjectorTriangulator:
     """
 
     def __init__(
-        self, camera: CameraModel, projector: CameraModel, axes: str, rays: RayTable | None = None
+        self,
+        camera: CameraModel,
+        projector: CameraModel,
+        axes: str,
+        rays: RayTable | None = None,
+        like: ProjectorTriangulator | None = None,
     ) -> None:
         if axes not in ("x", "y", "xy"):
             raise ValueError(f"axes = {axes!r}: must be 'x', 'y' or 'xy'")
@@ -157,7 +165,10 @@ class ProjectorTriangulator:
         self._dp = distortion12(projector)
         self.table_error = 0.0
         """Largest interpolation error of the code table, normalised projector units (measured)."""
-        if axes == "xy":
+        if axes == "xy" and like is not None and like.projector is projector and like.axes == "xy":
+            self._und: F32 = like._und
+            self._origin: float = like._origin
+        elif axes == "xy":
             self._build_undistort_table()
         else:
             self._build_line_table(0 if axes == "x" else 1)
