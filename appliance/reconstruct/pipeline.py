@@ -26,7 +26,7 @@ from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.fuse import fuse_points_into
-from appliance.reconstruct.residuals import Residual, ray_ray_residual
+from appliance.reconstruct.residuals import Residual, decoded_ray_ray_residual
 from appliance.reconstruct.settings import ReconstructionSettings
 from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import EPIPOLAR_SIGMAS, ProjectorTriangulator
@@ -489,8 +489,10 @@ class Reconstructor:
         residuals = list(self._stereo.residuals) if self._stereo is not None else []
         if self.axes == "xy" and self.calibration.projector is not None:
             for n, tri in self._proj_tri.items():
-                res = ray_ray_residual(self._depth[n], maps[n].u, maps[n].v, tri.rays.normalized,
-                                       self.calibration.devices[n], self.calibration.projector)  # fmt: skip
+                # every decoded pixel, not only those the epipolar check and the filters kept: a calibration
+                # that no longer fits must not hide behind the check (decoded_ray_ray_residual)
+                res = decoded_ray_ray_residual(maps[n].u, maps[n].v, tri.rays.normalized,
+                                               self.calibration.devices[n], self.calibration.projector)  # fmt: skip
                 if res is not None:
                     residuals.append(res)
         if self._stereo is not None:
