@@ -13,6 +13,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 from appliance.config import AppConfig, load_config
+from appliance.config.loader import prepare_service_folders
 from appliance.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -22,6 +23,15 @@ SETTLE_S = 0.1
 IDLE_RECHECK_S = 1.0  # with polling off, look this often whether a reload turned it on
 
 Stamp = tuple[int, int, int] | None
+
+
+def load_service_config(path: Path) -> AppConfig:
+    """:func:`load_config`, then the service's local folders made and checked
+    (:func:`appliance.config.loader.prepare_service_folders`): a reload that would point the state or spool
+    folder at a file is rejected like any bad value, and the last good configuration keeps running."""
+    cfg = load_config(path)
+    prepare_service_folders(cfg, str(path))
+    return cfg
 
 
 def file_stamp(path: Path) -> Stamp:
@@ -73,7 +83,7 @@ class ConfigWatcher:
             self.stamp = file_stamp(self.path)
             loop = asyncio.get_running_loop()
             try:
-                cfg = await loop.run_in_executor(None, load_config, self.path)
+                cfg = await loop.run_in_executor(None, load_service_config, self.path)
             except ConfigError as exc:
                 msg = str(exc)
             except Exception as exc:  # whatever the file holds, the watcher lives on

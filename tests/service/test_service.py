@@ -256,3 +256,22 @@ def test_control_socket_path_conflicts(tmp_path: Path) -> None:
     svc = make(tmp_path)
     with pytest.raises(ApplianceError, match="not a socket"):
         asyncio.run(svc.run())
+
+
+def test_a_reload_that_makes_the_state_folder_a_file_is_rejected(tmp_path: Path) -> None:
+    # issue 28: validate-config and the start refuse it; a reload must too, keeping the last good configuration
+    svc = make(tmp_path, config_poll_s=0)
+    path = svc.config_path
+    good = yaml.safe_load(path.read_text())
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("x")
+
+    async def body() -> None:
+        path.write_text(yaml.safe_dump(dict(good, service={**good["service"], "state_directory": str(blocker)})))
+        reply = await ctl(svc, cmd="reload")
+        assert not reply["ok"]
+        assert f"service.state_directory = '{blocker}': is a file, not a folder" in svc.board.config_error
+        assert svc.cfg.service.state_directory != blocker  # the last good one keeps running
+        assert (await ctl(svc, cmd="trigger", wait=True))["ok"]
+
+    assert run(svc, body) == 0
