@@ -40,9 +40,10 @@ log = logging.getLogger(__name__)
 
 NAMESPACE = "urn:scan3d:appliance"
 START_TIMEOUT_S = 60.0
-# OPC 40100-1 top-level states of a vision system, by our state.
+# OPC 40100-1 top-level states of a vision system, by our state (tuning: set-up, no job is accepted).
 VISION_STATE = {"starting": "Preoperational", "idle": "Operational", "scanning": "Operational",
-                "processing": "Operational", "writing": "Operational", "fault": "Error", "stopping": "Halted"}
+                "processing": "Operational", "writing": "Operational", "tuning": "Preoperational", "fault": "Error",
+                "stopping": "Halted"}
 _POLICY = {"None": ua.SecurityPolicyType.NoSecurity,
            "Basic256Sha256_Sign": ua.SecurityPolicyType.Basic256Sha256_Sign,
            "Basic256Sha256_SignAndEncrypt": ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt}

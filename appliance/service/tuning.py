@@ -52,6 +52,11 @@ class Tuner:
         self.scan_lock = scan_lock
         self.last: dict[str, Any] = {}  # the last tune's reply (its choice is what "apply" writes)
 
+    @property
+    def tuning(self) -> bool:
+        """True while a tune probes the rig."""
+        return self.board.state == State.TUNING
+
     async def tune(self, time_budget_ms: float, apply: bool = False) -> dict[str, Any]:
         """Probe the rig, choose the exposures for ``time_budget_ms`` and, with ``apply``, write them.
 
@@ -73,7 +78,7 @@ class Tuner:
         check_time_budget(time_budget_ms)
         b = self.board
         scanner = self.rig.scanner
-        if b.state == State.TUNING:
+        if self.tuning:
             raise TuneRefused("scan3d tune: a tune is already running; wait for its result")
         if b.busy or self.scan_lock.locked():
             raise TuneRefused(f"scan3d tune: the service is busy ({b.state}: {b.detail}); tune when it is idle")
@@ -92,7 +97,8 @@ class Tuner:
                                 "cameras (scan3d status)") from exc
             finally:
                 # the probe left its own frames in the projector and the cameras at its last exposure
-                b.set_state(State.STARTING, "reconnecting after scan3d tune", Phase.CONNECT)
+                if self.tuning:  # not when the service is stopping meanwhile
+                    b.set_state(State.STARTING, "reconnecting after scan3d tune", Phase.CONNECT)
                 self.rig.reconnect()
         reply: dict[str, Any] = {"choice": dataclasses.asdict(choice), "lines": choice.lines(time_budget_ms),
                                  "time_budget_ms": time_budget_ms,

@@ -14,6 +14,7 @@ import contextlib
 import io
 import json
 import re
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from test_hdr_scan import VIRTUAL_RIG
 
 from appliance import cli
 from appliance.config import load_config
+from appliance.procedures import tune as tune_module
 from appliance.procedures.tune import scan_time_ms
 from appliance.service import daemon as D
 from appliance.service.control import request
@@ -47,12 +49,24 @@ async def _ready(svc: D.Service) -> None:
     await e2e.await_for(lambda: svc.board.state == State.IDLE and svc.hardware.ready, 60)
 
 
-def test_tune_over_the_socket_returns_a_choice_and_refuses_triggers_meanwhile(tmp_path: Path) -> None:
+def test_tune_over_the_socket_returns_a_choice_and_refuses_triggers_meanwhile(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     cfg = appliance_copy(tmp_path, busy_policy="queue")  # even a queueing service refuses during a tune
     rc, text = _cli("tune", "--config", cfg)  # no service yet: on the rig directly
     assert rc == 0 and "through the service" not in text, text
     direct = next(x for x in text.splitlines() if x.startswith("choice: "))
     tuning = asyncio.Event()
+    # the choice (in its thread) waits until the test has triggered and asked the status: a loaded machine
+    # cannot make the tune end before the trigger arrives
+    asked = threading.Event()
+    real_choose = tune_module.choose
+
+    def choose_when_asked(*a: Any) -> Any:
+        assert asked.wait(30), "the test did not trigger during the tune"
+        return real_choose(*a)
+
+    monkeypatch.setattr(tune_module, "choose", choose_when_asked)
 
     def seen(board: Any) -> None:
         if board.state == State.TUNING:
@@ -63,8 +77,11 @@ def test_tune_over_the_socket_returns_a_choice_and_refuses_triggers_meanwhile(tm
             svc.board.subscribe(seen)
             tune = asyncio.ensure_future(_ctl(svc, cmd="tune", time_budget_ms=2000))
             await asyncio.wait_for(tuning.wait(), 30)
-            during = await _ctl(svc, cmd="trigger")
-            rc, status = await asyncio.to_thread(_cli, "status", "--socket", svc.socket_path)
+            try:
+                during = await _ctl(svc, cmd="trigger")
+                rc, status = await asyncio.to_thread(_cli, "status", "--socket", svc.socket_path)
+            finally:
+                asked.set()
             reply = await tune
             assert reply["ok"], reply
             # the trigger during the tune: refused, with one line that says why and what to do
