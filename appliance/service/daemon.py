@@ -135,7 +135,7 @@ class Service:
         self.publisher = Publisher(self.board, self, self.notifier, self.hardware)
         self.jobs = ScanJobs(self.board, self, self.hardware, self.output, self.publisher, self.scan_lock,
                              max_scans=scans, ground_truth=ground_truth)
-        self.tuner = Tuner(self.board, self, self.hardware, self.scan_lock)
+        self.tuner = Tuner(self.board, self, self.hardware, self.jobs, self.scan_lock)
         self.handlers = ControlHandlers(self.board, self)
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []

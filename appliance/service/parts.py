@@ -21,7 +21,7 @@ protocol               what it is (who implements it)
 :class:`RigView`       the rig as the others see it: ready, idle state, scanner (the rig part)
 :class:`Files`         the writer thread and what runs there (the writer)
 :class:`Lamps`         the refused-trigger blink (the publisher)
-:class:`Worker`        the scan worker's signs of life (the scan worker)
+:class:`Worker`        the scan worker's signs of life and whether it has work (the scan worker)
 =====================  ==========================================================================
 """
 
@@ -244,4 +244,9 @@ class Worker(Protocol):
     @property
     def heartbeat(self) -> float:
         """Monotonic time (s) of the worker's last sign of life."""
+        ...
+
+    @property
+    def busy(self) -> bool:
+        """True while a job is queued, waiting for the scan lock or running."""
         ...

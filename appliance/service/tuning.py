@@ -17,7 +17,7 @@ import time
 from typing import Any
 
 from appliance.errors import ApplianceError, ScanError
-from appliance.service.parts import RigView, TuneHost
+from appliance.service.parts import RigView, TuneHost, Worker
 from appliance.service.state import Phase, State, StatusBoard
 
 log = logging.getLogger(__name__)
@@ -41,14 +41,18 @@ class Tuner:
         The running configuration, its file and the reload.
     rig : RigView
         The rig part: ready or not, its scanner (and through it the open devices), the rebuild.
+    worker : Worker
+        The scan worker: whether a scan is queued or running.
     scan_lock : asyncio.Lock
         Held by a scan, a tune and every change of the rig.
     """
 
-    def __init__(self, board: StatusBoard, host: TuneHost, rig: RigView, scan_lock: asyncio.Lock) -> None:
+    def __init__(self, board: StatusBoard, host: TuneHost, rig: RigView, worker: Worker,
+                 scan_lock: asyncio.Lock) -> None:
         self.board = board
         self.host = host
         self.rig = rig
+        self.worker = worker
         self.scan_lock = scan_lock
         self.last: dict[str, Any] = {}  # the last tune's reply (its choice is what "apply" writes)
 
@@ -80,7 +84,7 @@ class Tuner:
         scanner = self.rig.scanner
         if self.tuning:
             raise TuneRefused("scan3d tune: a tune is already running; wait for its result")
-        if b.busy or self.scan_lock.locked():
+        if b.busy or self.worker.busy or self.scan_lock.locked():  # a scan queued, starting or running
             raise TuneRefused(f"scan3d tune: the service is busy ({b.state}: {b.detail}); tune when it is idle")
         if not self.rig.ready or scanner is None:
             raise TuneRefused(f"scan3d tune: the rig is not ready ({b.state}: {b.detail}); tune when it is idle")
