@@ -21,7 +21,7 @@ from typing import Any
 import e2e_helpers as e2e
 import pytest
 import yaml
-from faces_helpers import appliance_copy, running_service
+from faces_helpers import appliance_copy, running_service, warm  # noqa: F401 (warm: a fixture)
 from test_hdr_scan import VIRTUAL_RIG
 
 from appliance import cli
@@ -32,6 +32,19 @@ from appliance.service import daemon as D
 from appliance.service.control import request
 from appliance.service.state import State
 from appliance.service.tuning import TuneRefused
+
+
+@pytest.fixture(scope="module")
+def hdr_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """One HDR scan outside any test's loop guard: numba compiles (a cold cache) or loads the multi-exposure
+    decoder's kernels here, holding the interpreter for seconds, not inside the service under test."""
+    from appliance.scan import scan_once
+
+    folder = tmp_path_factory.mktemp("warm-hdr")
+    asyncio.run(scan_once(load_config(_bright_plane_config(folder, [2500, 40_000]))))
+
+
+pytestmark = pytest.mark.usefixtures("warm", "hdr_kernels")  # numba's kernels loaded before any loop is measured
 
 
 def _cli(*args: object) -> tuple[int, str]:
@@ -206,3 +219,32 @@ def test_tune_without_a_service_still_probes_the_rig_directly(tmp_path: Path) ->
     assert rc == 2 and "is the service running?" in text and len(text.strip().splitlines()) == 2, text
     doc = yaml.safe_load(cfg.read_text())
     assert "exposures_us" not in (doc.get("sequence") or {})
+
+
+def test_a_stop_during_a_tune_ends_cleanly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM while the tune chooses: the service stops with exit status 0 and the tune's client gets one line
+    (its result, or that the service is stopping), not a hang."""
+    cfg = appliance_copy(tmp_path)
+    gate = threading.Event()
+    real_choose = tune_module.choose
+
+    def choose_when_let(*a: Any) -> Any:
+        assert gate.wait(30)
+        return real_choose(*a)
+
+    monkeypatch.setattr(tune_module, "choose", choose_when_let)
+    replies: list[dict[str, Any]] = []
+    pending: list[asyncio.Future[None]] = []
+
+    async def body(svc: D.Service) -> None:
+        async def tune() -> None:
+            replies.append(await _ctl(svc, cmd="tune"))
+
+        pending.append(asyncio.ensure_future(tune()))
+        await e2e.await_for(lambda: svc.board.state == State.TUNING, 30)
+        asyncio.get_running_loop().call_later(0.3, gate.set)  # the choice ends while the service stops
+
+    rc, _ = e2e.run_in_process(cfg, body)
+    gate.set()
+    assert rc == 0
+    assert len(replies) == 1 and (replies[0]["ok"] or "\n" not in replies[0]["error"]), replies
