@@ -14,6 +14,7 @@ No reference counts are read (``sys.getrefcount`` values are an implementation d
 
 from __future__ import annotations
 
+import gc
 import threading
 import weakref
 from typing import Any
@@ -92,6 +93,11 @@ class BufferPool:
 
     def _take(self, size: int) -> _Lease:
         with self._lock:
+            if self._leased and not any(i not in self._leased and b.size >= size for i, b in enumerate(self._blocks)):
+                # a result its caller dropped into a reference cycle (an asyncio task's, say) holds its lease
+                # until the cyclic collector runs: run it now, not allocate a block beside it (the service's
+                # two-camera peak was 75 MB higher, one cloud, whenever the collector had not run between scans)
+                gc.collect()
             free = [i for i in range(len(self._blocks)) if i not in self._leased]
             for i in free:
                 if self._blocks[i].size >= size:
