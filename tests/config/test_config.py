@@ -19,7 +19,8 @@ REPO = Path(__file__).resolve().parents[2]
 def test_shipped_config_is_valid_and_virtual() -> None:
     cfg = load_config(REPO / "config" / "appliance.yaml")
     assert cfg.is_virtual
-    assert list(cfg.cameras) == ["cam0"]
+    assert list(cfg.cameras) == ["cam0", "cam1"] and cfg.reconstruction.mode == "both"  # the product's rig
+    assert list(cfg.virtual_rig.cameras) == ["cam0", "cam1"]
 
 
 def test_error_names_file_line_path_value_and_rule() -> None:

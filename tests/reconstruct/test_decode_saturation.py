@@ -102,7 +102,12 @@ def _over_exposed(gain: float, bit_depth: int = 8) -> AppConfig:
     base = load_config(REPO / "config" / "appliance.yaml")
     v = base.virtual_rig
     im = v.imaging.model_copy(update={"projector_gain_dn": gain, "bit_depth": bit_depth})
-    return base.model_copy(update={"virtual_rig": v.model_copy(update={"imaging": im})})
+    # the configuration's one-camera rig (see its comments): the decoder's rule, measured on cam0 alone
+    return base.model_copy(update={
+        "cameras": {"cam0": base.cameras["cam0"]},
+        "virtual_rig": v.model_copy(update={"imaging": im, "cameras": {"cam0": v.cameras["cam0"]}}),
+        "reconstruction": base.reconstruction.model_copy(update={"mode": "projector"}),
+    })  # fmt: skip
 
 
 @pytest.mark.parametrize(("gain", "bit_depth"), [(720.0, 8), (1440.0, 8), (1440.0, 12)])

@@ -49,6 +49,10 @@ def appliance_copy(tmp: Path, top: dict[str, Any] | None = None, **service: Any)
     """``config/appliance.yaml`` copied into ``tmp`` with its paths under ``tmp``, mDNS off, the small rig,
     ``top`` merged into its top-level sections and ``service`` into its service section; returns the copy."""
     doc = yaml.safe_load((REPO / "config" / "appliance.yaml").read_text())
+    # the small rig has one camera: the configuration's one-camera rig (see its comments); ``top`` may add more
+    doc["virtual_rig"].update(SMALL_RIG)
+    doc["cameras"] = {n: c for n, c in doc["cameras"].items() if n in SMALL_RIG["cameras"]}
+    doc["reconstruction"]["mode"], doc["sequence"]["axes"] = "projector", "x"
     for key, value in (top or {}).items():
         if isinstance(value, dict) and isinstance(doc.get(key), dict):
             doc[key].update(value)
@@ -56,7 +60,6 @@ def appliance_copy(tmp: Path, top: dict[str, Any] | None = None, **service: Any)
             doc[key] = value
     doc["output"].update(directory=str(tmp / "share"), spool_directory=str(tmp / "spool"), min_free_mb=0)
     (tmp / "share").mkdir(exist_ok=True)
-    doc["virtual_rig"].update(SMALL_RIG)
     doc["service"].update(control_socket=str(tmp / "ctl.sock"), state_directory=str(tmp / "state"),
                           config_poll_s=0.1, mdns={"enabled": False})
     for key, value in service.items():

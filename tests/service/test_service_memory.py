@@ -29,24 +29,16 @@ from appliance.service.control import request
 
 REPO = Path(__file__).resolve().parents[2]
 
-SECOND_CAMERA = {
-    "width": 1280, "height": 1024, "focal_px": 2400.0, "dist": [-0.08, 0.12, 0.0005, -0.0003, 0.0],
-    "position_mm": [-190.0, 0.0, 0.0], "look_at_mm": [0.0, 0.0, 600.0],
-}  # fmt: skip
-
 
 def _config(tmp: Path, cameras: int) -> Path:
-    """``config/appliance.yaml`` with its files under ``tmp``, mDNS off; ``cameras`` = 2 adds ``cam1``."""
+    """``config/appliance.yaml`` with its files under ``tmp``, mDNS off; ``cameras`` = 1: its one-camera rig."""
     doc: dict[str, Any] = yaml.safe_load((REPO / "config" / "appliance.yaml").read_text())
     doc["output"].update(directory=str(tmp / "share"), spool_directory=str(tmp / "spool"), min_free_mb=0)
     doc["service"].update(control_socket=str(tmp / "ctl.sock"), state_directory=str(tmp / "state"),
                           mdns={"enabled": False})  # fmt: skip
-    if cameras == 2:
-        from appliance.config.schema import VirtualRigConfig
-
-        cam0 = VirtualRigConfig().cameras["cam0"].model_dump(mode="json")
-        doc["cameras"]["cam1"] = {"type": "sim"}
-        doc["virtual_rig"]["cameras"] = {"cam0": cam0, "cam1": SECOND_CAMERA}
+    if cameras == 1:  # the configuration's one-camera rig (see its comments)
+        del doc["cameras"]["cam1"], doc["virtual_rig"]["cameras"]["cam1"]
+        doc["reconstruction"]["mode"] = "projector"
     (tmp / "share").mkdir(parents=True, exist_ok=True)
     path = tmp / "appliance.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
