@@ -282,6 +282,7 @@ class Scanner:
         maps = {n: f[0] for n, f in zip(names, finished, strict=True)}
         white: dict[str, npt.NDArray[np.generic]] = {n: f[1] for n, f in zip(names, finished, strict=True)}
         await loop.run_in_executor(None, self.reconstructor.run, maps, white)
+        await loop.run_in_executor(None, self.reconstructor.warm_up)  # the camera-camera matcher's kernels
 
     def _phase(self, phase: ScanPhase) -> None:
         if self.on_phase is not None:

@@ -338,6 +338,36 @@ class Reconstructor:
                 tri.rays.row_table()
                 tri.rays.release()
 
+    def warm_up(self) -> None:
+        """Compile (or load from the cache) the camera-camera matcher's kernels, before the first scan.
+
+        Modes ``'stereo'`` and ``'both'``: a run on blank frames decodes nothing and the matcher stops before
+        its kernels, so they would be compiled inside the first scan (a minute on a fresh clone). Here they
+        run on synthetic codes of the cameras' sizes (a ramp of 0.9 projector px per pixel; stripe centres
+        when the sequence is Gray only; rows too when both axes are coded).
+        """
+        if self._stereo is None:
+            return
+        quantised = self.noise is None or self.noise.phase_px <= 0.0
+        names = self.calibration.camera_names
+        maps = []
+        for n in names[:2]:
+            cam = self.calibration.devices[n]
+            h, w = cam.height, cam.width
+            u = np.empty((h, w), np.float32)
+            u[...] = np.arange(w, dtype=np.float32) * np.float32(0.9)
+            v = np.full((h, w), np.nan, np.float32)
+            if "y" in self.axes:
+                v[...] = (np.arange(h, dtype=np.float32) * np.float32(0.9))[:, None]
+            if quantised:  # stripes of 2 projector px
+                for c in (u, v):
+                    np.floor(c * np.float32(0.5), out=c)
+                    c *= np.float32(2.0)
+                    c += np.float32(1.0)
+            maps.append(DecodedMaps(u, v, np.ones((h, w), np.bool_), np.full((h, w), 50.0, np.float32)))
+        self._stereo.triangulate(maps[0], maps[1], self._xyz[names[0]], self.cfg.min_depth_mm, self.cfg.max_depth_mm,
+                                 self.noise)  # fmt: skip
+
     def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> dict[str, int]:
         """Mode ``'both'``: camera-camera on the reference camera, fused with its camera-projector depth by
         inverse-variance weighting; pixels where the two disagree beyond 3 sigma are left out (counted)."""
