@@ -120,6 +120,100 @@ def cell_sums(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, cnt0, 
             _sums_one(u1, v1, mask1, rect1, grid, ncu, ncv, cnt1, acc1)
 
 
+SPLIT_UNIT = 4
+"""``cell_sums_split``: counts per whole pixel (a pixel on a boundary of both axes counts a quarter to each of
+its four cells)."""
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _row_cells_split(ur, vr, mr, grid, ncu, ncv, kr, sr):  # type: ignore[no-untyped-def]
+    """As ``_row_cells``, and per pixel (``sr``, uint8) whether its code lies half way between two cells (the
+    centre of a coarser stripe: a pixel that dropped its finest Gray bits, on the edge between the two halves
+    of that stripe): bit 0 along u (``kr`` is then the upper cell, ``kr - 1`` the lower one), bit 1 along v
+    (``kr - ncu``). A code half way between two codes of one cell (``ku``, ``kv`` > 1) is not split."""
+    ou, iu = np.float32(grid[0]), np.float32(grid[1])
+    ov, iv = np.float32(grid[2]), np.float32(grid[3])
+    ku, kv = np.int64(grid[4]), np.int64(grid[5])
+    hu, hv = np.float32(ncu * ku), np.float32(ncv * kv)
+    half = np.float32(0.5)
+    eps = np.float32(1e-3)
+    for c in range(kr.shape[0]):
+        fi = (ur[c] - ou) * iu + half
+        fj = (vr[c] - ov) * iv + half
+        if not (mr[c] and fi >= 0.0 and fj >= 0.0 and fi < hu and fj < hv):  # NaN codes fail too
+            kr[c] = -1
+            sr[c] = 0
+            continue
+        mi = np.rint(fi)
+        mj = np.rint(fj)
+        on_i = abs(fi - mi) < eps and mi < hu
+        on_j = abs(fj - mj) < eps and mj < hv
+        ii = np.int64(mi) if on_i else np.int64(fi)
+        jj = np.int64(mj) if on_j else np.int64(fj)
+        cu = ii // ku
+        cv = jj // kv
+        kr[c] = np.int32(cv * ncu + cu)
+        su = on_i and ii >= ku and ii - cu * ku == 0
+        sv = on_j and jj >= kv and jj - cv * kv == 0
+        sr[c] = np.uint8(su) | (np.uint8(sv) << np.uint8(1))
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _add(cnt, acc, k, q, a, b):  # type: ignore[no-untyped-def]
+    cnt[k] += q
+    acc[k, 0] += np.float32(q) * a
+    acc[k, 1] += np.float32(q) * b
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _sums_split_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
+    for k in range(cnt.shape[0]):
+        cnt[k] = 0
+        acc[k, 0] = 0.0
+        acc[k, 1] = 0.0
+    h, w = u.shape[0], u.shape[1]
+    kr = np.empty(w, np.int32)
+    sr = np.empty(w, np.uint8)
+    nu = np.int32(ncu)
+    for r in range(h):
+        _row_cells_split(u[r], v[r], mask[r], grid, ncu, ncv, kr, sr)
+        rr = rect[r]
+        for c in range(w):
+            k = kr[c]
+            a = rr[c, 0]
+            if k < 0 or a != a:
+                continue
+            b = rr[c, 1]
+            s = sr[c]
+            if s == 0:
+                _add(cnt, acc, k, np.int32(4), a, b)
+            elif s == 1:
+                _add(cnt, acc, k, np.int32(2), a, b)
+                _add(cnt, acc, k - 1, np.int32(2), a, b)
+            elif s == 2:
+                _add(cnt, acc, k, np.int32(2), a, b)
+                _add(cnt, acc, k - nu, np.int32(2), a, b)
+            else:
+                _add(cnt, acc, k, np.int32(1), a, b)
+                _add(cnt, acc, k - 1, np.int32(1), a, b)
+                _add(cnt, acc, k - nu, np.int32(1), a, b)
+                _add(cnt, acc, k - nu - 1, np.int32(1), a, b)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def cell_sums_split(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
+    """As ``cell_sums``, but a pixel whose code lies half way between two cells (``_row_cells_split``) counts
+    half to each (a quarter to each of four on both axes): counts in ``SPLIT_UNIT`` per pixel, ``acc`` the
+    sums of rectified (x, y) with those weights. Rounding such a code into one cell (``cell_sums``) moves that
+    cell's centroid towards its neighbour by up to half the band of such pixels, differently in the two
+    cameras; split, the error is second order in the band's width."""
+    for t in prange(2):
+        if t == 0:
+            _sums_split_one(u0, v0, mask0, rect0, grid, ncu, ncv, cnt0, acc0)
+        else:
+            _sums_split_one(u1, v1, mask1, rect1, grid, ncu, ncv, cnt1, acc1)
+
+
 RAW_W, RAW_D, RAW_E, RAW_HI, RAW_LO, RAW_X, RAW_Y = 0, 1, 2, 3, 4, 5, 6
 N_RAW = 7
 """Planes of ``cell_raw``'s output: weight, disparity, epipolar residual, disparity or -inf, or +inf, cam0's
@@ -144,10 +238,11 @@ def _unmatched(raw, cv, cu):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, raw):  # type: ignore[no-untyped-def]
+def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, unit, raw):  # type: ignore[no-untyped-def]
     """Per cell seen by both cameras: weight ``n0 n1 / (n0 + n1)`` (inverse variance of the disparity, up to a
-    constant), disparity (cam0 centroid x - cam1 centroid x), epipolar residual (cam1 centroid y - cam0
-    centroid y), in rectified grid px; weight 0 elsewhere. ``raw`` is (N_RAW, ncv, ncu) float32 (``RAW_*``)."""
+    constant; n in pixels: the counts over ``unit``, the counts per pixel), disparity (cam0 centroid x - cam1
+    centroid x), epipolar residual (cam1 centroid y - cam0 centroid y), in rectified grid px; weight 0
+    elsewhere. ``raw`` is (N_RAW, ncv, ncu) float32 (``RAW_*``)."""
     for cv in prange(ncv):
         for cu in range(ncu):
             k = cv * ncu + cu
@@ -174,7 +269,7 @@ def cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, edge, raw):  # type: ignore[no-un
             f0 = 1.0 / np.float64(n0)
             f1 = 1.0 / np.float64(n1)
             d = np.float64(acc0[k, 0]) * f0 - np.float64(acc1[k, 0]) * f1
-            raw[RAW_W, cv, cu] = np.float64(n0) * np.float64(n1) / np.float64(n0 + n1)
+            raw[RAW_W, cv, cu] = np.float64(n0) * np.float64(n1) / (np.float64(n0 + n1) * unit)
             raw[RAW_D, cv, cu] = d
             raw[RAW_E, cv, cu] = np.float64(acc1[k, 1]) * f1 - np.float64(acc0[k, 1]) * f0
             raw[RAW_HI, cv, cu] = d
@@ -471,8 +566,12 @@ def cell_match(  # type: ignore[no-untyped-def]
     epi,
     sigma,
     status,
+    split=False,
 ):
     """Every cam0 pixel: the disparity of its cell's plane at the pixel, triangulated (world frame, mm).
+
+    ``split``: a pixel whose code lies half way between cells (``_row_cells_split``) takes the one of them
+    whose cam0 centroid is nearest.
 
     ``cen_x``, ``cen_y`` (N,): cam0's centroid of each cell (the ``RAW_X``/``RAW_Y`` planes, flat).
     ``own_px``: a pixel further than this from its cell's cam0 centroid is not where its code says (a code
@@ -488,8 +587,12 @@ def cell_match(  # type: ignore[no-untyped-def]
     nch = min(h, 32)
     for ch in prange(nch):
         kr = np.empty(w, np.int32)
+        sr = np.zeros(w, np.uint8)
         for r in range(ch * h // nch, (ch + 1) * h // nch):
-            _row_cells(u0[r], v0[r], mask0[r], grid, ncu, ncv, kr)
+            if split:
+                _row_cells_split(u0[r], v0[r], mask0[r], grid, ncu, ncv, kr, sr)
+            else:
+                _row_cells(u0[r], v0[r], mask0[r], grid, ncu, ncv, kr)
             for col in range(w):
                 clear_point(out, epi, sigma, r, col)
                 k = kr[col]
@@ -498,6 +601,21 @@ def cell_match(  # type: ignore[no-untyped-def]
                     continue
                 xr0 = rect0[r, col, 0]  # the pixel's offset from its cell in float32: fewer conversions
                 yr = rect0[r, col, 1]
+                s = sr[col]
+                if s != 0 and xr0 == xr0:  # between cells: the nearest centroid of cam0 that has a plane
+                    best = np.float32(np.inf)
+                    kb = k
+                    for alt in range(4):
+                        if (alt & 1 and not s & 1) or (alt & 2 and not s & 2):
+                            continue
+                        ka = k - (alt & 1) - (alt >> 1) * ncu
+                        ca = cen_x[ka]
+                        if ca == ca and fits[ka, 0] == fits[ka, 0]:
+                            da2 = (xr0 - ca) * (xr0 - ca) + (yr - cen_y[ka]) * (yr - cen_y[ka])
+                            if da2 < best:
+                                best = da2
+                                kb = ka
+                    k = kb
                 cx = cen_x[k]
                 if xr0 != xr0 or cx != cx:
                     status[r, col] = ST_OUTSIDE
@@ -554,3 +672,40 @@ def code_max(u, v, mask):  # type: ignore[no-untyped-def]
         best[1] = max(best[1], top[r, 1])
     hi = best.view(np.float32)
     return np.float64(hi[0]), np.float64(hi[1])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def sample_level_codes(code, mask, levels, stride, out, out_lev):  # type: ignore[no-untyped-def]
+    """The finite codes of the decoded pixels of every ``stride``-th row and column, in row order, into
+    ``out`` (float32), with each one's count of dropped finest Gray bits (``levels``, uint8 (H, W)) into
+    ``out_lev`` (uint8; both at least ceil(H / stride) * ceil(W / stride) long); returns how many, and how many
+    of them kept every bit (level 0)."""
+    h, w = code.shape[0], code.shape[1]
+    n = 0
+    n0 = 0
+    for r in range(0, h, stride):
+        cr = code[r]
+        mr = mask[r]
+        lr = levels[r]
+        for c in range(0, w, stride):
+            x = cr[c]
+            if mr[c] and x - x == 0.0:  # finite
+                out[n] = x
+                out_lev[n] = lr[c]
+                n0 += lr[c] == 0
+                n += 1
+    return n, n0
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def on_level_grid_share(vals, levs, origin, step):  # type: ignore[no-untyped-def]
+    """Share of float32 ``vals`` within 1e-3 steps of the centre of a stripe of their own level ``levs``
+    (uint8): a code that dropped its ``L`` finest bits is the centre of ``2**L`` stripes,
+    ``origin + (k + (2**L - 1) / 2) * step`` (k integer)."""
+    n = vals.shape[0]
+    on = 0
+    for i in range(n):
+        lev = min(np.int64(levs[i]), np.int64(30))
+        k = (np.float64(vals[i]) - origin) / step - 0.5 * np.float64((np.int64(1) << lev) - 1)
+        on += abs(k - np.rint(k)) < 1e-3
+    return on / max(n, 1)

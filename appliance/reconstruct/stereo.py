@@ -8,7 +8,9 @@ that every epipolar plane is one rectified row ``b`` shared by both cameras. Per
 1. The codes are looked at first: *continuous* codes (phase) change smoothly from pixel to pixel;
    *quantised* codes (Gray only) are stripe centres, constant over a stripe. Quantisation (step and grid)
    and the code gradient (codes per pixel) are measured from the maps, and every tolerance below scales
-   with them.
+   with them. A pixel that dropped its finest Gray bits (``DecodedMaps.levels``: blur that makes the finest
+   stripes marginal) holds the centre of a wider stripe, half way between two finest ones: it is judged on
+   the grid of its own level.
 2. The code maps of both cameras are resampled onto their rectified grids (bilinear, only where the four
    neighbours are decoded and agree within the measured gradient plus one code step: not across an edge).
    Codes are counted in *levels*: one projector pixel for continuous codes, the stripe boundaries for
@@ -33,8 +35,9 @@ instead (``_cell_kernels``): a (u, v) pair names one projector cell, whose pixel
 are images of one surface region. The cell disparities get a plane fit over a window of neighbouring cells
 (separable, so its cost does not grow with the window; a window holding a disparity jump falls back to a
 robust 3 x 3 fit of the cells on the cell's own surface), and every cam0 pixel takes its cell's plane at its
-own position. Steps 2-4 are not needed, nor a search; the epipolar residual is the cells' row difference and
-a drift correction only moves the residuals. The checks of step 5 are the same.
+own position (a pixel whose code lies half way between two cells counts half to each cell's centroid, and
+takes the cell whose centroid is nearest). Steps 2-4 are not needed, nor a search; the epipolar residual is
+the cells' row difference and a drift correction only moves the residuals. The checks of step 5 are the same.
 
 Every stage counts what it rejects (:class:`StereoReport`), and a stage that rejects most candidates is
 said in words, with what to do.
@@ -167,7 +170,13 @@ def _value_counts(vals32: F32) -> tuple[F64, npt.NDArray[np.intp]]:
     return uniq32.astype(np.float64), counts
 
 
-def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: int = 1) -> CodeGrid | None:
+def code_grid(
+    code: F32,
+    mask: npt.NDArray[np.bool_],
+    stride: int = 5,
+    along: int = 1,
+    levels: npt.NDArray[np.uint8] | None = None,
+) -> CodeGrid | None:
     """Measure the quantisation and gradient of a code map (a subsample of every ``stride``-th row/column).
 
     Parameters
@@ -181,6 +190,13 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: in
     along : {1, 0}
         The image axis the gradient is measured along: 1 along rows (x), 0 along columns (y: the v code of
         a camera pair whose baseline runs along x). Reading whole rows either way keeps it cache friendly.
+    levels : ndarray, shape (H, W), uint8, optional
+        This axis's plane of :attr:`DecodedMaps.levels`: per pixel how many of the finest Gray bits it dropped.
+        A pixel that dropped ``L`` bits holds the centre of ``2**L`` stripes (half way between two stripe
+        centres for ``L >= 1``; with blur that makes the finest stripes marginal, half the pixels): the step
+        and origin are then measured on the pixels that kept every bit, and the codes count as quantised when
+        (nearly) every value sits on the grid of its own level. Without it every value must sit on the
+        finest grid.
 
     Returns
     -------
@@ -189,12 +205,22 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: in
     """
     buf = np.empty(-(-code.shape[0] // stride) * -(-code.shape[1] // stride), np.float32)
     # all of them: the rule for common values below assumes this density
-    vals32 = buf[: C.sample_codes(code, mask, stride, buf)]
+    levs: npt.NDArray[np.uint8] | None = None
+    if levels is None:
+        vals32 = buf[: C.sample_codes(code, mask, stride, buf)]
+        fine = vals32
+    else:
+        lbuf = np.empty(buf.size, np.uint8)
+        n, n0 = K.sample_level_codes(code, mask, levels, stride, buf, lbuf)
+        vals32, levs = buf[:n], lbuf[:n]
+        # the step from the pixels that kept every bit (those that dropped some hold centres of wider stripes,
+        # half way between the finest ones); all of them when too few kept every bit
+        fine = vals32[levs == 0] if n0 >= 100 and n0 < n else vals32
     if vals32.size < 100:
         return None
     step_mean = float(C.mean_step(code, along, stride, 64.0))  # changes of 64 and more: across an occlusion
     per_px = step_mean if math.isfinite(step_mean) else 1.0
-    uniq, counts = _value_counts(vals32)
+    uniq, counts = _value_counts(fine)
     if uniq.size < 2:
         return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
     # stripe centres repeat; a rare value in between (a pixel on an edge) must not set the step
@@ -208,7 +234,11 @@ def code_grid(code: F32, mask: npt.NDArray[np.bool_], stride: int = 5, along: in
             if step < 1.0 - 1e-6:
                 continue
             origin = float(np.median(np.mod(common, step)))
-            if C.on_grid_share(vals32, origin, step) >= 0.99:
+            share = (
+                C.on_grid_share(vals32, origin, step) if levs is None
+                else K.on_level_grid_share(vals32, levs, origin, step)
+            )  # fmt: skip
+            if share >= 0.99:
                 return CodeGrid(True, float(step), origin, max(per_px, 1e-3))
             break
     return CodeGrid(False, 1.0, 0.0, max(per_px, 1e-3))
@@ -490,7 +520,8 @@ class StereoTriangulator:
         xyz = check_out(out, self.rays0.shape)
         rep = StereoReport()
         self.report = rep
-        grid = code_grid(u0, mask0)
+        lev0 = maps0.levels if maps0.levels is not None and maps0.levels.shape[1:] == u0.shape else None
+        grid = code_grid(u0, mask0, levels=None if lev0 is None else lev0[0])
         self.last_grid = grid
         if grid is None:
             xyz[...] = np.nan
@@ -513,7 +544,7 @@ class StereoTriangulator:
         )
         vgrid: CodeGrid | None = None
         if use_v:
-            vgrid = code_grid(v0, mask0, along=0)
+            vgrid = code_grid(v0, mask0, along=0, levels=None if lev0 is None else lev0[1])
             vstep = vgrid.step if vgrid is not None and vgrid.quantised else 1.0
             vper = vgrid.per_px if vgrid is not None else 1.0
         zmin, zmax = max(float(min_depth_mm), 1e-6), float(max_depth_mm)
@@ -530,7 +561,7 @@ class StereoTriangulator:
                 f"; rows quantised, step {vgrid.step:g} projector px, {vgrid.stripe_px:.2f} camera px per step; "
                 "matched by code cells"
             )
-            self._match_cells(u0, v0, mask0, u1, v1, mask1, grid, vgrid, xyz, zmin, zmax)
+            self._match_cells(u0, v0, mask0, u1, v1, mask1, grid, vgrid, xyz, zmin, zmax, lev0 is not None)
             self._check(rep, grid, vgrid, xyz, u0, v0, use_v, True, None)
             self._both_seen(rep, xyz, (u0, v0, mask0), (u1, v1, mask1), grid, vgrid)
             return xyz
@@ -647,8 +678,11 @@ class StereoTriangulator:
         xyz: F32,
         zmin: float,
         zmax: float,
+        split: bool = False,
     ) -> None:
-        """Both axes quantised: match by code cells (``_cell_kernels``), into xyz, epi, sigma and status."""
+        """Both axes quantised: match by code cells (``_cell_kernels``), into xyz, epi, sigma and status.
+        ``split``: a code half way between two cells (a pixel that dropped finest Gray bits) counts half to each
+        cell's centroid (``cell_sums_split``) instead of all to the upper one."""
         ku = max(1, math.ceil(self.cell_min_px / grid.stripe_px))
         kv = max(1, math.ceil(self.cell_min_px / vgrid.stripe_px))
         cell_u, cell_v = ku * grid.stripe_px, kv * vgrid.stripe_px
@@ -661,12 +695,14 @@ class StereoTriangulator:
         ncv = math.floor((hi_v - ov) / vgrid.step + 0.5) // kv + 1
         cgrid = np.array([ou, 1.0 / grid.step, ov, 1.0 / vgrid.step, ku, kv], np.float64)
         cnt0, acc0, cnt1, acc1, fits = self._cell_buffers(ncu * ncv)
-        K.cell_sums(u0, v0, mask0, self._rect0, u1, v1, mask1, self._rect_cam1(), cgrid, ncu, ncv, cnt0, acc0,
-                    cnt1, acc1)  # fmt: skip
+        # codes half way between two cells (pixels that dropped finest Gray bits) count half to each
+        sums = K.cell_sums_split if split else K.cell_sums
+        sums(u0, v0, mask0, self._rect0, u1, v1, mask1, self._rect_cam1(), cgrid, ncu, ncv, cnt0, acc0, cnt1, acc1)
         radius = int(min(4, max(1, math.ceil(CELL_SPAN_PX / min(cell_u, cell_v)))))
         jump = 1.0 + 0.15 * max(cell_u, cell_v)
         raw = self._cell_planes(ncu, ncv)
-        K.cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, max(cell_u, cell_v) > CELL_EDGE_PX, raw)
+        K.cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, max(cell_u, cell_v) > CELL_EDGE_PX,
+                   float(K.SPLIT_UNIT if split else 1), raw)  # fmt: skip
         K.cell_window(raw, radius, 1.0 + 0.15 * (2 * radius + 1) * max(cell_u, cell_v),
                       2 * numba.get_num_threads(), fits)  # fmt: skip
         K.cell_fits_robust(raw, ncu, ncv, jump, fits)
@@ -675,7 +711,7 @@ class StereoTriangulator:
         cen_x, cen_y = raw[K.RAW_X].reshape(-1), raw[K.RAW_Y].reshape(-1)
         K.cell_match(u0, v0, mask0, self._rect0, cgrid, ncu, ncv, cen_x, cen_y, fits, own, var_unit,
                      self._geom, self._rr_t, self._c0, self._r0z, self._t0z, zmin, zmax, xyz, self._epi, self.sigma,
-                     self._status)  # fmt: skip
+                     self._status, split)  # fmt: skip
 
     @staticmethod
     def _cell_variance(raw: F32, fits: F32, ncu: int, stride: int = 3) -> float:

@@ -135,3 +135,49 @@ def test_code_max_is_the_largest_decoded_code_at_least_zero() -> None:
         assert K.code_max(u, v, np.zeros_like(mask)) == (0.0, 0.0)
         neg = np.full((h, w), -2.5, np.float32)
         assert K.code_max(neg, neg, np.ones_like(mask)) == (0.0, 0.0)
+
+
+def test_split_sums_count_a_code_half_way_between_cells_half_to_each() -> None:
+    """``cell_sums_split`` against ``np.add.at``: a code half way between two stripe centres (a pixel that
+    dropped finest Gray bits) counts half to each of the two cells (a quarter to each of four when it is half
+    way on both axes), or all to one when both stripes are in one cell (ku, kv > 1); ``cell_raw`` then weighs
+    a cell by whole pixels."""
+    rng = np.random.default_rng(12)
+    h, w = 29, 83
+    origin_u, step_u, origin_v, step_v = -0.25, 1.5, -0.5, 2.0
+    for ku, kv in ((1, 1), (2, 2), (3, 2)):
+        ncu, ncv = 600 // ku, 300 // kv
+        ju = rng.integers(0, ncu * ku - 1, (h, w)) + rng.choice([0.0, 0.5], (h, w))
+        jv = rng.integers(0, ncv * kv - 1, (h, w)) + rng.choice([0.0, 0.5], (h, w), p=[0.7, 0.3])
+        u = (origin_u + step_u * ju).astype(np.float32)
+        v = (origin_v + step_v * jv).astype(np.float32)
+        mask = rng.random((h, w)) < 0.9
+        rect = rng.uniform(0, 100, (h, w, 2)).astype(np.float32)
+        grid = np.array([origin_u, 1.0 / step_u, origin_v, 1.0 / step_v, ku, kv])
+        n = ncu * ncv
+        ref_n = np.zeros(n)
+        ref_a = np.zeros((n, 2))
+        for r, c in zip(*np.nonzero(mask), strict=True):
+            su = {int(np.floor(ju[r, c])) // ku: 1.0} if ju[r, c] % 1 == 0 else None
+            if su is None:
+                lo, hi = int(np.floor(ju[r, c])) // ku, int(np.ceil(ju[r, c])) // ku
+                su = {lo: 1.0} if lo == hi else {lo: 0.5, hi: 0.5}
+            lo, hi = int(np.floor(jv[r, c])) // kv, int(np.ceil(jv[r, c])) // kv
+            sv = {lo: 1.0} if lo == hi else {lo: 0.5, hi: 0.5}
+            for cu, fu in su.items():
+                for cv, fv in sv.items():
+                    ref_n[cv * ncu + cu] += fu * fv
+                    ref_a[cv * ncu + cu] += fu * fv * rect[r, c].astype(np.float64)
+        cnt0, cnt1 = np.empty(n, np.int32), np.empty(n, np.int32)
+        acc0, acc1 = np.empty((n, 2), np.float32), np.empty((n, 2), np.float32)
+        K.cell_sums_split(u, v, mask, rect, u, v, mask, rect, grid, ncu, ncv, cnt0, acc0, cnt1, acc1)
+        np.testing.assert_array_equal(cnt0, ref_n * K.SPLIT_UNIT)
+        np.testing.assert_allclose(acc0, ref_a * K.SPLIT_UNIT, rtol=1e-5, atol=1e-2)
+        assert np.array_equal(cnt0, cnt1) and np.array_equal(acc0, acc1)
+        assert ref_n.sum() == mask.sum()
+        raw = np.empty((K.N_RAW, ncv, ncu), np.float32)
+        K.cell_raw(cnt0, acc0, cnt1, acc1, ncu, ncv, False, float(K.SPLIT_UNIT), raw)
+        seen = ref_n.reshape(ncv, ncu) > 0
+        np.testing.assert_allclose(raw[K.RAW_W][seen], 0.5 * ref_n.reshape(ncv, ncu)[seen], rtol=1e-6)
+        np.testing.assert_allclose(raw[K.RAW_X][seen], (ref_a[:, 0] / np.maximum(ref_n, 1e-9)).reshape(ncv, ncu)[seen],
+                                   rtol=1e-5)  # fmt: skip
