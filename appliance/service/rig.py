@@ -230,10 +230,12 @@ class RigManager:
     async def close(self) -> None:
         """Stop the trigger loop, close the trigger and the rig."""
         self.connected = False
-        if self._trigger_task is not None:
-            self._trigger_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._trigger_task
+        task = self._trigger_task
+        if task is not None:
+            task.cancel()
+            # wait for it to end without swallowing a cancellation of this caller: the rig loop, cancelled by a
+            # stop while it rebuilds the rig (after a reload or a tune), must end, not build a new rig
+            await asyncio.wait({task})
             self._trigger_task = None
         if self.rig is not None:
             with contextlib.suppress(Exception):

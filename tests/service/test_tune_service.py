@@ -48,6 +48,9 @@ pytestmark = pytest.mark.usefixtures("warm", "hdr_kernels")  # numba's kernels l
 
 
 def _cli(*args: object) -> tuple[int, str]:
+    """``scan3d ARGS`` in this process: exit status and output. Called in a thread while the service runs on the
+    loop; the redirect is process-wide (pytest's ``-o log_cli=true`` swaps ``sys.stdout`` at every log record
+    and loses what is printed meanwhile: run these tests without it)."""
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
         rc = cli.main([str(a) for a in args])
@@ -248,3 +251,37 @@ def test_a_stop_during_a_tune_ends_cleanly(tmp_path: Path, monkeypatch: pytest.M
     gate.set()
     assert rc == 0
     assert len(replies) == 1 and (replies[0]["ok"] or "\n" not in replies[0]["error"]), replies
+
+
+def test_a_stop_while_the_rig_is_rebuilt_ends_the_service(tmp_path: Path) -> None:
+    """A stop that comes while the rig part closes the rig for a rebuild (after a tune, or a reload) and waits for
+    its trigger loop to end: the rig part ends with the stop instead of building a new rig (it used to swallow
+    its own cancellation there and the stop waited for ever)."""
+    import fake_service as F
+
+    class SlowToLetGo(F.FakeTrigger):
+        async def next_event(self) -> Any:  # a driver that takes a moment to let go when cancelled
+            try:
+                return await super().next_event()
+            except asyncio.CancelledError:
+                await asyncio.sleep(0.3)
+                raise
+
+    svc = F.make(tmp_path)
+    svc.trigger = SlowToLetGo()
+
+    async def body() -> None:
+        svc.hardware.reconnect()  # what a tune does after its probe
+        await F.wait_until(lambda: not svc.hardware.connected)  # closing: waiting for the trigger loop
+        await asyncio.sleep(0.05)
+
+    async def main() -> int:
+        task = asyncio.create_task(svc.run())
+        try:
+            await F.wait_until(lambda: F.ready(svc) or task.done())
+            await body()
+        finally:
+            svc.request_stop()
+        return await asyncio.wait_for(task, 10)
+
+    assert asyncio.run(main()) == 0
