@@ -130,31 +130,34 @@ def _row_cells_split(ur, vr, mr, grid, ncu, ncv, kr, sr):  # type: ignore[no-unt
     """As ``_row_cells``, and per pixel (``sr``, uint8) whether its code lies half way between two cells (the
     centre of a coarser stripe: a pixel that dropped its finest Gray bits, on the edge between the two halves
     of that stripe): bit 0 along u (``kr`` is then the upper cell, ``kr - 1`` the lower one), bit 1 along v
-    (``kr - ncu``). A code half way between two codes of one cell (``ku``, ``kv`` > 1) is not split."""
+    (``kr - ncu``). A code half way between two codes of one cell (``ku``, ``kv`` > 1) is not split. float32
+    selects only, so that the loop vectorises."""
     ou, iu = np.float32(grid[0]), np.float32(grid[1])
     ov, iv = np.float32(grid[2]), np.float32(grid[3])
-    ku, kv = np.int64(grid[4]), np.int64(grid[5])
+    ku, kv = np.int32(grid[4]), np.int32(grid[5])
+    iku, ikv = np.float32(1.0) / np.float32(ku), np.float32(1.0) / np.float32(kv)
     hu, hv = np.float32(ncu * ku), np.float32(ncv * kv)
     half = np.float32(0.5)
     eps = np.float32(1e-3)
+    zero = np.float32(0.0)
+    nu = np.int32(ncu)
     for c in range(kr.shape[0]):
         fi = (ur[c] - ou) * iu + half
         fj = (vr[c] - ov) * iv + half
-        if not (mr[c] and fi >= 0.0 and fj >= 0.0 and fi < hu and fj < hv):  # NaN codes fail too
-            kr[c] = -1
-            sr[c] = 0
-            continue
-        mi = np.rint(fi)
-        mj = np.rint(fj)
-        on_i = abs(fi - mi) < eps and mi < hu
-        on_j = abs(fj - mj) < eps and mj < hv
-        ii = np.int64(mi) if on_i else np.int64(fi)
-        jj = np.int64(mj) if on_j else np.int64(fj)
-        cu = ii // ku
-        cv = jj // kv
-        kr[c] = np.int32(cv * ncu + cu)
-        su = on_i and ii >= ku and ii - cu * ku == 0
-        sv = on_j and jj >= kv and jj - cv * kv == 0
+        mi = np.floor(fi + half)  # the nearest whole number
+        mj = np.floor(fj + half)
+        on_i = (abs(fi - mi) < eps) & (mi < hu)
+        on_j = (abs(fj - mj) < eps) & (mj < hv)
+        ti = mi if on_i else np.floor(fi)
+        tj = mj if on_j else np.floor(fj)
+        good = mr[c] & (fi >= zero) & (fj >= zero) & (ti < hu) & (tj < hv)  # NaN codes fail too
+        ii = np.int32(ti if good else zero)
+        jj = np.int32(tj if good else zero)
+        cu = _floor_div(ii, ku, iku)
+        cv = _floor_div(jj, kv, ikv)
+        kr[c] = cv * nu + cu if good else np.int32(-1)
+        su = good & on_i & (ii >= ku) & (ii == cu * ku)
+        sv = good & on_j & (jj >= kv) & (jj == cv * kv)
         sr[c] = np.uint8(su) | (np.uint8(sv) << np.uint8(1))
 
 
