@@ -107,46 +107,6 @@ def summarise(
                     float(mm_per_px))  # fmt: skip
 
 
-def ray_ray_residual(
-    depth: F32,
-    u: F32,
-    v: F32,
-    normalized: F32,
-    camera: CameraModel,
-    projector: CameraModel,
-    stride: int = STRIDE,
-) -> Residual | None:
-    """Projector reprojection residual across the epipolar line of camera-projector points with (u, v) coded.
-
-    Parameters
-    ----------
-    depth : ndarray, shape (H, W), float32
-        Depth of each pixel's point along the camera's z (mm), NaN where none.
-    u, v : ndarray, shape (H, W), float32
-        Decoded projector coordinates (px).
-    normalized : ndarray, shape (H, W, 2), float32
-        The camera's undistorted normalised ray of each pixel (:class:`~appliance.geometry.rays.RayTable`).
-    camera, projector : CameraModel
-        The calibrated camera and projector.
-    stride : int
-        Sampling of rows and columns.
-
-    Returns
-    -------
-    Residual or None
-        ``kind='ray_ray'``: the signed distance (projector px) of the decoded (u, v) from the epipolar line
-        of the camera pixel, i.e. the part of the reprojection error that no depth can explain.
-    """
-    z = depth[::stride, ::stride].astype(np.float64)
-    uu = u[::stride, ::stride].astype(np.float64)
-    vv = v[::stride, ::stride].astype(np.float64)
-    ok = np.isfinite(z) & np.isfinite(uu) & np.isfinite(vv)
-    if int(ok.sum()) < MIN_SAMPLES:
-        return None
-    n = normalized[::stride, ::stride][ok].astype(np.float64)
-    return _across_epipolar(z[ok], n, uu[ok], vv[ok], camera, projector)
-
-
 def decoded_ray_ray_residual(
     u: F32,
     v: F32,
@@ -155,7 +115,8 @@ def decoded_ray_ray_residual(
     projector: CameraModel,
     stride: int = STRIDE,
 ) -> Residual | None:
-    """:func:`ray_ray_residual` of every decoded pixel, whether or not it gave a point.
+    """Projector reprojection residual across the epipolar line, of every decoded pixel with (u, v) coded,
+    whether or not it gave a point.
 
     Each sampled pixel's point is where its camera ray passes closest to the projector ray of its decoded
     (u, v), so the calibration is judged on all the light the pattern put on the scene, before any check or
@@ -178,7 +139,9 @@ def decoded_ray_ray_residual(
     Returns
     -------
     Residual or None
-        As :func:`ray_ray_residual`; None when fewer than :data:`MIN_SAMPLES` sampled pixels decoded.
+        ``kind='ray_ray'``: the signed distance (projector px) of the decoded (u, v) from the epipolar line
+        of the camera pixel, i.e. the part of the reprojection error that no depth can explain; None when
+        fewer than :data:`MIN_SAMPLES` sampled pixels decoded.
     """
     uu = u[::stride, ::stride].astype(np.float64)
     vv = v[::stride, ::stride].astype(np.float64)
