@@ -10,13 +10,28 @@ from __future__ import annotations
 
 import errno
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import BinaryIO
 
 from appliance.errors import OutputError
 
 TMP_PREFIX = ".tmp-"
+
+
+def same_file(path: Path, others: Iterable[tuple[str, Path]]) -> tuple[str, Path] | None:
+    """The first ``(what, other)`` whose path is ``path`` itself (links resolved): an output about to be written
+    over an input (or another output) of the same command, which every command refuses before any work.
+
+    Parameters
+    ----------
+    path : Path
+        The file a command is about to write.
+    others : iterable of (str, Path)
+        What each other file is (for the message) and its path.
+    """
+    real = os.path.realpath(path)
+    return next(((what, p) for what, p in others if os.path.realpath(p) == real), None)
 
 
 def write_atomic(path: Path, writer: Callable[[BinaryIO], None]) -> Path:

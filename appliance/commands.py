@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from appliance.atomic_write import same_file
 from appliance.config import AppConfig, load_config
 from appliance.config.schema import ReconstructionConfig
 from appliance.errors import ApplianceError, ConfigError, OutputError
@@ -28,7 +30,13 @@ if TYPE_CHECKING:
 def _config_or_default(path: Path | None) -> AppConfig:
     if path is not None and Path(path).exists():
         return load_config(path)
+    if path is not None and Path(path) != Path("config/appliance.yaml"):  # named, not the last-resort default
+        raise ConfigError(f"{path}: configuration file not found; fix --config, or leave it out for the defaults")
     return AppConfig()
+
+
+MIN_IMAGE_PX, MAX_IMAGE_PX = 16, 10_000
+"""Bounds of a projector's width and height given on the command line (px), as the configuration's."""
 
 
 def write_patterns(out: Path, config: Path | None, width: int | None, height: int | None) -> int:
@@ -40,9 +48,13 @@ def write_patterns(out: Path, config: Path | None, width: int | None, height: in
     from appliance.patterns.from_config import build_sequence
     from appliance.patterns.manifest import manifest_text
 
+    for key, size in (("--width", width), ("--height", height)):
+        if size is not None and not MIN_IMAGE_PX <= size <= MAX_IMAGE_PX:
+            raise ConfigError(f"patterns: {key} {size}: must be from {MIN_IMAGE_PX} to {MAX_IMAGE_PX} projector "
+                              "pixels (or left out for the configured projector's)")
     cfg = _config_or_default(config)
-    w = width or cfg.virtual_rig.projector.width
-    h = height or cfg.virtual_rig.projector.height
+    w = width if width is not None else cfg.virtual_rig.projector.width
+    h = height if height is not None else cfg.virtual_rig.projector.height
     seq = build_sequence(cfg.sequence, w, h)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -119,6 +131,40 @@ def _target(base: Path | None, manifest: Path, suffix: str, batch: bool) -> Path
     return base
 
 
+def _decode_outputs(manifest: Path, out: Path | None, maps_out: Path | None, report: Path | None, batch: bool,
+                    cloud: bool) -> list[tuple[str, Path]]:
+    """The files ``scan3d decode`` writes for one capture, each with the option that names it."""
+    outputs = []
+    if out is not None and cloud:
+        ply = _target(out, manifest, ".ply", batch)
+        outputs += [("--out", ply), ("the preview of --out", ply.with_suffix(".png"))]
+    if maps_out is not None:
+        outputs.append(("--maps", _target(maps_out, manifest, ".npz", batch)))
+    if report is not None:
+        outputs.append(("--report", report))
+    return outputs
+
+
+def _refuse_overwriting(outputs: list[tuple[str, Path]], inputs: list[tuple[str, Path]]) -> None:
+    """An output that is one of the inputs, or another output, would destroy it: refuse before writing."""
+    seen = list(inputs)
+    for what, p in outputs:
+        other = same_file(p, seen)
+        if other is not None:
+            raise ConfigError(f"decode: {what} {p} is also {other[0]} {other[1]}: writing it would destroy that "
+                              "file; choose another output path")
+        seen.append((what, p))
+
+
+def _make_folder_of(path: Path, option: str) -> None:
+    """The folder of an output file ``option`` names, made if absent; one line when it cannot be."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        why = "is a file, not a folder" if path.parent.exists() else f"cannot be created ({exc.strerror})"
+        raise OutputError(f"{path.parent}: {why}; check {option}") from exc
+
+
 def _decode_one(
     batch: ReplayBatch,
     manifest_path: Path,
@@ -136,6 +182,9 @@ def _decode_one(
     tag = f"{manifest_path.stem}: " if is_batch else ""
     got = replay_capture(batch, manifest_path, cloud_wanted=out is not None)
     man, plan, maps, result, setup = got.manifest, got.plan, got.maps, got.result, got.setup
+    frames = [("a frame of the capture", f) for files in (man.images or {}).values() for f in files]
+    frames += [("a frame stack of the capture", f) for f in (man.stacks or {}).values()]
+    _refuse_overwriting(_decode_outputs(manifest_path, out, maps_out, report, is_batch, result is not None), frames)
     for cam, shares in got.exposure_shares.items():
         print(f"{tag}{cam}: {len(shares)} exposure passes fused; decoded pixels per pass (darkest first): "
               + ", ".join(f"{100 * s:.1f} %" for s in shares))
@@ -166,10 +215,7 @@ def _decode_one(
                 arrays[f"{cam}_levels"] = m.levels  # Gray bits dropped per axis (finest resolvable bit)
             if m.reason is not None:
                 arrays[f"{cam}_reason"] = m.reason  # why a pixel has no code (reconstruct.types.Reason)
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"{path.parent}: cannot be created ({exc.strerror}); check --maps") from exc
+        _make_folder_of(path, "--maps")
         # through the atomic writer: a full disk keeps an existing file whole
         write_atomic(path, lambda f: np.savez_compressed(f, allow_pickle=False, **arrays))
         written["maps"] = str(path)
@@ -188,10 +234,7 @@ def _decode_one(
                              setup.reconstructor.calibration, list(man.cameras), result, extra=extra,
                              per_camera=per_cam)  # fmt: skip
         path = _target(out, manifest_path, ".ply", is_batch)
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"{path.parent}: cannot be created ({exc.strerror}); check --out") from exc
+        _make_folder_of(path, "--out")
         # the same files as a scan's (the preview beside the cloud, the pixels without a point striped by
         # reason); an offline PLY carries no header comment
         ply, png = result_files(meta, result, normals=rc.normals and result.cloud.normal is not None, preview=True,
@@ -231,10 +274,7 @@ def _write_report(
         )  # fmt: skip
     meta.timings_ms = times
     meta.files = written
-    try:
-        report.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{report.parent}: cannot be created ({exc.strerror}); check --report") from exc
+    _make_folder_of(report, "--report")
     write_sidecar(report, meta)
     print(f"report: {report}")
     health = meta.calibration_health
@@ -287,10 +327,17 @@ def decode_manifests(
         by_stem: dict[str, Path] = {}
         for m in manifests:
             other = by_stem.setdefault(m.stem, m)
-            if other != m:
+            if other is not m and os.path.realpath(other) == os.path.realpath(m):
+                raise ConfigError(f"decode: {m} is given twice; its {m.stem}.ply/.npz would be written twice; give "
+                                  "each capture once")
+            if other is not m:
                 raise ConfigError(f"decode: {other} and {m} would both write {m.stem}.ply/.npz into the --out/--maps "
                                   "folder, the second replacing the first; give the captures different names or "
                                   "decode them one at a time")
+    inputs = [("the manifest", m) for m in manifests]
+    inputs += [(f"--{what}", p) for what, p in (("calibration", calibration), ("config", config)) if p is not None]
+    for m in manifests:  # before any work: an output that is an input (or another output) would destroy it
+        _refuse_overwriting(_decode_outputs(m, out, maps_out, report, is_batch, calibration is not None), inputs)
     _note_compiling("decode")
     from appliance.replay import ReplayBatch
 
@@ -429,6 +476,13 @@ def validate_config(path: Path) -> int:
     from appliance.config.loader import check_files
 
     problems = check_files(cfg, str(path))
+    if cfg.calibration_file is not None and not any("calibration_file" in p for p in problems):
+        from appliance.geometry.calibration_file import read_calibration
+
+        try:  # readable is not enough: the service would read it at every start and fail
+            read_calibration(cfg.calibration_file)
+        except ApplianceError as exc:
+            problems.append(f"{path}: calibration_file: {exc}")
     if problems:
         print("\n".join(problems))
         return 1
@@ -459,6 +513,8 @@ async def grab_command(config: Path, camera: str, frames: int, out: Path) -> int
     """Grab software-triggered frames from one camera into PNG files (``cli.py`` runs the coroutine)."""
     from appliance.hardware.devices_probe import grab_frames
 
+    if frames < 1:
+        raise ConfigError(f"grab: --frames {frames}: must be at least 1 (frames)")
     cfg = await asyncio.to_thread(load_config, config)
     paths = await grab_frames(cfg, camera, frames, out)
     for p in paths:
@@ -491,6 +547,8 @@ def simulate_camera_command(
     from appliance.fakes.gige import StackProvider, serve_fake_camera
     from appliance.patterns import read_manifest
 
+    if not 0 <= packet_loss <= 1:  # NaN too
+        raise ConfigError(f"simulate-camera: --packet-loss {packet_loss}: must be a share from 0 to 1")
     if manifest is not None:
         recorded = read_manifest(manifest)
         name = camera if camera is not None else recorded.cameras[0]

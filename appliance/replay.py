@@ -38,7 +38,7 @@ from appliance.reconstruct.decode import (
     stripe_widths,
 )
 from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
-from appliance.reconstruct.hdr import capture_summary, decode_passes, pick_per_pixel
+from appliance.reconstruct.hdr import capture_record, capture_summary, decode_passes, pick_per_pixel
 from appliance.reconstruct.types import DecodedMaps, PointCloud
 
 Json = dict[str, object]
@@ -452,8 +452,7 @@ def replay_capture(batch: ReplayBatch, manifest_path: Path, *, cloud_wanted: boo
     shares: dict[str, list[float]] = {}
     hdr: dict[str, object] = {}
     for cam, st in stacks.items():
-        params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast,
-                              max_value=float((1 << bits[cam]) - 1))  # fmt: skip
+        params = DecodeParams.from_settings(rc, max_value=float((1 << bits[cam]) - 1))
         if man.exposures is None:
             maps[cam] = decode(st, plan, params)
             continue
@@ -476,9 +475,7 @@ def replay_capture(batch: ReplayBatch, manifest_path: Path, *, cloud_wanted: boo
         stage_ms = {"triangulate_ms": rec.timings_ms["triangulate_ms"], "filter_ms": rec.timings_ms["filter_ms"]}
         capture: Json = {}
         if man.exposures is not None:
-            pairs = list(dict.fromkeys(man.exposures))  # the passes, in capture order
-            capture = {"exposures_us": [e for e, _i in pairs], "frames_per_pass": len(man.sequence) // len(pairs),
-                       "frames": len(man.sequence), "cameras": hdr}  # fmt: skip
+            capture = capture_record(man.exposures, hdr)
         result = ScanResult(rec, maps, white, {}, shapes, health, capture=capture)
     t4 = time.perf_counter()
     times = {

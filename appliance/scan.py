@@ -31,13 +31,20 @@ from appliance.calibration.scan_health import trend_for
 from appliance.config.schema import AppConfig
 from appliance.errors import ApplianceError, CameraError, HardwareError, ScanError
 from appliance.geometry.calibration_file import Calibration
-from appliance.hardware.base import Camera, CameraInfo, FrameArray, exposure_control, pulse_source
+from appliance.hardware.base import (
+    Camera,
+    CameraInfo,
+    FrameArray,
+    exposure_control,
+    intensity_control,
+    pulse_source,
+)
 from appliance.hardware.registry import Rig, build_rig
 from appliance.patterns.from_config import build_capture
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
-from appliance.reconstruct.hdr import HdrStreamingDecoder, capture_summary, pick_per_pixel
+from appliance.reconstruct.hdr import HdrStreamingDecoder, capture_record, capture_summary, pick_per_pixel
 from appliance.reconstruct.pipeline import Reconstruction, Reconstructor, white_to_uint8
 from appliance.reconstruct.types import DecodedMaps
 from appliance.replay import ScanResult as ScanResult  # re-exported for callers
@@ -173,10 +180,20 @@ class Scanner:
                         "exposure; use a camera backend with exposure control (aravis, uvc, sim) or remove "
                         "sequence.exposures_us"
                     )
+        levels = tuple(float(i) for i in cfg.sequence.intensities)
+        self.pass_intensities: tuple[float, ...] = levels if any(i != 1.0 for i in levels) else ()
+        """The projector intensity of each pass (0-1], in capture order; empty: every pass at full intensity."""
+        if self.pass_intensities and intensity_control(rig.projector) is None:
+            raise HardwareError(
+                f"projector ({cfg.projector.type}): cannot set its intensity between passes, but "
+                f"sequence.intensities = {list(cfg.sequence.intensities)} asks for it; use a projector backend "
+                "with intensity control (lightcrafter4500, sim), or take every pass at full intensity (remove "
+                "sequence.intensities and vary exposures_us)"
+            )
         if rig.virtual is not None:  # its renderers keep projector coordinates of the coded axes only
             rig.virtual.coded_axes = frozenset(str(a) for f in self.sequence.frames if (a := getattr(f, "axis", None)))
         rc = cfg.reconstruction
-        self.params = DecodeParams(min_contrast_dn=rc.min_contrast_dn, relative_contrast=rc.relative_contrast)
+        self.params = DecodeParams.from_settings(rc)
         self.reconstructor = Reconstructor(calibration, cfg.sequence.axes, rc, self.sequence)
         self._trend: TrendStore | None = None
         self._white_index = next(
@@ -251,7 +268,7 @@ class Scanner:
         """Compile (or load from cache) every numba kernel a scan uses, before the first real scan.
 
         Runs the streaming decoders and the reconstruction once on the (blank) frame buffers, and on a
-        virtual rig precomputes its geometry and renders one frame per camera.
+        virtual rig precomputes its geometry and renders one frame of each kind per camera.
         """
         if not self._opened:
             await self.open()
@@ -260,9 +277,13 @@ class Scanner:
         if virtual is not None:
             def warm_sim() -> None:
                 virtual.prepare()
+                # one frame of each kind (white, Gray, XOR Gray, phase...): each has its own shading kernel
+                kinds = {(type(f), getattr(f, "xor_with", None) is not None): f for f in reversed(self.sequence.frames)}
+                firsts = list(kinds.values())
                 for name in self.rig.cameras:
                     if name in virtual.cameras:
-                        virtual.render_frame(self.sequence.frames[0], name)
+                        for frame in firsts:
+                            virtual.render_frame(frame, name)
 
             await loop.run_in_executor(None, warm_sim)
 
@@ -323,7 +344,11 @@ class Scanner:
                     await asyncio.gather(*(self._set_exposure(name, cam, self.pass_exposures_us[k])
                                            for name, cam in self.rig.cameras.items()))  # fmt: skip
                     timings["set_exposure_ms"] = timings.get("set_exposure_ms", 0.0) + (time.perf_counter() - t_e) * 1e3
+                if self.pass_intensities:
+                    await self._set_intensity(self.pass_intensities[k])
                 await self._capture_pass(k, on_frame_factory, timings, t0)
+            if self.pass_intensities and self.pass_intensities[-1] != 1.0:
+                await self._set_intensity(1.0)  # what else the projector shows (calibration, focus) at full
             await asyncio.sleep(0)  # let the last call_soon_threadsafe callbacks run
             await asyncio.gather(*pushes)
         except (CameraError, HardwareError) as exc:
@@ -363,9 +388,14 @@ class Scanner:
         capture: dict[str, object] = {}
         if self.exposures is not None:
             per_camera = {n: f[2] for n, f in zip(names, finished, strict=True)}
-            capture = {"exposures_us": list(self.pass_exposures_us), "frames_per_pass": len(self.sequence),
-                       "frames": len(self.capture), "cameras": per_camera}  # fmt: skip
+            capture = capture_record(self.exposures, per_camera)
         return ScanResult(rec, maps, white, timings, shapes, dict(health), frames, capture)
+
+    async def _set_intensity(self, intensity: float) -> None:
+        control = intensity_control(self.rig.projector)
+        if control is None:  # checked when the scanner was made; a rig swapped since
+            raise HardwareError("projector: cannot set its intensity; remove sequence.intensities")
+        await control.set_intensity(intensity)
 
     async def _set_exposure(self, name: str, cam: Camera, exposure_us: float) -> None:
         control = exposure_control(cam)

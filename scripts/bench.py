@@ -260,7 +260,14 @@ def main() -> int:
                     choices=["reference", "opencv", "stereo", "accuracy", "service", "hdr"])
     ap.add_argument("--readme", action="store_true", help="write the report into README.md")
     ap.add_argument("--json", type=Path, default=None, help="also write raw numbers as JSON")
+    ap.add_argument("--against", default=None, metavar="REV",
+                    help="time the reference workload of this tree and of git revision REV in turns, one run")
+    ap.add_argument("--rounds", type=int, default=3, help="with --against: turns per side")
     a = ap.parse_args()
+    if a.against:
+        from bench_against import compare
+
+        return compare(a.against, a.rounds, a.repeats)
     ref = bench_reference(a.repeats) if "reference" not in a.skip else {}
     ocv = bench_opencv(max(3, a.repeats // 3)) if "opencv" not in a.skip else {}
     acc = bench_accuracy() if "accuracy" not in a.skip else []

@@ -1,8 +1,11 @@
-"""Error against the virtual rig's ground truth of every reconstruction mode, from one scan's decoded maps.
+"""Error against the virtual rig's ground truth of every reconstruction mode, from one scan's decoded maps, and
+the calibration health from all three checks.
 
 ``scripts/run`` prints it after the service's scans on a multi-camera rig: the service writes the configured
 mode's cloud (fused, by default), and this shows what each mode alone gives on the same frames: camera-projector
-per camera, camera-camera, and both fused.
+per camera, camera-camera, and both fused. Then one scan with both projector axes coded: the default sequence
+codes columns only (half the frames), which gives the service's every scan the three-view check; both axes add
+the ray-ray residual of each camera with the projector and the cameras' epipolar residual.
 
     .venv/bin/python scripts/mode_errors.py [config/appliance.yaml]
 """
@@ -44,6 +47,14 @@ def main(config: Path) -> int:
             cams = names[:1] if mode == "stereo" else names
             what = f"{names[0]} + {names[1]}" if mode == "stereo" else f"fused, {', '.join(names)}"
             print(f"mode {mode} ({what}): {compare_to_ground_truth(cloud, virtual, cams).line()}")
+    if len(names) >= 2 and cfg.sequence.axes != "xy":
+        print("calibration health from all three checks (one more scan, both projector axes coded):")
+        both = cfg.model_copy(update={"sequence": cfg.sequence.model_copy(update={"axes": "xy"})})
+        result, _ = asyncio.run(scan_once(both))
+    health = result.calibration_health
+    checks = health.get("checks", [])
+    print(f"calibration health {health.get('status', 'not measured')}: "
+          + "; ".join(f"{c['kind']} {c['status']} ({c['reason']})" for c in checks))  # fmt: skip
     return 0
 
 

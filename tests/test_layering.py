@@ -379,3 +379,45 @@ def test_no_private_kernel_is_imported_across_packages() -> None:
 )
 def test_private_kernel_rule_checker(importer: str, imported: str, caught: bool) -> None:
     assert bool(private_kernel_imports([Edge(importer, imported, 1)])) is caught
+
+
+# --- numba kernels: a fastmath kernel's helpers set fastmath themselves -----------------------------------------
+
+
+def _njit_functions() -> dict[str, tuple[str, dict[str, str], set[str]]]:
+    """Every module-level ``@njit(...)`` function of the package: its file, decorator options and called names."""
+    found: dict[str, tuple[str, dict[str, str], set[str]]] = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.parse(path.read_text()).body:
+            if not isinstance(node, ast.FunctionDef):
+                continue
+            for deco in node.decorator_list:
+                if isinstance(deco, ast.Call) and isinstance(deco.func, ast.Name) and deco.func.id == "njit":
+                    opts = {k.arg: ast.unparse(k.value) for k in deco.keywords if k.arg}
+                    calls = {c.func.id if isinstance(c.func, ast.Name) else c.func.attr
+                             for c in ast.walk(node) if isinstance(c, ast.Call)
+                             and isinstance(c.func, (ast.Name, ast.Attribute))}  # fmt: skip
+                    found[node.name] = (str(path.relative_to(PACKAGE.parent)), opts, calls)
+    return found
+
+
+def test_helpers_of_fastmath_kernels_set_fastmath_themselves() -> None:
+    """numba compiles a helper that does not set ``fastmath`` with its first caller's flags and keeps that version
+    for every caller (``inherit_if_not_set``): a helper shared by a fastmath kernel and an exact one then rounds
+    by whichever compiled first (seen: a code on the lowest cell edge dropped after ``cell_match`` compiled
+    ``_row_cells``). Helpers inlined at numba level (``inline='always'``) are part of each caller and exempt."""
+    funcs = _njit_functions()
+    fast = [name for name, (_, opts, _) in funcs.items() if opts.get("fastmath", "False") != "False"]
+    assert "cell_match" in fast  # the rule reads the kernels it is about
+    bad = []
+    for kernel in fast:
+        todo, seen = [kernel], {kernel}
+        while todo:
+            for callee in funcs[todo.pop()][2]:
+                if callee in funcs and callee not in seen:
+                    seen.add(callee)
+                    todo.append(callee)
+                    path, opts, _ = funcs[callee]
+                    if "fastmath" not in opts and opts.get("inline") != "'always'":
+                        bad.append(f"{path}: {callee} (called by {kernel})")
+    assert bad == [], f"helpers of fastmath kernels that inherit their caller's flags: {bad}"

@@ -16,13 +16,14 @@ Object points are in the board frame (mm, z = 0); ids number the board's points 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.schema import ARUCO_DICTIONARIES, BoardConfig
+from appliance.config.schema import ARUCO_DICTIONARIES, MAX_BOARD_FEATURE_MM, BoardConfig
 from appliance.errors import CalibrationError
 
 F64 = npt.NDArray[np.float64]
@@ -140,6 +141,10 @@ def board_from_args(
 
     if board in ("circles", "acircles") and pitch_mm is None:
         pitch_mm, square_mm = square_mm, None
+    for key, size in (("square_mm", square_mm), ("pitch_mm", pitch_mm), ("marker_mm", marker_mm)):
+        if size is not None and math.isfinite(size) and size > MAX_BOARD_FEATURE_MM:  # 1e308 overflows the fit
+            raise CalibrationError(f"--board {board}: {key} = {size:g}: must be finite, above 0 and at most "
+                                   f"{MAX_BOARD_FEATURE_MM:g} mm; give the printed board's size in mm")
     kwargs: dict[str, Any] = {
         "type": board, "cols": cols, "rows": rows, "square_mm": square_mm, "pitch_mm": pitch_mm,
         "marker_mm": marker_mm,

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 from pathlib import Path
 
+import numpy as np
+
+from appliance.atomic_write import same_file
 from appliance.calibration.boards import BoardSpec, detect
 from appliance.calibration.boards import board_from_args as _board_from_values
 from appliance.calibration.projector import ProcamView, procam_view
 from appliance.calibration.report import write_rig_calibration
+from appliance.config.yamlfile import read_bytes_file
 from appliance.errors import CalibrationError
 
 
@@ -24,6 +29,37 @@ def board_from_args(a: argparse.Namespace) -> BoardSpec:
         marker_mm=getattr(a, "marker_mm", None),
         dictionary=getattr(a, "dictionary", None),
     )
+
+
+MAX_IMAGE_BYTES = 512 * 1024 * 1024
+"""Largest board image read (bytes)."""
+
+
+def check_output(out: Path, inputs: list[tuple[str, Path]]) -> None:
+    """Before any work: the calibration file ``out`` is none of the inputs, and its folder exists (or is made)
+    and is writable.
+
+    Raises
+    ------
+    CalibrationError
+        Naming ``out``, the input it would destroy or the folder's problem, and the fix.
+    """
+    clash = same_file(out, inputs)
+    if clash is not None:
+        raise CalibrationError(f"calibrate: --out {out} is also {clash[0]}: writing the calibration would destroy "
+                               "it; choose another --out (e.g. calibration.yaml)")
+    if out.is_dir():
+        raise CalibrationError(f"calibrate: --out {out} is a folder; give a file name such as {out}/calibration.yaml")
+    folder = out.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise CalibrationError(f"calibrate: --out {out}: its folder cannot be made ({why}); give a writable "
+                               "folder") from exc
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CalibrationError(f"calibrate: --out {out}: the folder {folder} is not writable; give a writable "
+                               "folder")
 
 
 def _check_models(*models: str) -> None:
@@ -58,22 +94,22 @@ def calibrate_camera_cli(
     if not images:
         raise CalibrationError("calibrate camera: no images given; pass one board photo per pose")
     _check_models(model)
+    check_output(out, [("a board image", Path(p)) for p in images])
     views: list[ProcamView] = []
     size: tuple[int, int] | None = None
     seen: dict[str, Path] = {}
     for p in images:
-        try:
-            digest = hashlib.sha256(Path(p).read_bytes()).hexdigest() if Path(p).is_file() else ""
-        except OSError:
-            digest = ""
-        if digest and digest in seen:  # one pose given twice would weigh twice and fake agreement
+        # a regular file of sane size only: a FIFO would block, and OpenCV's own reader logs beside our line
+        data = read_bytes_file(p, what="board image", error=CalibrationError, limit_bytes=MAX_IMAGE_BYTES,
+                               fix="check the path")
+        digest = hashlib.sha256(data).hexdigest()
+        if digest in seen:  # one pose given twice would weigh twice and fake agreement
             print(f"{p}: the same image as {seen[digest]}; counted once")
             continue
-        if digest:
-            seen[digest] = Path(p)
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        seen[digest] = Path(p)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
         if img is None:
-            raise CalibrationError(f"calibrate camera: image {p} is missing or unreadable; check the path")
+            raise CalibrationError(f"calibrate camera: image {p} is not an image OpenCV can read; check the file")
         this = (int(img.shape[1]), int(img.shape[0]))
         if size is None:
             size = this
@@ -114,6 +150,11 @@ def calibrate_projector_cli(
         raise CalibrationError("calibrate projector: no manifests given; pass one manifest per board pose")
     _check_models(model, projector_model)
     mans = [read_manifest(p) for p in manifests]
+    inputs = [("a manifest", m.path) for m in mans]
+    for m in mans:
+        inputs += [("a frame", f) for files in (m.images or {}).values() for f in files]
+        inputs += [("a frame stack", f) for f in (m.stacks or {}).values()]
+    check_output(out, inputs)
     cameras = mans[0].cameras
     proj_size = (mans[0].sequence.width, mans[0].sequence.height)
     for m in mans[1:]:
@@ -145,4 +186,5 @@ __all__ = [
     "board_from_args",
     "calibrate_camera_cli",
     "calibrate_projector_cli",
+    "check_output",
 ]

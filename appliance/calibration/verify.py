@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from appliance.atomic_write import write_bytes_atomic
 from appliance.config.schema import (
     ArtefactConfig,
     ArtefactPlane,
@@ -532,7 +533,6 @@ def write_verify_page(path: Path, report: VdiReport, title: str, notes: Sequence
            f" .bad{{color:#b00}} .ok{{color:#070}}</style></head><body>{''.join(parts)}</body></html>")  # fmt: skip
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(doc, encoding="utf-8")
     except OSError as exc:
         raise OutputError(f"verify report: cannot write {path} ({exc.strerror}); check permissions") from exc
-    return path
+    return write_bytes_atomic(path, doc.encode("utf-8"))  # a full disk keeps the previous page whole

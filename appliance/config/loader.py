@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -110,6 +111,10 @@ def format_validation_error(exc: ValidationError, source: str, doc: Any, root: y
     """One line per problem: ``file:line: key.path = value: rule``; past :data:`MAX_PROBLEMS`, a count."""
     lines = []
     errors = exc.errors(include_url=False)
+    # pydantic follows a list item's error with "at least N items" on the list (it counts the valid ones):
+    # the item's line says it all
+    items_at = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items_at)]
     index: dict[int, dict[str, tuple[yaml.Node, yaml.Node]]] = {}
     for err in errors[:MAX_PROBLEMS]:
         loc = _clean_loc(tuple(err["loc"]), doc)
@@ -305,6 +310,8 @@ def load_config(path: str | Path) -> AppConfig:
 
 def _readable_file(path: Path) -> str:
     """'' when ``path`` is a regular file this process can read, else why not (a FIFO is not opened)."""
+    if "\x00" in str(path):  # os.stat raises ValueError
+        return "holds a NUL character"
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -403,6 +410,10 @@ def check_files(cfg: AppConfig, source: str = "<config>") -> list[str]:
         if why:
             problems.append(f"{source}: {key} = '{folder}': {why}; {fix}")
     sock = os.fsencode(str(cfg.service.control_socket))
+    with contextlib.suppress(OSError, ValueError):  # absent (made at start) or unreadable: said above
+        if not stat.S_ISSOCK(os.lstat(cfg.service.control_socket).st_mode):  # scan3d run refuses to replace it
+            problems.append(f"{source}: service.control_socket = '{cfg.service.control_socket}': a file that is not "
+                            "a socket is there; remove it or choose another path")
     if len(sock) > MAX_SOCKET_PATH:
         problems.append(f"{source}: service.control_socket = '{cfg.service.control_socket}': {len(sock)} bytes is "
                         f"longer than a unix socket path may be ({MAX_SOCKET_PATH}); use a shorter path such as "

@@ -63,15 +63,45 @@ class SequenceConfig(_Strict):
         "chooses them); empty: one pass at each camera's own exposure.",
     )
 
+    intensities: tuple[float, ...] = Field(
+        (),
+        max_length=8,
+        description="Projector intensity of each capture pass (0-1 of full scale), one per exposures_us entry, "
+        "e.g. exposures_us: [10000, 10000] with intensities: [0.25, 1.0] takes the bright parts' pass by dimming "
+        "the projector instead of shortening the exposure (lightcrafter4500: its LED currents; sim). Empty: every "
+        "pass at full intensity.",
+    )
+
     @field_validator("exposures_us")
     @classmethod
     def _exposures_positive(cls, v: tuple[int, ...]) -> tuple[int, ...]:
         for e in v:
             if not 0 < e <= 10_000_000:
                 raise ValueError(f"exposures_us: {e} must be > 0 and at most 10000000 (µs)")
-        if len(set(v)) != len(v):
-            raise ValueError(f"exposures_us: {list(v)} lists an exposure twice; list each once")
         return v
+
+    @field_validator("intensities")
+    @classmethod
+    def _intensities_in_range(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        for i in v:
+            if not (0.0 < i <= 1.0):  # NaN fails too
+                raise ValueError(f"intensities: {i} must be > 0 and at most 1 (of the projector's full scale)")
+        return v
+
+    @model_validator(mode="after")
+    def _passes_distinct(self) -> SequenceConfig:
+        ex, it = list(self.exposures_us), list(self.intensities)
+        if it and len(it) != len(ex):
+            raise ValueError(f"intensities: {len(it)} value(s) for {len(ex)} exposures_us {ex}: give one intensity "
+                             "per pass (per exposures_us entry), or remove intensities")  # fmt: skip
+        if not it and len(set(ex)) != len(ex):
+            raise ValueError(f"exposures_us: {ex} lists an exposure twice; list each once (or give each pass its own "
+                             "projector intensity in intensities)")  # fmt: skip
+        pairs = list(zip(ex, it, strict=True)) if it else []
+        if len(set(pairs)) != len(pairs):
+            raise ValueError(f"exposures_us {ex} with intensities {it}: two passes have the same exposure and "
+                             "intensity; list each pass once")  # fmt: skip
+        return self
 
     @model_validator(mode="after")
     def _periods_even(self) -> SequenceConfig:
@@ -102,6 +132,13 @@ class ReconstructionConfig(_Strict):
         ge=0,
         le=1,
         description="A Gray pair must differ by this share of the pixel's white-black range.",
+    )
+    blend_ratio: float = Field(
+        0.4,
+        ge=0,
+        lt=1,
+        description="Two copies of the pattern (a mirror-like face): a pixel is dropped where two of its fine Gray "
+        "bits (period up to 512 projector px) have less than this share of its white-black contrast. 0: no check.",
     )
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
@@ -184,6 +221,10 @@ class DeviceOptics(_Strict):
         if self.width * self.height > MAX_VIRTUAL_PIXELS:
             raise ValueError(f"{self.width}x{self.height} = {self.width * self.height / 1e6:.0f} Mpx is more than "
                              f"the virtual rig renders ({MAX_VIRTUAL_PIXELS / 1e6:.0f} Mpx); use a smaller size")
+        gap = sum((a - b) ** 2 for a, b in zip(self.look_at_mm, self.position_mm, strict=True)) ** 0.5
+        if not gap >= 1.0:  # no optical axis: the pose is undefined (NaN rotation, then a wrong or no cloud)
+            raise ValueError(f"look_at_mm {list(self.look_at_mm)} is {gap:g} mm from position_mm "
+                             f"{list(self.position_mm)}: it must be a point at least 1 mm along the optical axis")
         return self
 
 
@@ -352,6 +393,13 @@ class VirtualRigConfig(_Strict):
     scene: tuple[SceneObject, ...] = Field(default_factory=_default_scene)
     imaging: ImagingConfig = Field(default_factory=ImagingConfig)
 
+    @field_validator("scene")
+    @classmethod
+    def _some_scene(cls, v: tuple[SceneObject, ...]) -> tuple[SceneObject, ...]:
+        if not v:  # validated, then every scan gave 0 points
+            raise ValueError("an empty scene gives no points; add an object, or leave scene out for the default one")
+        return v
+
 
 # --- output and service -------------------------------------------------------------------------------
 
@@ -490,6 +538,11 @@ ARUCO_DICTIONARIES = (
 DistortionName = Literal["auto", "none", "k1", "k2", "k2p", "k3", "k3p", "rational", "standard", "simple"]
 
 
+MAX_BOARD_FEATURE_MM = 10_000
+"""Largest square side, dot pitch or marker of a calibration board (mm), in the configuration and on the command
+line (1e308 overflows the fit)."""
+
+
 class BoardConfig(_Strict):
     """A calibration board (``appliance.calibration.boards.BoardSpec`` adds detection helpers to it)."""
 
@@ -502,9 +555,11 @@ class BoardConfig(_Strict):
     rows: int = Field(
         11, ge=2, le=200, description="Inner corners (chessboard), rows of dots, or squares (ChArUco)."
     )
-    square_mm: float | None = Field(15.0, gt=0, description="Square side (chessboard, ChArUco), mm.")
-    pitch_mm: float | None = Field(None, gt=0, description="Dot spacing (circle grids), mm.")
-    marker_mm: float | None = Field(None, gt=0, description="ArUco marker side (ChArUco), mm.")
+    square_mm: float | None = Field(15.0, gt=0, le=MAX_BOARD_FEATURE_MM,
+                                    description="Square side (chessboard, ChArUco), mm.")
+    pitch_mm: float | None = Field(None, gt=0, le=MAX_BOARD_FEATURE_MM, description="Dot spacing (circle grids), mm.")
+    marker_mm: float | None = Field(None, gt=0, le=MAX_BOARD_FEATURE_MM,
+                                    description="ArUco marker side (ChArUco), mm.")
     dictionary: str = Field("DICT_6X6_250", description="ArUco dictionary (ChArUco).")
     legacy_charuco: bool = Field(False, description="Pre-4.6 OpenCV ChArUco layout (even rows only).")
 

@@ -121,20 +121,45 @@ class DuplicateKeyError(yaml.MarkedYAMLError):
     """A mapping states one key twice (both places are in the message)."""
 
 
+def duplicate_key(node: yaml.MappingNode) -> tuple[yaml.ScalarNode, int] | None:
+    """The first key of one mapping node that an earlier key of it already gave, and that earlier key's line
+    (1-based); None when every key is given once (merge keys and non-scalar keys are not compared)."""
+    seen: dict[str, int] = {}
+    for key_node, _ in node.value:
+        if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        if key_node.value in seen:
+            return key_node, seen[key_node.value]
+        seen[key_node.value] = key_node.start_mark.line + 1
+    return None
+
+
+def duplicate_key_in(root: yaml.Node | None) -> tuple[str, int, int] | None:
+    """The first key given twice in any mapping of a node tree (:func:`duplicate_key`): (key, first line, second
+    line), for texts whose tags a safe loader does not construct (OpenCV's ``!!opencv-matrix``)."""
+    todo = [root] if root is not None else []
+    while todo:
+        node = todo.pop()
+        if isinstance(node, yaml.MappingNode):
+            twice = duplicate_key(node)
+            if twice is not None:
+                return twice[0].value, twice[1], twice[0].start_mark.line + 1
+            todo.extend(v for _, v in node.value)
+        elif isinstance(node, yaml.SequenceNode):
+            todo.extend(node.value)
+    return None
+
+
 class _Loader(_BaseLoader):
     """Safe YAML that refuses a key given twice in one mapping (YAML says keys are unique; PyYAML keeps the last)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        seen: dict[str, int] = {}
-        for key_node, _ in node.value:
-            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
-                continue
-            line = key_node.start_mark.line + 1
-            if key_node.value in seen:
-                raise DuplicateKeyError(
-                    problem=f"key {key_node.value!r} is given twice (lines {seen[key_node.value]} and {line}); "
-                    "YAML would keep only the last, so remove one", problem_mark=key_node.start_mark)
-            seen[key_node.value] = line
+        twice = duplicate_key(node)
+        if twice is not None:
+            key_node, first = twice
+            raise DuplicateKeyError(
+                problem=f"key {key_node.value!r} is given twice (lines {first} and {key_node.start_mark.line + 1}); "
+                "YAML would keep only the last, so remove one", problem_mark=key_node.start_mark)
         return super().construct_mapping(node, deep)
 
 

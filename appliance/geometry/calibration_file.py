@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from appliance.config.yamlfile import read_text_file
+from appliance.config.yamlfile import duplicate_key_in, read_text_file
 from appliance.errors import CalibrationError
 from appliance.geometry.camera import CameraModel
 
@@ -194,12 +194,16 @@ def read_calibration(
     # a regular file of sane size only (a FIFO or a device would block or never end); OpenCV parses the text
     text = read_text_file(path, what="calibration", error=CalibrationError, limit_bytes=MAX_CALIBRATION_BYTES,
                           fix="run the calibration or fix the path")
+    twice = _duplicate_key(text)
+    if twice is not None:  # OpenCV keeps one of the two silently
+        raise CalibrationError(f"{path}:{twice[2]}: {twice[0]!r} is given twice (lines {twice[1]} and {twice[2]}); "
+                               "a calibration states each device and value once, so remove one")
     try:
         fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except Exception as e:  # cv2.error, or SystemError wrapping it
         cause = e.__cause__ or e
         raise CalibrationError(
-            f"{path}: not an OpenCV FileStorage YAML file: {str(cause).strip()[-200:]}"
+            f"{path}: not an OpenCV FileStorage YAML file: {' '.join(str(cause).split())[-200:]}"
         ) from e
     if not fs.isOpened():
         raise CalibrationError(f"{path}: cannot be opened by cv2.FileStorage")
@@ -218,7 +222,7 @@ def read_calibration(
                 continue  # other top-level entries (comments, dates) are not devices
             devices[name] = _read_device(path, name, node)
     except cv2.error as e:  # OpenCV asserts on shapes it did not expect
-        raise CalibrationError(f"{path}: not a calibration OpenCV can read: {str(e).strip()[-160:]}") from e
+        raise CalibrationError(f"{path}: not a calibration OpenCV can read: {' '.join(str(e).split())[-160:]}") from e
     finally:
         fs.release()
     if not devices:
@@ -232,6 +236,19 @@ def read_calibration(
     if all(n == PROJECTOR_NAME for n in devices):
         raise CalibrationError(f"{path}: holds only the projector: at least one camera is needed")
     return Calibration(devices)
+
+
+def _duplicate_key(text: str) -> tuple[str, int, int] | None:
+    """The first key given twice in one mapping of an OpenCV YAML text: (key, first line, second line)."""
+    import yaml
+
+    if text.startswith("%YAML"):  # OpenCV's "%YAML:1.0" is no YAML directive; keep the line numbers
+        text = "\n" + text.split("\n", 1)[-1] if "\n" in text else ""
+    try:
+        root = yaml.compose(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    except (yaml.YAMLError, RecursionError):
+        return None  # not YAML that PyYAML reads: OpenCV judges it
+    return duplicate_key_in(root)
 
 
 def _numbers(path: Path, name: str, key: str, node: Any) -> npt.NDArray[np.float64]:
@@ -259,8 +276,9 @@ def _numbers(path: Path, name: str, key: str, node: Any) -> npt.NDArray[np.float
             arr = np.asarray(mat, np.float64)
     except CalibrationError:
         raise
-    except Exception as e:
-        raise CalibrationError(f"{where}: unreadable ({e})") from e
+    except Exception as e:  # OpenCV's messages span lines
+        raise CalibrationError(f"{where}: unreadable ({' '.join(str(e).split())[-200:]}); check its rows, cols, dt "
+                               "and data") from e
     return arr
 
 

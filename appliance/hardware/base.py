@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol, cast, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -105,9 +105,41 @@ class ExposureControl(Protocol):
 
 
 def exposure_control(camera: Camera) -> ExposureControl | None:
-    """``camera`` as an :class:`ExposureControl` when it can set its exposure between passes, else None."""
-    if isinstance(camera, ExposureControl):
-        return camera
+    """``camera`` as an :class:`ExposureControl` when it can set its exposure between passes, else None.
+
+    Read from the object each time, as :func:`intensity_control` does.
+    """
+    if callable(getattr(camera, "set_exposure", None)):
+        return cast(ExposureControl, camera)
+    return None
+
+
+@runtime_checkable
+class IntensityControl(Protocol):
+    """A projector whose brightness a scan sets between the passes of a multi-pass (HDR) capture.
+
+    Optional: a :class:`Projector` has it when it implements :meth:`set_intensity` (see
+    :func:`intensity_control`).
+    """
+
+    async def set_intensity(self, intensity: float) -> None:
+        """Show the frames of the next pass at ``intensity`` (0-1] of the projector's configured full scale.
+
+        Raises
+        ------
+        ProjectorError
+            When the device refuses the value or does not answer.
+        """
+        ...
+
+
+def intensity_control(projector: object) -> IntensityControl | None:
+    """``projector`` as an :class:`IntensityControl` when it can set its brightness between passes, else None.
+
+    Read from the object each time (not ``isinstance``, whose answer the ABC machinery caches per class).
+    """
+    if callable(getattr(projector, "set_intensity", None)):
+        return cast(IntensityControl, projector)
     return None
 
 

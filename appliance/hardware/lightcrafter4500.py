@@ -770,6 +770,34 @@ class LightCrafter4500:
             raise ProjectorError(f"{link.where}: after start: {status.describe()}; reload the sequence")
         return status
 
+    async def set_intensity(self, intensity: float) -> None:
+        """Dim the LEDs for the next pass of a multi-pass (HDR) capture: each LED's PWM value becomes
+        ``round(intensity x led_current)`` of the configured one (the evaluation module takes 255 - x).
+
+        Call it between passes, with the sequence stopped; ``load`` sets the configured (full) currents again.
+        Light follows the PWM value about linearly; the decoder picks one pass per pixel, so a departure from
+        that changes which pass a pixel takes, not its code.
+
+        Raises
+        ------
+        ProjectorError
+            ``intensity`` not in (0, 1], a dimmed LED whose PWM value would round to 0, or the device refusing.
+        """
+        if not (0.0 < intensity <= 1.0):
+            raise ProjectorError(f"{self.where}: intensity {intensity}: must be in (0, 1] of the configured "
+                                 "LED currents")  # fmt: skip
+        pwm = [round(x * intensity) for x in self.config.led_current]
+        if any(p == 0 < x for p, x in zip(pwm, self.config.led_current, strict=True)):
+            least = 0.5 / max(1, min(x for x in self.config.led_current if x))
+            raise ProjectorError(
+                f"{self.where}: intensity {intensity:g} of led_current {list(self.config.led_current)} rounds an "
+                f"LED to 0 (off); use an intensity above {least:.3g}"
+            )
+        await self._run(self._set_leds_sync, bytes(255 - p for p in pwm))
+
+    def _set_leds_sync(self, data: bytes) -> None:
+        self._require_link().transact(Cmd.LED_CURRENT, data)
+
     async def stop(self) -> None:
         """Stop the sequence and, with the video source, show black (the projector stays awake)."""
         self._stopping.set()  # ends a running video presentation at its next frame

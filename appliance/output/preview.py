@@ -35,6 +35,7 @@ REASON_STYLE: dict[int, tuple[str, tuple[int, int, int]]] = {
     Reason.FILTERED: ("filtered", (0, 140, 255)),
     Reason.EPIPOLAR: ("off epipolar line", (0, 0, 255)),
     Reason.MIXED: ("next to clipped", (200, 200, 200)),
+    Reason.INTERREFLECTION: ("two patterns", (0, 200, 0)),
 }
 """Per reason a pixel has no point: its legend label and stripe colour (BGR). Shadow is the plain no-point grey
 (nothing to fix); a reason missing here is drawn in :data:`OTHER_REASON_BGR`."""
@@ -223,6 +224,14 @@ def reason_colour(reason: int) -> tuple[int, int, int]:
     return OTHER_REASON_BGR if style is None else style[1]
 
 
+@functools.cache
+def _reason_lut() -> npt.NDArray[np.uint8]:
+    """(256, 3) BGR stripe colour of every reason value (:func:`reason_colour`), read-only."""
+    lut = np.array([reason_colour(v) for v in range(256)], np.uint8)
+    lut.flags.writeable = False
+    return lut
+
+
 def _stripe_reasons(small: npt.NDArray[np.float32], reason: npt.NDArray[np.uint8], out: npt.NDArray[Any]) -> None:
     """Stripe the tile ``out`` (h, w, 3) where ``small`` (h, w) has no depth, by the reason map (H, W) sampled at
     each tile pixel's nearest source pixel: the reason's colour on every other :data:`STRIPE_PX`-wide diagonal."""
@@ -230,13 +239,15 @@ def _stripe_reasons(small: npt.NDArray[np.float32], reason: npt.NDArray[np.uint8
     big_h, big_w = reason.shape
     rows = ((np.arange(h) + 0.5) * (big_h / h)).astype(np.intp)
     cols = ((np.arange(w) + 0.5) * (big_w / w)).astype(np.intp)
-    stripe = (np.add.outer(np.arange(h), np.arange(w)) // STRIPE_PX) % 2 == 0
-    sampled = reason[rows][:, cols]
-    empty = ~np.isfinite(small)
-    for value in np.unique(sampled[empty & stripe]):
-        if value == Reason.DECODED:
-            continue
-        out[empty & stripe & (sampled == value)] = reason_colour(int(value))
+    colour = _reason_lut()
+    step = max(1, CHUNK_POINTS // 8 // max(1, w))  # a block of rows at a time: no full-size temporaries
+    diag = np.arange(w, dtype=np.int32)
+    for r0 in range(0, h, step):
+        r1 = min(h, r0 + step)
+        stripe = ((np.arange(r0, r1, dtype=np.int32)[:, None] + diag) // STRIPE_PX) % 2 == 0
+        sampled = reason[rows[r0:r1]][:, cols]
+        paint = stripe & ~np.isfinite(small[r0:r1]) & (sampled != Reason.DECODED)
+        out[r0:r1][paint] = colour[sampled[paint]]
 
 
 def _with_legend(canvas: npt.NDArray[np.uint8], reasons: list[npt.NDArray[np.uint8]]) -> npt.NDArray[np.uint8]:

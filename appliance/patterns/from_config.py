@@ -40,7 +40,8 @@ def _build(cfg: SequenceConfig, width: int, height: int, xor_base: int | None) -
 def build_capture(
     cfg: SequenceConfig, width: int, height: int
 ) -> tuple[Sequence, tuple[tuple[float, float], ...] | None]:
-    """What a scan captures: the configured sequence once per ``sequence.exposures_us`` pass.
+    """What a scan captures: the configured sequence once per ``sequence.exposures_us`` pass (each at its
+    ``sequence.intensities`` entry when given).
 
     Returns
     -------
@@ -53,5 +54,5 @@ def build_capture(
     one = build_sequence(cfg, width, height)
     if not cfg.exposures_us:
         return one, None
-    return exposure_capture(one, [float(e) for e in cfg.exposures_us])
+    return exposure_capture(one, [float(e) for e in cfg.exposures_us], intensities=[float(i) for i in cfg.intensities])
 

@@ -131,8 +131,9 @@ def _load_npy(path: Path, n_frames: int, manifest: Path) -> FrameStack:
         if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO or a device would block or never end
             raise ManifestError(f"{manifest}: stack {path}: not a regular file; a stack is a .npy file")
         arr = np.load(path, mmap_mode="r")
-    except (OSError, ValueError) as exc:
-        raise ManifestError(f"{manifest}: stack {path}: cannot be read ({exc}); check the file") from exc
+    except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
+        raise ManifestError(f"{manifest}: stack {path}: cannot be read ({exc or type(exc).__name__}); check the "
+                            "file") from exc
     if arr.ndim != 3 or arr.shape[0] != n_frames:
         raise ManifestError(
             f"{manifest}: stack {path}: shape {arr.shape}: must be ({n_frames}, height, width), "
@@ -273,6 +274,9 @@ def frame_from_dict(d: Mapping[str, Any], where: str) -> Frame:
     if not isinstance(d, Mapping) or "pattern" not in d:
         raise ManifestError(f"{where}: a frame must be a mapping with a 'pattern' key, got {d!r}")
     kind = d["pattern"]
+    if not isinstance(kind, str) or not kind:  # a number or null would be kept as an unknown kind and ignored
+        raise ManifestError(f"{where}: pattern = {kind!r}: must be a name (gray, phase, white, black, or the name "
+                            "another program gives its pattern)")
     try:
         if kind == "gray":
             _check_keys(d, _GRAY_KEYS, where)
@@ -430,6 +434,9 @@ def read_manifest(path: str | Path) -> Manifest:
         where = f"{path}: frames[{i}]"
         frames.append(frame_from_dict(fd, where))
         exposures.append(frame_exposure(fd, where))
+        if stacks_doc is not None and "images" in fd:  # which of the two holds the frames?
+            raise ManifestError(f"{where}: has images and the manifest has a top-level 'stacks' too; give the "
+                                "frames one way, images per frame or one .npy stack per camera")
         if stacks_doc is None:
             imgs = fd.get("images")
             if not isinstance(imgs, dict):
@@ -438,6 +445,10 @@ def read_manifest(path: str | Path) -> Manifest:
                 if c not in imgs:
                     raise ManifestError(f"{where}: images: no image for camera {c!r}")
                 images[c].append(root / str(imgs[c]))
+            extra = sorted(str(c) for c in imgs if c not in cameras)
+            if extra:  # a camera left out of cameras: by mistake would be dropped without a word
+                raise ManifestError(f"{where}: images: camera(s) {extra} are not in cameras: {list(cameras)}; "
+                                    "add them to cameras: to decode them, or remove their images")
     try:
         seq = Sequence(proj_w, proj_h, tuple(frames))
     except PatternError as exc:

@@ -305,7 +305,10 @@ def gray_phase_sequence(
 
 
 def exposure_capture(
-    sequence: Sequence, exposures_us: tuple[float, ...] | list[float], intensity: float = 1.0
+    sequence: Sequence,
+    exposures_us: tuple[float, ...] | list[float],
+    intensity: float = 1.0,
+    intensities: tuple[float, ...] | list[float] = (),
 ) -> tuple[Sequence, tuple[tuple[float, float], ...]]:
     """A multi-exposure capture: ``sequence`` once per exposure, one full pass after the other.
 
@@ -321,7 +324,10 @@ def exposure_capture(
     exposures_us : sequence of float
         Camera exposure of each pass (µs, > 0, each once), in capture order.
     intensity : float
-        Projector brightness of every pass (0-1 of full scale).
+        Projector brightness of every pass (0-1 of full scale) when ``intensities`` is empty.
+    intensities : sequence of float
+        Projector brightness of each pass (0-1 of full scale), one per exposure; a pass is one
+        ``(exposure_us, intensity)`` pair, each listed once.
 
     Returns
     -------
@@ -336,10 +342,19 @@ def exposure_capture(
     for e in passes:
         if not (e > 0 and math.isfinite(e)):
             raise PatternError(f"exposure capture: exposure {e} µs: must be a finite number > 0")
-    if len(set(passes)) != len(passes):
-        raise PatternError(f"exposure capture: exposures_us = {passes}: lists an exposure twice; list each once")
-    if not (0.0 < intensity <= 1.0):
-        raise PatternError(f"exposure capture: intensity = {intensity}: must be in (0, 1]")
+    levels = [float(i) for i in intensities] or [float(intensity)] * len(passes)
+    if len(levels) != len(passes):
+        raise PatternError(
+            f"exposure capture: {len(levels)} intensities for {len(passes)} exposures: give one per pass"
+        )
+    for i in levels:
+        if not (0.0 < i <= 1.0):
+            raise PatternError(f"exposure capture: intensity = {i}: must be in (0, 1]")
+    pairs = list(zip(passes, levels, strict=True))
+    if len(set(pairs)) != len(pairs):
+        what = "exposures_us" if not intensities else "(exposure_us, intensity) pairs"
+        raise PatternError(f"exposure capture: {what} = {passes if not intensities else pairs}: lists a pass twice; "
+                           "list each once")  # fmt: skip
     frames = sequence.frames * len(passes)
-    per_frame = tuple((e, float(intensity)) for e in passes for _ in sequence.frames)
+    per_frame = tuple(p for p in pairs for _ in sequence.frames)
     return Sequence(sequence.width, sequence.height, frames), per_frame

@@ -157,15 +157,17 @@ def base_exposure_us(cfg: AppConfig) -> float:
 async def probe(cfg: AppConfig, exposures_us: tuple[float, ...]) -> Probe:
     """White and black frames of every configured camera at each exposure (µs) on the configured rig (built,
     opened and closed here)."""
-    from appliance.hardware.registry import build_rig
-    from appliance.scan import load_calibration_for
+    def build() -> tuple[Rig, tuple[int, int]]:  # the imports too (the decoder's kernels): off the event loop
+        from appliance.hardware.registry import build_rig
+        from appliance.scan import load_calibration_for
 
-    loop = asyncio.get_running_loop()
-    rig = await loop.run_in_executor(None, build_rig, cfg)
-    calibration = await loop.run_in_executor(None, load_calibration_for, cfg, rig)
-    proj = calibration.devices["projector"]
+        rig = build_rig(cfg)
+        proj = load_calibration_for(cfg, rig).devices["projector"]
+        return rig, (proj.width, proj.height)
+
+    rig, size = await asyncio.get_running_loop().run_in_executor(None, build)
     try:
-        return await probe_rig(rig, (proj.width, proj.height), exposures_us)
+        return await probe_rig(rig, size, exposures_us)
     finally:
         for cam in rig.cameras.values():
             await cam.close()

@@ -10,11 +10,12 @@ import asyncio
 import json
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import numpy.typing as npt
 
+from appliance.atomic_write import same_file, write_bytes_atomic
 from appliance.calibration.verify import (
     VdiReport,
     artefact_scene,
@@ -23,8 +24,11 @@ from appliance.calibration.verify import (
     write_verify_page,
 )
 from appliance.config.schema import AppConfig, ArtefactPosition
-from appliance.errors import CalibrationError
+from appliance.errors import CalibrationError, ConfigError
 from appliance.geometry.calibration_file import Calibration
+
+if TYPE_CHECKING:
+    from appliance.scan import Scanner
 
 F64 = npt.NDArray[np.float64]
 
@@ -53,12 +57,14 @@ async def scan_positions(
     list of ndarray, shape (N, 3), float64
         The points of each scan (world frame, mm).
     """
-    from appliance.hardware.registry import build_rig
-    from appliance.scan import Scanner, load_calibration_for
-
     art = cfg.calibration.artefact
     todo = positions if positions is not None else art.positions
+
     def prepare() -> Scanner:  # renders the virtual rig, builds ray tables: not on the event loop
+        # the imports too: appliance.scan brings the decoder and its kernels (~150 ms on a first import)
+        from appliance.hardware.registry import build_rig
+        from appliance.scan import Scanner, load_calibration_for
+
         rig = build_rig(cfg)
         return Scanner(cfg, rig, calibration if calibration is not None else load_calibration_for(cfg, rig))
 
@@ -133,6 +139,17 @@ def default_report_path(cfg: AppConfig) -> Path:
     return Path("verify-report.html")
 
 
+def _refuse_overwriting_inputs(page: Path, config: Path | None, cfg: AppConfig) -> None:
+    """The report page and its JSON must be neither the configuration nor the calibration file."""
+    inputs = [("the configuration", p) for p in (config,) if p is not None]
+    inputs += [("calibration_file", p) for p in (cfg.calibration_file,) if p is not None]
+    for written in (page, page.with_suffix(".json")):
+        clash = same_file(written, inputs)
+        if clash is not None:
+            raise ConfigError(f"verify: --out {page} would write {written}, which is {clash[0]}; choose another "
+                              "--out (e.g. verify-report.html)")
+
+
 async def verify_command(config: Path | None, out: Path | None = None, stdin: TextIO | None = None) -> int:
     """``scan3d verify``: print the VDI/VDE 2634-2 report, write its page and a JSON beside it.
 
@@ -156,17 +173,18 @@ async def verify_command(config: Path | None, out: Path | None = None, stdin: Te
     source = (
         str(cfg.calibration_file) if cfg.calibration_file is not None else "the virtual rig's exact calibration"
     )
+    page = out if out is not None else default_report_path(cfg)
+    await asyncio.to_thread(_refuse_overwriting_inputs, page, config, cfg)  # before the scans
     n = len(cfg.calibration.artefact.positions)
     print(f"verify: scanning the artefact in {n} positions with {source}")
     report = await verify_rig(cfg, stdin=stdin)
     for line in report.lines():
         print(line)
-    page = out if out is not None else default_report_path(cfg)
     loop = asyncio.get_running_loop()
     await loop.run_in_executor(
         None, write_verify_page, page, report, "Verification (VDI/VDE 2634-2)", [f"calibration: {source}"]
     )
     text = json.dumps(report.as_dict(), indent=1)
-    await loop.run_in_executor(None, page.with_suffix(".json").write_text, text)
+    await loop.run_in_executor(None, write_bytes_atomic, page.with_suffix(".json"), text.encode())
     print(f"wrote {page} and {page.with_suffix('.json')}")
     return 0 if report.passed else 1

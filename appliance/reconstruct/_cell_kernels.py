@@ -29,6 +29,8 @@ from appliance.reconstruct._stereo_kernels import (
     ST_OTHER,
     ST_OUTSIDE,
     ST_OWN,
+    _map_at,
+    _map_row,
     clear_point,
     put_point,
     rect_point,
@@ -37,6 +39,12 @@ from appliance.reconstruct._stereo_kernels import (
 FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
 """fastmath flags of the per-pixel triangulation: fused multiply-adds, reciprocals and reassociation, but no
 'nnan' / 'ninf' (the kernels test for NaN)."""
+
+EXACT_HELPERS = ("_row_cells", "_row_cells_split", "_map_row")
+"""Helpers that ``cell_match`` (fastmath) calls and that set ``fastmath=False`` themselves. numba compiles a callee
+that does not set the option with its caller's fastmath flags, and keeps one version per signature: whichever
+kernel compiled it first would decide, for every kernel, whether a code on a cell edge stays in its cell (a fused
+multiply-add moved the lowest edge to -6e-8 and dropped it) and how the rectification map rounds."""
 
 FIT_COLS = 6
 """Columns of a cell's fit: d0, gx, gy (disparity plane about the cell's cam0 centroid, rectified px), the
@@ -52,7 +60,7 @@ def _floor_div(i, k, inv_k):  # type: ignore[no-untyped-def]
     return q - np.int32(1) if q * k > i else q
 
 
-@njit(nogil=True, cache=True, error_model="numpy")
+@njit(nogil=True, cache=True, error_model="numpy", fastmath=False)  # never inherited: see EXACT_HELPERS
 def _row_cells(ur, vr, mr, grid, ncu, ncv, kr):  # type: ignore[no-untyped-def]
     """Cell index of every pixel of a row (int32, -1: none) from its float32 codes ``ur``, ``vr`` and mask
     ``mr`` under ``grid`` = (origin_u, 1/step_u, origin_v, 1/step_v, ku, kv), in one vectorised pass. Every
@@ -83,17 +91,18 @@ def _row_cells(ur, vr, mr, grid, ncu, ncv, kr):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _sums_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
+def _sums_one(u, v, mask, rect, knot, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
     for k in range(cnt.shape[0]):
         cnt[k] = 0
         acc[k, 0] = 0.0
         acc[k, 1] = 0.0
     h, w = u.shape[0], u.shape[1]
     kr = np.empty(w, np.int32)
+    row = np.empty((w, 2))
     hl = w - w // 2  # the left half's length (the right half's or one more)
     for r in range(h):
         _row_cells(u[r], v[r], mask[r], grid, ncu, ncv, kr)  # first the cells (vectorised), then a tight scatter
-        rr = rect[r]
+        _map_row(rect, knot, r, row)
         # the left and the right half of the row in turn: two independent chains of additions (neighbouring
         # pixels often share a cell, and each addition to it waits for the last); no branch on a cell's first
         # pixel (the cell changes every pixel or two, unpredictably)
@@ -102,22 +111,22 @@ def _sums_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-un
                 cc = c + half * hl
                 if cc < w:
                     k = kr[cc]
-                    a = rr[cc, 0]
+                    a = np.float32(row[cc, 0])
                     if k >= 0 and a == a:
                         acc[k, 0] += a
-                        acc[k, 1] += rr[cc, 1]
+                        acc[k, 1] += np.float32(row[cc, 1])
                         cnt[k] += 1
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def cell_sums(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
+def cell_sums(u0, v0, mask0, rect0, knot0, u1, v1, mask1, rect1, knot1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
     """Per cell: pixel count (``cnt``, int32, (N,)) and sums of rectified (x, y) (``acc``, float32, (N, 2)) of
     both cameras, one camera per thread."""
     for t in prange(2):
         if t == 0:
-            _sums_one(u0, v0, mask0, rect0, grid, ncu, ncv, cnt0, acc0)
+            _sums_one(u0, v0, mask0, rect0, knot0, grid, ncu, ncv, cnt0, acc0)
         else:
-            _sums_one(u1, v1, mask1, rect1, grid, ncu, ncv, cnt1, acc1)
+            _sums_one(u1, v1, mask1, rect1, knot1, grid, ncu, ncv, cnt1, acc1)
 
 
 SPLIT_UNIT = 4
@@ -125,7 +134,7 @@ SPLIT_UNIT = 4
 its four cells)."""
 
 
-@njit(nogil=True, cache=True, error_model="numpy")
+@njit(nogil=True, cache=True, error_model="numpy", fastmath=False)  # never inherited: see EXACT_HELPERS
 def _row_cells_split(ur, vr, mr, grid, ncu, ncv, kr, sr):  # type: ignore[no-untyped-def]
     """As ``_row_cells``, and per pixel (``sr``, uint8) whether its code lies half way between two cells (the
     centre of a coarser stripe: a pixel that dropped its finest Gray bits, on the edge between the two halves
@@ -169,7 +178,7 @@ def _add(cnt, acc, k, q, a, b):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _sums_split_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
+def _sums_split_one(u, v, mask, rect, knot, grid, ncu, ncv, cnt, acc):  # type: ignore[no-untyped-def]
     for k in range(cnt.shape[0]):
         cnt[k] = 0
         acc[k, 0] = 0.0
@@ -177,16 +186,17 @@ def _sums_split_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore
     h, w = u.shape[0], u.shape[1]
     kr = np.empty(w, np.int32)
     sr = np.empty(w, np.uint8)
+    row = np.empty((w, 2))
     nu = np.int32(ncu)
     for r in range(h):
         _row_cells_split(u[r], v[r], mask[r], grid, ncu, ncv, kr, sr)
-        rr = rect[r]
+        _map_row(rect, knot, r, row)
         for c in range(w):
             k = kr[c]
-            a = rr[c, 0]
+            a = np.float32(row[c, 0])
             if k < 0 or a != a:
                 continue
-            b = rr[c, 1]
+            b = np.float32(row[c, 1])
             s = sr[c]
             if s == 0:
                 _add(cnt, acc, k, np.int32(4), a, b)
@@ -204,7 +214,7 @@ def _sums_split_one(u, v, mask, rect, grid, ncu, ncv, cnt, acc):  # type: ignore
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def cell_sums_split(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
+def cell_sums_split(u0, v0, mask0, rect0, knot0, u1, v1, mask1, rect1, knot1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1):  # type: ignore[no-untyped-def]
     """As ``cell_sums``, but a pixel whose code lies half way between two cells (``_row_cells_split``) counts
     half to each (a quarter to each of four on both axes): counts in ``SPLIT_UNIT`` per pixel, ``acc`` the
     sums of rectified (x, y) with those weights. Rounding such a code into one cell (``cell_sums``) moves that
@@ -212,9 +222,9 @@ def cell_sums_split(u0, v0, mask0, rect0, u1, v1, mask1, rect1, grid, ncu, ncv, 
     cameras; split, the error is second order in the band's width."""
     for t in prange(2):
         if t == 0:
-            _sums_split_one(u0, v0, mask0, rect0, grid, ncu, ncv, cnt0, acc0)
+            _sums_split_one(u0, v0, mask0, rect0, knot0, grid, ncu, ncv, cnt0, acc0)
         else:
-            _sums_split_one(u1, v1, mask1, rect1, grid, ncu, ncv, cnt1, acc1)
+            _sums_split_one(u1, v1, mask1, rect1, knot1, grid, ncu, ncv, cnt1, acc1)
 
 
 RAW_W, RAW_D, RAW_E, RAW_HI, RAW_LO, RAW_X, RAW_Y = 0, 1, 2, 3, 4, 5, 6
@@ -550,6 +560,7 @@ def cell_match(  # type: ignore[no-untyped-def]
     v0,
     mask0,
     rect0,
+    knot0,
     grid,
     ncu,
     ncv,
@@ -591,7 +602,9 @@ def cell_match(  # type: ignore[no-untyped-def]
     for ch in prange(nch):
         kr = np.empty(w, np.int32)
         sr = np.zeros(w, np.uint8)
+        row = np.empty((w, 2))
         for r in range(ch * h // nch, (ch + 1) * h // nch):
+            _map_row(rect0, knot0, r, row)
             if split:
                 _row_cells_split(u0[r], v0[r], mask0[r], grid, ncu, ncv, kr, sr)
             else:
@@ -602,8 +615,8 @@ def cell_match(  # type: ignore[no-untyped-def]
                 if k < 0:
                     status[r, col] = ST_NONE
                     continue
-                xr0 = rect0[r, col, 0]  # the pixel's offset from its cell in float32: fewer conversions
-                yr = rect0[r, col, 1]
+                xr0 = np.float32(row[col, 0])  # the pixel's offset from its cell in float32: fewer conversions
+                yr = np.float32(row[col, 1])
                 s = sr[col]
                 if s != 0 and xr0 == xr0:  # between cells: the nearest centroid of cam0 that has a plane
                     best = np.float32(np.inf)
@@ -643,12 +656,14 @@ def cell_match(  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def sub_plane(epi, rect0, shift):  # type: ignore[no-untyped-def]
-    """epi -= s0 + sx x + sy y (a fitted epipolar offset, rectified px) in place; NaN stays NaN."""
+def sub_plane(epi, rect0, knot0, shift):  # type: ignore[no-untyped-def]
+    """epi -= s0 + sx x + sy y (a fitted epipolar offset, rectified px; (x, y) from ``rect0``, knots every
+    ``knot0`` px) in place; NaN stays NaN."""
     h, w = epi.shape[0], epi.shape[1]
     for r in prange(h):
         for c in range(w):
-            epi[r, c] -= shift[0] + shift[1] * rect0[r, c, 0] + shift[2] * rect0[r, c, 1]
+            x, y = _map_at(rect0, knot0, r, c)
+            epi[r, c] -= shift[0] + shift[1] * np.float32(x) + shift[2] * np.float32(y)
     return epi
 
 

@@ -45,11 +45,34 @@ FALLBACK_PERIOD_RATIO = 4.0
 #: stripe centre), with this margin for blur and noise, in stripes; farther means the Gray code and the phase
 #: saw different light (a second copy of the pattern by interreflection, a mixed pixel): the pixel is dropped.
 CONSISTENCY_MARGIN = 0.25
+#: Two phase frequencies against each other: a finer set unwrapped by the coarser result lands within half its period
+#: of it by construction; a pixel farther than this share of the finer period from the coarser estimate is dropped.
+#: On one surface lit once the coarser estimate's error is a small share of the finer period (a 4:1 ratio at
+#: 0.05 rad of phase noise: 0.03 periods); near half a period the unwrapping picks a whole period at random, and a
+#: second copy of the pattern (interreflection), which shifts the two frequencies' phases by unrelated amounts,
+#: lands anywhere in it.
+FREQUENCY_MARGIN = 0.35
 #: XOR codes: at an edge of the base bit every XOR bit has an edge too, so all of them are weak at once. Such a
 #: pixel keeps its code (counted as one weak bit, the base's) where the base and every XOR bit still reach this
 #: fraction of the Gray contrast floor: their signs then agree on the side of the edge, and bit b = its XOR
 #: frame's bit XOR the base's is right on either side. Fainter, the signs are noise and the pixel is dropped.
 XOR_FAINT_RATIO = 0.5
+#: Two copies of the pattern (a mirror-like face re-projects it; interreflection): where the light of two projector
+#: pixels adds, every Gray bit on which their codes differ has the contrast |a - b| instead of a + b, while a clean
+#: pixel has at most one bit short of full contrast (the one whose stripe edge it sits on). A pixel is dropped
+#: (reason interreflection) where two or more of its decoded Gray bits of period up to :data:`BLEND_PERIOD_PX` stay
+#: under the decoder's blend ratio (``DecodeParams.blend_ratio``, of white - black), and at least
+#: :data:`BLEND_NEIGHBOURS` of its 8 neighbours are marked too: a re-projected pattern covers a region, while a
+#: lone pixel marked on a matte surface is noise or diffuse indirect light (dropping it would also cost its
+#: neighbours their points in the neighbour filter). Only fine bits count: diffuse indirect light of a coarse
+#: pattern lowers its contrast without changing its sign, and averages out on a fine one. Where the optics blur the
+#: finest bits away, contrast falls off toward the finest kept bits: the run of such bits from the finest kept bit
+#: up is that fall-off, not a second pattern, and does not count (a second pattern dims bits at random).
+BLEND_PERIOD_PX = 512
+BLEND_NEIGHBOURS = 3
+#: The flag in ``levels[0]`` (Gray bits dropped: < 32) of a pixel the blend check marked, until
+#: :func:`blend_regions` has decided (then clear again).
+BLEND_FLAG = 0x80
 _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
@@ -163,8 +186,9 @@ def _atan2_f32(y, x):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_weak(c, bit, relg, weak, qa):  # type: ignore[no-untyped-def]
-    """One bit's contrasts ``c`` (float32) into the weak-bit mask and the weakest strong contrast ``qa``.
+def _fold_weak(c, bit, relg, weak, qa, relb, soft):  # type: ignore[no-untyped-def]
+    """One bit's contrasts ``c`` (float32) into the weak-bit mask, the weakest strong contrast ``qa`` and the
+    mask of bits under the blend floor ``relb`` (``soft``).
 
     Bits below the dropped level are all weak, so the weakest strong bit is the weakest one the decode
     relied on, whatever the level.
@@ -174,6 +198,7 @@ def _fold_weak(c, bit, relg, weak, qa):  # type: ignore[no-untyped-def]
     for x in range(c.shape[0]):
         strong = c[x] >= relg[x]
         weak[x] |= zero if strong else on
+        soft[x] |= zero if c[x] >= relb[x] else on
         qa[x] = np.fmin(qa[x], c[x] if strong else _FINF)
 
 
@@ -238,7 +263,7 @@ def _xor_code(code, fl, base, xmask, out, ok):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2, faint=False):  # type: ignore[no-untyped-def]
+def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2, relb, soft, faint=False):  # type: ignore[no-untyped-def]
     """Batch: a bit's signed contrast row ``d`` into the code and the axis' gate state (``cf`` scratch)."""
     on = np.uint32(1 << bit)
     off = np.uint32(0)
@@ -246,7 +271,7 @@ def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2, faint=False):  # typ
         code[x] |= on if d[x] > 0 else off
     for x in range(d.shape[0]):
         cf[x] = np.float32(min(abs(d[x]), 65535))
-    _fold_weak(cf, bit, relg, weak, qa)
+    _fold_weak(cf, bit, relg, weak, qa, relb, soft)
     if keys:
         _fold_keys(cf, bit, m1, m2)
     elif faint:
@@ -254,11 +279,11 @@ def _fold_d(d, bit, relg, keys, cf, code, weak, qa, m1, m2, faint=False):  # typ
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_cst(cst, bit, relg, keys, cf, weak, qa, m1, m2, faint=False):  # type: ignore[no-untyped-def]
+def _fold_cst(cst, bit, relg, keys, cf, weak, qa, m1, m2, relb, soft, faint=False):  # type: ignore[no-untyped-def]
     """Streaming: a bit's stored contrasts (uint8 or uint16) into the axis' gate state, as :func:`_fold_d` does."""
     for x in range(cst.shape[0]):
         cf[x] = np.float32(cst[x])
-    _fold_weak(cf, bit, relg, weak, qa)
+    _fold_weak(cf, bit, relg, weak, qa, relb, soft)
     if keys:
         _fold_keys(cf, bit, m1, m2)
     elif faint:
@@ -285,6 +310,28 @@ def _gray_level(weak, tol, nbits, finest, fl, ok):  # type: ignore[no-untyped-de
         trunc = finest & ((rest == zero) | (one & (np.uint32(rest & np.uint32(rest - _U1)) == zero))) & (f < nb)
         fl[x] = np.uint32(0) if full else f
         ok[x] = full | trunc
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _blend_gate(soft, fl, ok, blend, nfine):  # type: ignore[no-untyped-def]
+    """Two copies of the pattern (see :data:`BLEND_PERIOD_PX`): mark in ``blend`` the pixels where two or more of
+    the fine bits ``fl .. nfine - 1`` are under the blend floor, not counting the run of such bits from bit ``fl``
+    up (the optics' fall-off toward the finest bits)."""
+    fine = np.uint32((np.uint32(1) << np.uint32(nfine)) - _U1)
+    two = np.uint32(2)
+    for x in range(soft.shape[0]):
+        s = np.uint32(np.uint32(soft[x]) & fine) >> np.uint32(fl[x])
+        run = np.uint32(np.uint32(s ^ np.uint32(s + _U1)) >> _U1)  # the contiguous bits from bit fl
+        blend[x] |= ok[x] & (_popcount(np.uint32(s & ~run)) >= two)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _mark_blend(blend, lev):  # type: ignore[no-untyped-def]
+    """:data:`BLEND_FLAG` into ``lev`` where the blend check marked the pixel (:func:`blend_regions` decides)."""
+    flag = np.uint8(BLEND_FLAG)
+    zero = np.uint8(0)
+    for x in range(blend.shape[0]):
+        lev[x] |= flag if blend[x] else zero
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -394,6 +441,15 @@ def _consistency_gate(cc, cg, fl, stripe, ok):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _frequency_gate(cc, cb, period, mod, relv, ok):  # type: ignore[no-untyped-def]
+    """Two phase frequencies: where the finer set has modulation (``mod >= relv``), keep a pixel only where its
+    unwrapped coordinate ``cc`` lies within :data:`FREQUENCY_MARGIN` finer periods of the coarser result ``cb``."""
+    lim = np.float32(FREQUENCY_MARGIN * period)
+    for x in range(cc.shape[0]):
+        ok[x] = ok[x] & ((mod[x] < relv[x]) | (abs(cc[x] - cb[x]) <= lim))
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _emit_axis(cc, ok, lit, out):  # type: ignore[no-untyped-def]
     for x in range(cc.shape[0]):
         good = ok[x] & lit[x]
@@ -402,15 +458,17 @@ def _emit_axis(cc, ok, lit, out):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _lit_row(r, rel, thr, relv, relg, lit):  # type: ignore[no-untyped-def]
+def _lit_row(r, rel, thr, relv, relg, lit, blend, relb):  # type: ignore[no-untyped-def]
     """Contrast floors: ``relv`` for phase modulations, ``relg`` = ceil of it for integer Gray contrasts
-    (an integer c >= rel * r exactly when c >= ceil(rel * r), so float32 decides as float64 would)."""
+    (an integer c >= rel * r exactly when c >= ceil(rel * r), so float32 decides as float64 would); ``relb``
+    = ceil(blend * r), the blend check's floor (0: off)."""
     for x in range(r.shape[0]):
         rr = np.float64(r[x])
         f = rel * rr
         relv[x] = np.float32(f)
         relg[x] = np.float32(np.ceil(f))
         lit[x] = (rr >= thr) & (rr > 0.0)
+        relb[x] = np.float32(np.ceil(blend * rr))
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -433,7 +491,8 @@ def _emit_level(fl, lit, lev):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gate_init(weak, qg, m1, m2):  # type: ignore[no-untyped-def]
+def _gate_init(weak, qg, m1, m2, soft):  # type: ignore[no-untyped-def]
+    soft[:] = np.uint32(0)
     weak[:] = np.uint32(0)
     qg[:] = _FINF
     m1[:] = BIG
@@ -478,7 +537,7 @@ def _unlit_outside(u, v, mask, quality, lev0, lev1, c0, c1):  # type: ignore[no-
 @njit(nogil=True, cache=True, error_model="numpy")
 def _finish_row(  # type: ignore[no-untyped-def]
     lit_row, code, weak, qg, m1, m2, ssum, csum, quantum, axis_tab, ph_tab, ph_period, finest, u_row, v_row,
-    mask_row, quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1, xc_row,
+    mask_row, quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1, xc_row, soft, blend_row,
 ):  # fmt: skip
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
@@ -488,8 +547,11 @@ def _finish_row(  # type: ignore[no-untyped-def]
     (2, W) and ``qg`` float32 (2, W) hold each axis' folded Gray bits; ``ssum``/``csum`` (S, W) the phase sums,
     float64, or int32 in units of ``quantum`` (1.0 for float64);
     ``u_row``, ``v_row``, ``mask_row``, ``quality_row`` (W,) out; ``lev0_row``/``lev1_row`` uint8 (W,) out: Gray
-    bits dropped on x / y; ``scratch`` float32 (10, W), ``fl_row`` uint32 (W,), ``ok_row`` bool (W,) are scratch;
-    ``xc_row`` uint32 (W,) holds an XOR axis' Gray code (``code`` stays as folded: streaming state).
+    bits dropped on x / y; ``scratch`` float32 (11, W), ``fl_row`` uint32 (W,), ``ok_row`` bool (W,) are scratch
+    (``scratch[10]``: the blend floor, from :func:`_lit_row`);
+    ``xc_row`` uint32 (W,) holds an XOR axis' Gray code (``code`` stays as folded: streaming state); ``soft``
+    uint32 (2, W) each axis' bits under the blend floor, ``blend_row`` bool (W,) scratch: the pixels the blend
+    check marked get :data:`BLEND_FLAG` in ``lev0_row`` (see :func:`_blend_gate`, :func:`blend_regions`).
     """
     lit = lit_row[c0:c1]
     fl = fl_row[c0:c1]
@@ -503,6 +565,8 @@ def _finish_row(  # type: ignore[no-untyped-def]
     cph = scratch[6, c0:c1]
     cb = scratch[7, c0:c1]
     mprev = scratch[9, c0:c1]
+    blend = blend_row[c0:c1]
+    blend[:] = False
     qmin[:] = _FINF
     for a in range(2):
         out = u_row[c0:c1] if a == 0 else v_row[c0:c1]
@@ -519,6 +583,11 @@ def _finish_row(  # type: ignore[no-untyped-def]
             if base >= 0:
                 _xor_weak(weak[a, c0:c1], m1[a, c0:c1], base, axis_tab[a, 9])
             _gray_level(weak[a, c0:c1], tol, axis_tab[a, 7], finest, fl, ok)
+            if base < 0:
+                nfine = 0
+                while nfine < 31 and (axis_tab[a, 2] << (nfine + 2)) <= BLEND_PERIOD_PX:
+                    nfine += 1
+                _blend_gate(soft[a, c0:c1], fl, ok, blend, nfine)
             if base >= 0:
                 _xor_code(code[a, c0:c1], fl, base, axis_tab[a, 9], xc_row[c0:c1], ok)
                 ca = xc_row[c0:c1]
@@ -549,6 +618,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
             elif src > 0:
                 _copy(cb, res)
                 _unwrap(cph, cb, period, cc)
+                _frequency_gate(cc, cb, period, mod, relv, ok)
                 res = cc
                 if finest and pprev >= FALLBACK_PERIOD_RATIO * period:
                     # a finer period the optics blur away leaves the pixel on the coarser one
@@ -567,6 +637,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
         _emit_level(fl, lit, lev)
         _min_into(qmin, qa)
     _mask_quality(lit, qmin, mask_row[c0:c1], quality_row[c0:c1])
+    _mark_blend(blend, lev0_row[c0:c1])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -681,7 +752,8 @@ def _mean_diff(one, msum, n, sign, d):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _gray_row(  # type: ignore[no-untyped-def]
-    frames, y, c0, c1, wb, gray_tab, mean_idx, axis_tab, relg_row, d_row, cf_row, msum_row, code, weak, qg, m1, m2
+    frames, y, c0, c1, wb, gray_tab, mean_idx, axis_tab, relg_row, d_row, cf_row, msum_row, code, weak, qg, m1, m2,
+    relb_row, soft,
 ):
     """Every Gray bit of row ``y``, columns ``c0 .. c1 - 1``: pairs compare pattern and inverse, single
     frames (white + black) / 2 or, without white and black, the mean of the reference phase set ``mean_idx``."""
@@ -716,7 +788,7 @@ def _gray_row(  # type: ignore[no-untyped-def]
             else:
                 _mean_diff(one, msum, nmean, sign, d)
         _fold_d(d, bit, relg, axis_tab[a, 6] != 0, cf, code[a, c0:c1], weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1],
-                m2[a, c0:c1], _faint_bit(axis_tab, a, bit))
+                m2[a, c0:c1], relb_row[c0:c1], soft[a, c0:c1], _faint_bit(axis_tab, a, bit))
 
 
 _N5 = np.uint16(5)
@@ -740,7 +812,7 @@ def _diff16(p, n, wr, br, sign, pair, x):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _fold_row16(p, n, wr, br, sign, pair, bit, rg16, keys, code, weak, qa, m1, m2):  # type: ignore[no-untyped-def]
+def _fold_row16(p, n, wr, br, sign, pair, bit, rg16, keys, code, weak, qa, m1, m2, rb16, soft):  # type: ignore[no-untyped-def]
     """:func:`_fold_d` in 16-bit lanes (8-bit frames: |contrast| <= 510, Gray bits <= 15), the same values, with
     each pixel's contrast formed in the loop (see :func:`_diff16`; no row of contrasts stored and read back)."""
     on = np.uint16(1 << bit)
@@ -751,6 +823,7 @@ def _fold_row16(p, n, wr, br, sign, pair, bit, rg16, keys, code, weak, qa, m1, m
         strong = c >= rg16[x]
         code[x] |= on if d > 0 else zero
         weak[x] |= zero if strong else on
+        soft[x] |= zero if c >= rb16[x] else on
         qa[x] = min(qa[x], c if strong else _NINF)
     if keys:
         b = np.uint16(bit)
@@ -761,10 +834,11 @@ def _fold_row16(p, n, wr, br, sign, pair, bit, rg16, keys, code, weak, qa, m1, m
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2):  # type: ignore[no-untyped-def]
+def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2, s16, soft):  # type: ignore[no-untyped-def]
     for x in range(code.shape[0]):
         code[x] = np.uint32(c16[x])
         weak[x] = np.uint32(w16[x])
+        soft[x] = np.uint32(s16[x])
     for x in range(code.shape[0]):
         qg[x] = _FINF if q16[x] == _NINF else np.float32(q16[x])
     if keys:
@@ -774,7 +848,7 @@ def _widen16(c16, w16, q16, a16, b16, keys, code, weak, qg, m1, m2):  # type: ig
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, a16, b16):  # type: ignore[no-untyped-def]
+def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, a16, b16, rb16, s16):  # type: ignore[no-untyped-def]
     """:func:`_gray_row` for 8-bit frames with white/black or inverses, in 16-bit lanes."""
     rg = rg16[c0:c1]
     for g in range(gray_tab.shape[0]):
@@ -790,7 +864,7 @@ def _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, 
         black = one if pair else frames[wb[1], y, c0:c1]
         _fold_row16(one, other, white, black, np.int16(1) if ip >= 0 else np.int16(-1), pair, bit, rg,
                     axis_tab[a, 6] != 0, c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1],
-                    b16[a, c0:c1])  # fmt: skip
+                    b16[a, c0:c1], rb16[c0:c1], s16[a, c0:c1])  # fmt: skip
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -818,7 +892,7 @@ def _phase_row(frames, y, c0, c1, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def decode_stack(  # type: ignore[no-untyped-def]
     frames, wb, used, maxval, gray_tab, mean_idx, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos, quantum,
-    rel, thr, finest, nthreads, narrow, u, v, mask, quality, levels,
+    rel, blend, thr, finest, nthreads, narrow, u, v, mask, quality, levels,
 ):  # fmt: skip
     """Decode a (F, H, W) stack into u, v, mask, quality (H, W) and levels (2, H, W) in one pass over rows.
 
@@ -844,9 +918,11 @@ def decode_stack(  # type: ignore[no-untyped-def]
         m1 = np.empty((2, w), np.uint32)
         m2 = np.empty((2, w), np.uint32)
         qg = np.empty((2, w), np.float32)
+        soft = np.empty((2, w), np.uint32)
+        bl = np.empty(w, np.bool_)
         ssum = np.empty((nset, w), ph_sin.dtype)
         csum = np.empty((nset, w), ph_sin.dtype)
-        scratch = np.empty((10, w), np.float32)
+        scratch = np.empty((11, w), np.float32)
         fl = np.empty(w, np.uint32)
         xc = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
@@ -858,10 +934,12 @@ def decode_stack(  # type: ignore[no-untyped-def]
         q16 = np.empty((2, w), np.int16)
         a16 = np.empty((2, w), np.uint16)
         b16 = np.empty((2, w), np.uint16)
+        rb16 = np.empty(w, np.int16)
+        s16 = np.empty((2, w), np.uint16)
         b = _round_robin(ch, nch, nthreads)
         for y in range(b * h // nch, (b + 1) * h // nch):
             _range_row(frames, y, wb, used, r, mx, mn, maxval)
-            _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
+            _lit_row(r, rel, thr, scratch[0], scratch[8], lit, blend, scratch[10])
             # only the lit span of the row is decoded: unlit pixels decode to nothing whatever their frames
             c0, c1 = true_span(lit)
             vrow = v[y] if v.shape[0] == h else vnone
@@ -870,28 +948,30 @@ def decode_stack(  # type: ignore[no-untyped-def]
                 continue
             if narrow:
                 _relg16(scratch[8, c0:c1], rg16[c0:c1])
+                _relg16(scratch[10, c0:c1], rb16[c0:c1])
                 for a in range(2):
+                    s16[a, c0:c1] = np.uint16(0)
                     c16[a, c0:c1] = np.uint16(0)
                     w16[a, c0:c1] = np.uint16(0)
                     q16[a, c0:c1] = _NINF
                     a16[a, c0:c1] = _NBIG
                     b16[a, c0:c1] = _NBIG
-                _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, a16, b16)
+                _gray_row16(frames, y, c0, c1, wb, gray_tab, axis_tab, rg16, c16, w16, q16, a16, b16, rb16, s16)
                 for a in range(2):
                     if axis_tab[a, 1] != 0:
                         _widen16(c16[a, c0:c1], w16[a, c0:c1], q16[a, c0:c1], a16[a, c0:c1], b16[a, c0:c1],
                                  axis_tab[a, 6] != 0, code[a, c0:c1], weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1],
-                                 m2[a, c0:c1])  # fmt: skip
+                                 m2[a, c0:c1], s16[a, c0:c1], soft[a, c0:c1])  # fmt: skip
             else:
                 for a in range(2):
                     code[a, c0:c1] = np.uint32(0)
-                    _gate_init(weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1])
+                    _gate_init(weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1], soft[a, c0:c1])
                 _gray_row(frames, y, c0, c1, wb, gray_tab, mean_idx, axis_tab, scratch[8], d, cf, msum, code, weak,
-                          qg, m1, m2)  # fmt: skip
+                          qg, m1, m2, scratch[10], soft)  # fmt: skip
             _phase_row(frames, y, c0, c1, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum)
             _finish_row(
                 lit, code, weak, qg, m1, m2, ssum, csum, quantum, axis_tab, ph_tab, ph_period, finest,
-                u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc,
+                u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc, soft, bl,
             )  # fmt: skip
 
 
@@ -978,8 +1058,8 @@ def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_finish(  # type: ignore[no-untyped-def]
-    hi, lo, code, cst, gray_tab, ssum, csum, quantum, axis_tab, ph_tab, ph_period, rel, thr, finest, nthreads, u, v,
-    mask, quality, levels,
+    hi, lo, code, cst, gray_tab, ssum, csum, quantum, axis_tab, ph_tab, ph_period, rel, blend, thr, finest, nthreads,
+    u, v, mask, quality, levels,
 ):  # fmt: skip
     """Final step of streaming: state arrays (H, W) / (2, H, W) / (G, H, W) / (S, H, W) -> outputs.
 
@@ -995,7 +1075,9 @@ def stream_finish(  # type: ignore[no-untyped-def]
         m1 = np.empty((2, w), np.uint32)
         m2 = np.empty((2, w), np.uint32)
         qg = np.empty((2, w), np.float32)
-        scratch = np.empty((10, w), np.float32)
+        soft = np.empty((2, w), np.uint32)
+        bl = np.empty(w, np.bool_)
+        scratch = np.empty((11, w), np.float32)
         fl = np.empty(w, np.uint32)
         xc = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
@@ -1009,7 +1091,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
             lr = lo[y]
             for x in range(w):
                 r[x] = np.int32(hr[x]) - np.int32(lr[x])
-            _lit_row(r, rel, thr, scratch[0], scratch[8], lit)
+            _lit_row(r, rel, thr, scratch[0], scratch[8], lit, blend, scratch[10])
             c0, c1 = true_span(lit)  # as in decode_stack: the same outputs
             vrow = v[y] if v.shape[0] == h else vnone
             _unlit_outside(u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], c0, c1)
@@ -1019,15 +1101,16 @@ def stream_finish(  # type: ignore[no-untyped-def]
                 for x in range(c0, c1):
                     ssr[s, x] = ssum[s, y, x]
                     csr[s, x] = csum[s, y, x]
-            _gate_init(weak, qg, m1, m2)
+            _gate_init(weak, qg, m1, m2, soft)
             for g in range(gray_tab.shape[0]):
                 a = gray_tab[g, 0]
                 _fold_cst(cst[g, y, c0:c1], gray_tab[g, 1], scratch[8, c0:c1], axis_tab[a, 6] != 0, cf[c0:c1],
-                          weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1],
+                          weak[a, c0:c1], qg[a, c0:c1], m1[a, c0:c1], m2[a, c0:c1], scratch[10, c0:c1], soft[a, c0:c1],
                           _faint_bit(axis_tab, a, gray_tab[g, 1]))  # fmt: skip
             _finish_row(
                 lit, code[:, y, :], weak, qg, m1, m2, ssr, csr, quantum, axis_tab, ph_tab, ph_period,
-                finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc,
+                finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc, soft,
+                bl,
             )  # fmt: skip
 
 
@@ -1063,30 +1146,37 @@ def mark_clipped_pair(pos, neg, full, flag, clip):  # type: ignore[no-untyped-de
                 clip[y, x] |= flag
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _undecode(u, v, has_v, mask, quality, lev, y, x):  # type: ignore[no-untyped-def]
+    """Pixel (y, x) loses its code: NaN coordinates, mask False, quality 0, levels 0."""
+    mask[y, x] = False
+    u[y, x] = np.float32(np.nan)
+    if has_v:
+        v[y, x] = np.float32(np.nan)
+    quality[y, x] = np.float32(0.0)
+    lev[0, y, x] = np.uint8(0)
+    lev[1, y, x] = np.uint8(0)
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def drop_clipped(clip, drop, u, v, has_v, mask, quality, lev):  # type: ignore[no-untyped-def]
     """Unmask every pixel with a flag of ``drop`` in ``clip``: NaN coordinates, quality 0, levels 0."""
     h, w = clip.shape
-    nan = np.float32(np.nan)
     for y in prange(h):
         for x in range(w):
             if clip[y, x] & drop:
-                mask[y, x] = False
-                u[y, x] = nan
-                if has_v:
-                    v[y, x] = nan
-                quality[y, x] = np.float32(0.0)
-                lev[0, y, x] = np.uint8(0)
-                lev[1, y, x] = np.uint8(0)
+                _undecode(u, v, has_v, mask, quality, lev, y, x)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def decode_reasons(hi, lo, thr, dark, clip, mask, reason, r_ok, r_shadow, r_dark, r_sat, r_weak):  # type: ignore[no-untyped-def]
+def decode_reasons(hi, lo, thr, dark, clip, mask, reason, r_ok, r_shadow, r_dark, r_sat, r_weak, r_blend):  # type: ignore[no-untyped-def]
     """Per pixel why it has no code (``r_ok`` where decoded): clipped samples, no lit range above ``dark``
-    (shadow), a lit range below the threshold ``thr`` (too dark), else a code too weak or inconsistent."""
+    (shadow), a lit range below the threshold ``thr`` (too dark), two copies of the pattern (``reason`` = 1 on
+    entry: :func:`blend_regions`), else a code too weak or inconsistent."""
     h, w = mask.shape
     for y in prange(h):
         for x in range(w):
+            blend = reason[y, x] == 1
             if mask[y, x]:
                 reason[y, x] = r_ok
             elif clip[y, x] != 0:
@@ -1097,8 +1187,54 @@ def decode_reasons(hi, lo, thr, dark, clip, mask, reason, r_ok, r_shadow, r_dark
                     reason[y, x] = r_shadow
                 elif r < thr:
                     reason[y, x] = r_dark
+                elif blend:
+                    reason[y, x] = r_blend
                 else:
                     reason[y, x] = r_weak
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _row_flagged(lev_row):  # type: ignore[no-untyped-def]
+    """Whether any pixel of a ``levels[0]`` row carries :data:`BLEND_FLAG` (a branch-free OR over the row)."""
+    acc = np.uint8(0)
+    for x in range(lev_row.shape[0]):
+        acc |= lev_row[x]
+    return (acc & np.uint8(BLEND_FLAG)) != np.uint8(0)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def blend_regions(lev, u, v, has_v, mask, quality, region, flagged):  # type: ignore[no-untyped-def]
+    """The blend check's regions: a pixel marked (:data:`BLEND_FLAG` in ``lev[0]``) with at least
+    :data:`BLEND_NEIGHBOURS` marked neighbours loses its code (NaN, mask False, quality 0, levels 0) and gets
+    ``region`` = 1; every other pixel ``region`` = 0. The flags are cleared. ``region`` (H, W) uint8;
+    ``flagged`` (H,) bool scratch. Rows without a mark nearby cost one read."""
+    h, w = mask.shape
+    flag = np.uint8(BLEND_FLAG)
+    keep = np.uint8(0xFF ^ BLEND_FLAG)
+    for y in prange(h):
+        flagged[y] = _row_flagged(lev[0, y])
+    for y in prange(h):
+        reg = region[y]
+        reg[:] = np.uint8(0)
+        if not flagged[y]:
+            continue
+        y0, y1 = max(y - 1, 0), min(y + 2, h)
+        for x in range(w):
+            if lev[0, y, x] & flag:
+                n = -1  # the pixel itself
+                for yy in range(y0, y1):
+                    if flagged[yy]:
+                        for xx in range(max(x - 1, 0), min(x + 2, w)):
+                            n += 1 if (lev[0, yy, xx] & flag) != 0 else 0
+                reg[x] = np.uint8(1) if n >= BLEND_NEIGHBOURS else np.uint8(0)
+    for y in prange(h):
+        if not flagged[y]:
+            continue
+        reg = region[y]
+        for x in range(w):
+            lev[0, y, x] &= keep
+            if reg[x]:
+                _undecode(u, v, has_v, mask, quality, lev, y, x)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")

@@ -7,6 +7,7 @@ path: triangulate + neighbour filter to a depth map, then emit the kept points.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -395,27 +396,72 @@ def _depth_row(  # type: ignore[no-untyped-def]
                                       jump, inv_f, px, py, ps, pj, pw)  # fmt: skip
 
 
+class DepthParams(NamedTuple):
+    """The scalar settings of one :func:`depth_filtered` call (numba reads it as a typed tuple; build it with
+    these Python types so that every call has the one signature the warm-up compiled)."""
+
+    has_w: bool
+    """A white image is given (it weights each point's sigma); else ``white`` is a (1, 1) placeholder."""
+    step: int
+    """Rows between two entries of the ray row tables ``tx`` / ``ty`` (px)."""
+    ray: bool
+    """Both axes coded: ray-ray triangulation (``und``, ``origin``); else light plane through ``table``."""
+    code0: float
+    """Projector code of the code-line table's first column (projector px)."""
+    c_lo: float
+    """Epipolar-line coordinate of the table's first row."""
+    inv_dc: float
+    """1 / the table's row spacing (rows per unit of epipolar-line coordinate)."""
+    min_sin: float
+    """Sine of the smallest angle between a camera ray and a projector light plane that is triangulated."""
+    origin: float
+    """Ray-ray: the code origin subtracted before the undistortion lookup (projector px)."""
+    axis: int
+    """Coded axis of the light planes: 0 columns (x), 1 rows (y)."""
+    zmin: float
+    """Nearest depth kept (mm, camera frame)."""
+    zmax: float
+    """Farthest depth kept (mm, camera frame)."""
+    max_sigma: float
+    """Points whose 1-sigma error exceeds this are dropped after the neighbour filter (mm; inf: none)."""
+    inv_f: float
+    """1 / the camera's focal length (1/px): a pixel's footprint at depth z is z * inv_f (mm)."""
+    min_nb: int
+    """Near neighbours (of 8) a point needs to be kept."""
+    nchunks: int
+    """Row chunks the rows are split into (each keeps a two-row ring)."""
+    nthreads: int
+    """Threads that take the chunks in turn."""
+    has_r: bool
+    """Write every decoded pixel's outcome into ``reason``."""
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def depth_filtered(  # type: ignore[no-untyped-def]
-    u, v, mask, quality, white, has_w, tx, ty, step, ray, table, code0, c_lo, inv_dc, min_sin, und, origin,
-    kmat, d, rcp, tcp, axis, zmin, zmax, noise, epi, max_sigma, jump, inv_f, min_nb, nchunks, nthreads, depth,
-    sigma, counts, stats, spans, reason, has_r, rcodes,
+    u, v, mask, quality, white, tx, ty, table, und, kmat, d, rcp, tcp, noise, epi, jump, p, depth, sigma, counts,
+    stats, spans, reason, rcodes,
 ):
-    """Triangulate to camera-frame depth and sigma (H, W), dropping points with < ``min_nb`` near neighbours.
+    """Triangulate to camera-frame depth and sigma (H, W), dropping points with < ``p.min_nb`` near neighbours.
+
+    ``p`` is a :class:`DepthParams` (the scalars); the arrays are as below.
 
     Points off their epipolar line (both axes; ``epi``, see ``_finish_row``) and out of range are dropped
     first. A neighbour is near when closer than the mean of the two points' limits ``jump[0] + jump[1] z
-    inv_f + jump[2] sigma`` (mm); after that filter, points with sigma over ``max_sigma`` are dropped.
+    inv_f + jump[2] sigma`` (mm); after that filter, points with sigma over ``p.max_sigma`` are dropped.
     ``counts[r + 1]`` receives the kept points of row r, ``stats[r]`` (6,) its decoded, triangulated,
     epipolar-consistent, in-range, with-neighbours and kept counts, ``spans[r]`` the columns (first, last +
-    1) that may hold points. With ``has_r``, ``reason`` (H, W) gets on every decoded pixel ``rcodes`` =
+    1) that may hold points. With ``p.has_r``, ``reason`` (H, W) gets on every decoded pixel ``rcodes`` =
     (point, out of range, off the epipolar line, filtered)[outcome]; other pixels are not touched. Each chunk
     of rows keeps the points of two rows (padded with a NaN column each side) in a small ring, so no
     organised cloud is written; every row is processed over its decoded span only.
     """
+    has_w, step, ray = p.has_w, p.step, p.ray
+    code0, c_lo, inv_dc, min_sin, origin = p.code0, p.c_lo, p.inv_dc, p.min_sin, p.origin
+    axis, zmin, zmax, max_sigma, inv_f = p.axis, p.zmin, p.zmax, p.max_sigma, p.inv_f
+    min_nb, nchunks, has_r = p.min_nb, p.nchunks, p.has_r
     h, w = depth.shape[0], depth.shape[1]
     counts[0] = 0
-    nthreads = min(nthreads, nchunks)
+    nthreads = min(p.nthreads, nchunks)
     for t in prange(nthreads):  # thread t takes chunks t, t + nthreads, ...: valid pixels cluster in rows
         mx = np.empty(w, np.float64)
         my = np.empty(w, np.float64)

@@ -19,26 +19,28 @@ from appliance.reconstruct._filter_kernels import near_neighbours
 from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _dir_pixel(rot, a, b, kmat, d):  # type: ignore[no-untyped-def]
+    """Distorted pixel (x, y) of the rectified direction ``rot @ (a, b, 1)`` (device frame); NaN behind."""
+    px = rot[0, 0] * a + rot[0, 1] * b + rot[0, 2]
+    py = rot[1, 0] * a + rot[1, 1] * b + rot[1, 2]
+    pz = rot[2, 0] * a + rot[2, 1] * b + rot[2, 2]
+    if pz <= 1e-9:
+        return np.nan, np.nan
+    xd, yd, _, _, _, _ = distort_jac(px / pz, py / pz, d)
+    return kmat[0, 0] * xd + kmat[0, 1] * yd + kmat[0, 2], kmat[1, 1] * yd + kmat[1, 2]
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def project_dirs(rot, a0, b0, step, hr, wr, kmat, d):  # type: ignore[no-untyped-def]
     """Distorted pixel of every rectified-grid direction ``rot @ (a, b, 1)`` (device frame); NaN behind."""
     out = np.empty((hr, wr, 2), dtype=np.float32)
-    fx, sk, cx = kmat[0, 0], kmat[0, 1], kmat[0, 2]
-    fy, cy = kmat[1, 1], kmat[1, 2]
     for y in prange(hr):
         b = b0 + y * step
         for x in range(wr):
-            a = a0 + x * step
-            px = rot[0, 0] * a + rot[0, 1] * b + rot[0, 2]
-            py = rot[1, 0] * a + rot[1, 1] * b + rot[1, 2]
-            pz = rot[2, 0] * a + rot[2, 1] * b + rot[2, 2]
-            if pz <= 1e-9:
-                out[y, x, 0] = _NAN
-                out[y, x, 1] = _NAN
-                continue
-            xd, yd, _, _, _, _ = distort_jac(px / pz, py / pz, d)
-            out[y, x, 0] = fx * xd + sk * yd + cx
-            out[y, x, 1] = fy * yd + cy
+            ex, ey = _dir_pixel(rot, a0 + x * step, b, kmat, d)
+            out[y, x, 0] = ex
+            out[y, x, 1] = ey
     return out
 
 
@@ -58,11 +60,120 @@ def _bilinear_within(src, ix, iy, tx, ty, max_spread):  # type: ignore[no-untype
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _source_cell(srcmap, mask, y, x):  # type: ignore[no-untyped-def]
-    """Rectified pixel (y, x) -> (inside, ix, iy, tx, ty): its source cell, whose 4 corners are all decoded."""
+def _map_at(srcmap, knot, y, x):  # type: ignore[no-untyped-def]
+    """Source pixel (sx, sy) of rectified pixel (y, x): bilinear between the map's knots, every ``knot``
+    rectified pixels (knot (j, i) is pixel (j * knot, i * knot)); NaN where a knot is NaN (behind the camera)."""
+    if knot == 1:
+        return np.float64(srcmap[y, x, 0]), np.float64(srcmap[y, x, 1])
+    j = y // knot
+    i = x // knot
+    ty = (y - j * knot) / knot
+    tx = (x - i * knot) / knot
+    j1 = min(j + 1, srcmap.shape[0] - 1)
+    i1 = min(i + 1, srcmap.shape[1] - 1)
+    out0 = 0.0
+    out1 = 0.0
+    for c in range(2):
+        c00 = np.float64(srcmap[j, i, c])
+        c01 = np.float64(srcmap[j, i1, c])
+        c10 = np.float64(srcmap[j1, i, c])
+        c11 = np.float64(srcmap[j1, i1, c])
+        a = c00 + tx * (c01 - c00)
+        b = c10 + tx * (c11 - c10)
+        if c == 0:
+            out0 = a + ty * (b - a)
+        else:
+            out1 = a + ty * (b - a)
+    return out0, out1
+
+
+@njit(nogil=True, cache=True, error_model="numpy", fastmath=False)  # exact in fastmath callers too
+def _map_row(srcmap, knot, y, out):  # type: ignore[no-untyped-def]
+    """Row ``y`` of the map at every pixel into ``out`` (W, 2) float64: for each pixel the very value
+    :func:`_map_at` gives (the same operations), a knot interval at a time (no division per pixel)."""
+    w = out.shape[0]
+    if knot == 1:
+        for x in range(w):
+            out[x, 0] = srcmap[y, x, 0]
+            out[x, 1] = srcmap[y, x, 1]
+        return out
+    j = y // knot
+    ty = (y - j * knot) / knot
+    j1 = min(j + 1, srcmap.shape[0] - 1)
+    last = srcmap.shape[1] - 1
+    for i in range((w + knot - 1) // knot):
+        i1 = min(i + 1, last)
+        for c in range(2):
+            c00 = np.float64(srcmap[j, i, c])
+            c01 = np.float64(srcmap[j, i1, c])
+            c10 = np.float64(srcmap[j1, i, c])
+            c11 = np.float64(srcmap[j1, i1, c])
+            for k in range(min(knot, w - i * knot)):
+                tx = k / knot
+                a = c00 + tx * (c01 - c00)
+                b = c10 + tx * (c11 - c10)
+                out[i * knot + k, c] = a + ty * (b - a)
+    return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def map_error(rot, a0, b0, step, hr, wr, kmat, d, srcmap, knot, w_img, h_img):  # type: ignore[no-untyped-def]
+    """Largest distance (px) between :func:`_map_at` on a map of knots every ``knot`` pixels and the exact
+    distorted pixel of each of the (hr, wr) rectified pixels whose exact pixel lies in the (w_img, h_img)
+    image (one pixel of margin); inf where the exact pixel is in the image and the interpolated one is NaN."""
+    worst = np.zeros(hr)
+    for y in prange(hr):
+        b = b0 + y * step
+        e = 0.0
+        for x in range(wr):
+            ex, ey = _dir_pixel(rot, a0 + x * step, b, kmat, d)
+            if not (ex >= -1.0 and ey >= -1.0 and ex <= w_img and ey <= h_img):  # NaN (behind) fails too
+                continue
+            sx, sy = _map_at(srcmap, knot, y, x)
+            dist = math.sqrt((sx - ex) ** 2 + (sy - ey) ** 2)
+            if not dist <= e:  # NaN: the interpolation lost a pixel the camera sees
+                e = dist if dist == dist else np.inf
+        worst[y] = e
+    return worst.max() if hr > 0 else 0.0
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def grid_error(full, srcmap, knot):  # type: ignore[no-untyped-def]
+    """Largest distance between :func:`_map_at` on a map of knots every ``knot`` pixels and the ``full`` map
+    (H, W, 2) it stands for; inf where one of the two is NaN and the other not."""
+    h, w = full.shape[0], full.shape[1]
+    worst = np.zeros(h)
+    for y in prange(h):
+        e = 0.0
+        for x in range(w):
+            sx, sy = _map_at(srcmap, knot, y, x)
+            fx = np.float64(full[y, x, 0])
+            fy = np.float64(full[y, x, 1])
+            if (fx != fx or fy != fy) and (sx != sx or sy != sy):
+                continue  # NaN in both: the same pixel left out
+            dist = math.sqrt((sx - fx) ** 2 + (sy - fy) ** 2)
+            if not dist <= e:
+                e = dist if dist == dist else np.inf
+        worst[y] = e
+    return worst.max() if h > 0 else 0.0
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def sample_map(srcmap, knot, n, rows, cols):  # type: ignore[no-untyped-def]
+    """:func:`_map_at` at the pixels (r * n, c * n) of ``rows`` x ``cols``: (rows, cols, 2) float32."""
+    out = np.empty((rows, cols, 2), np.float32)
+    for r in prange(rows):
+        for c in range(cols):
+            x, y = _map_at(srcmap, knot, r * n, c * n)
+            out[r, c, 0] = x
+            out[r, c, 1] = y
+    return out
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _source_cell(sx, sy, mask):  # type: ignore[no-untyped-def]
+    """Source pixel (sx, sy) -> (inside, ix, iy, tx, ty): its source cell, whose 4 corners are all decoded."""
     h, w = mask.shape[0], mask.shape[1]
-    sx = np.float64(srcmap[y, x, 0])
-    sy = np.float64(srcmap[y, x, 1])
     if not (sx >= 0.0 and sy >= 0.0 and sx < w - 1 and sy < h - 1):
         return False, 0, 0, 0.0, 0.0
     ix = int(sx)
@@ -71,27 +182,38 @@ def _source_cell(srcmap, mask, y, x):  # type: ignore[no-untyped-def]
     return ok, ix, iy, sx - ix, sy - iy
 
 
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def remap_codes(src, mask, srcmap, max_spread, out):  # type: ignore[no-untyped-def]
-    """Bilinear resampling of a code map; NaN unless all 4 neighbours are valid and within ``max_spread``."""
-    hr, wr = out.shape[0], out.shape[1]
-    for y in prange(hr):
-        for x in range(wr):
-            ok, ix, iy, tx, ty = _source_cell(srcmap, mask, y, x)
-            out[y, x] = _bilinear_within(src, ix, iy, tx, ty, max_spread) if ok else _NAN
-    return out
+ROW_CHUNKS = 64
+"""Rows of a parallel kernel are cut into at most this many chunks (each with its own row buffer)."""
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def remap_pair(src_a, src_b, mask, srcmap, spread_a, spread_b, out_a, out_b):  # type: ignore[no-untyped-def]
-    """:func:`remap_codes` of two code maps of one camera (u and v) in one pass: the same values."""
+def _remap(src_a, src_b, mask, srcmap, knot, spread_a, spread_b, out_a, out_b, two):  # type: ignore[no-untyped-def]
+    """:func:`remap_codes` of ``src_a``, and with ``two`` of ``src_b`` too (the same source cells)."""
     hr, wr = out_a.shape[0], out_a.shape[1]
-    for y in prange(hr):
-        for x in range(wr):
-            ok, ix, iy, tx, ty = _source_cell(srcmap, mask, y, x)
-            out_a[y, x] = _bilinear_within(src_a, ix, iy, tx, ty, spread_a) if ok else _NAN
-            out_b[y, x] = _bilinear_within(src_b, ix, iy, tx, ty, spread_b) if ok else _NAN
+    nch = min(hr, ROW_CHUNKS)
+    for ch in prange(nch):
+        row = np.empty((wr, 2))
+        for y in range(ch * hr // nch, (ch + 1) * hr // nch):
+            _map_row(srcmap, knot, y, row)
+            for x in range(wr):
+                ok, ix, iy, tx, ty = _source_cell(row[x, 0], row[x, 1], mask)
+                out_a[y, x] = _bilinear_within(src_a, ix, iy, tx, ty, spread_a) if ok else _NAN
+                if two:
+                    out_b[y, x] = _bilinear_within(src_b, ix, iy, tx, ty, spread_b) if ok else _NAN
     return out_a
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def remap_codes(src, mask, srcmap, knot, max_spread, out):  # type: ignore[no-untyped-def]
+    """Bilinear resampling of a code map; NaN unless all 4 neighbours are valid and within ``max_spread``.
+    ``srcmap``: the source pixel of every ``knot``-th rectified pixel (see :func:`_map_at`)."""
+    return _remap(src, src, mask, srcmap, knot, max_spread, max_spread, out, out, False)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def remap_pair(src_a, src_b, mask, srcmap, knot, spread_a, spread_b, out_a, out_b):  # type: ignore[no-untyped-def]
+    """:func:`remap_codes` of two code maps of one camera (u and v) in one pass: the same values."""
+    return _remap(src_a, src_b, mask, srcmap, knot, spread_a, spread_b, out_a, out_b, True)
 
 
 # per-pixel outcome of the matcher (see stereo.STAGES for the words)
@@ -448,6 +570,7 @@ def cc_match(  # type: ignore[no-untyped-def]
     lev0,
     mask0,
     rect0,
+    knot0,
     cross0,
     cross1,
     quantised,
@@ -485,61 +608,65 @@ def cc_match(  # type: ignore[no-untyped-def]
     hr = cross1.shape[0]
     a0min, a1min, bmin, step, base = geom[0], geom[1], geom[2], geom[3], geom[4]
     max_gap, max_row_jump, max_own, margin = tol[0], tol[1], tol[2], tol[3]
-    for r in prange(h):
-        for col in range(w):
-            clear_point(out, epi, sigma, r, col)
-            fu = np.float64(lev0[r, col])
-            if not (mask0[r, col] and fu == fu):
-                status[r, col] = ST_NONE
-                continue
-            xr0 = np.float64(rect0[r, col, 0])
-            yr = np.float64(rect0[r, col, 1])
-            y1 = yr + shift[0] + shift[1] * xr0 + shift[2] * yr
-            if not (yr >= 0.0 and yr < hr - 1 and y1 >= 0.0 and y1 < hr - 1):
-                status[r, col] = ST_OUTSIDE
-                continue
-            iy = int(yr)
-            wy = yr - iy
-            if quantised:
-                # the pixel's place inside its stripe, from the stripe's boundaries on its own row
-                k = math.floor(fu)
-                fu = _level_at(cross0, iy, wy, xr0, k, code_offset, max_gap, max_row_jump)
-                if not (fu >= k - margin and fu <= k + 1 + margin):
-                    status[r, col] = ST_OWN
+    nch = min(h, ROW_CHUNKS)
+    for ch in prange(nch):
+        row = np.empty((w, 2))
+        for r in range(ch * h // nch, (ch + 1) * h // nch):
+            _map_row(rect0, knot0, r, row)
+            for col in range(w):
+                clear_point(out, epi, sigma, r, col)
+                fu = np.float64(lev0[r, col])
+                if not (mask0[r, col] and fu == fu):
+                    status[r, col] = ST_NONE
                     continue
-            else:
-                # left-right check: the code must come back to this very pixel on cam0's own row
-                xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump, True)
-                if not abs(xb - xr0) <= max_own:
-                    status[r, col] = ST_OWN
+                xr0 = row[col, 0]
+                yr = row[col, 1]
+                y1 = yr + shift[0] + shift[1] * xr0 + shift[2] * yr
+                if not (yr >= 0.0 and yr < hr - 1 and y1 >= 0.0 and y1 < hr - 1):
+                    status[r, col] = ST_OUTSIDE
                     continue
-            iy1 = int(y1)
-            x1 = _cross_at(cross1, iy1, y1 - iy1, fu, code_offset, max_gap, max_row_jump)
-            if x1 != x1:
-                status[r, col] = ST_OTHER
-                continue
-            if use_v:
-                fv = np.float64(v0[r, col])
-                vc, dvdy = _value_slope(v1rect, x1, y1)
-                if abs(dvdy) > 1e-6 and fv == fv:
-                    epi[r, col] = (fv - vc) / dvdy
-            a0 = a0min + xr0 * step
-            ok, px, py, pz, zr, n2 = rect_point(a0, bmin + yr * step, a0 - (a1min + x1 * step), base, rr_t, c0,
-                                                r0z, t0z, zmin, zmax)  # fmt: skip
-            if not put_point(out, status, r, col, ok, px, py, pz):
-                continue
-            # 1-sigma of cam1's match position (rect px), from the code noise and cam1's code gradient there
-            if quantised:
-                sx = math.sqrt(noise[1])
-            else:
-                q = np.float64(quality0[r, col])
-                var_i = noise[2] + max(0.5 * q, 0.0) * noise[3]
-                su = noise[0] * math.sqrt(var_i) / q * noise[4] if q > 0.0 else np.inf  # level units
-                xa = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu), code_offset, max_gap, max_row_jump)
-                xb = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu) + 1.0, code_offset, max_gap, max_row_jump)
-                per_level = abs(xb - xa) if xa == xa and xb == xb else 1.0
-                sx = math.sqrt(2.0) * su * per_level
-            sigma[r, col] = zr * zr * math.sqrt(n2) / base * sx * step  # d(range)/d(disparity) = range zr / base
+                iy = int(yr)
+                wy = yr - iy
+                if quantised:
+                    # the pixel's place inside its stripe, from the stripe's boundaries on its own row
+                    k = math.floor(fu)
+                    fu = _level_at(cross0, iy, wy, xr0, k, code_offset, max_gap, max_row_jump)
+                    if not (fu >= k - margin and fu <= k + 1 + margin):
+                        status[r, col] = ST_OWN
+                        continue
+                else:
+                    # left-right check: the code must come back to this very pixel on cam0's own row
+                    xb = _cross_at(cross0, iy, wy, fu, code_offset, max_gap, max_row_jump, True)
+                    if not abs(xb - xr0) <= max_own:
+                        status[r, col] = ST_OWN
+                        continue
+                iy1 = int(y1)
+                x1 = _cross_at(cross1, iy1, y1 - iy1, fu, code_offset, max_gap, max_row_jump)
+                if x1 != x1:
+                    status[r, col] = ST_OTHER
+                    continue
+                if use_v:
+                    fv = np.float64(v0[r, col])
+                    vc, dvdy = _value_slope(v1rect, x1, y1)
+                    if abs(dvdy) > 1e-6 and fv == fv:
+                        epi[r, col] = (fv - vc) / dvdy
+                a0 = a0min + xr0 * step
+                ok, px, py, pz, zr, n2 = rect_point(a0, bmin + yr * step, a0 - (a1min + x1 * step), base, rr_t, c0,
+                                                    r0z, t0z, zmin, zmax)  # fmt: skip
+                if not put_point(out, status, r, col, ok, px, py, pz):
+                    continue
+                # 1-sigma of cam1's match position (rect px), from the code noise and cam1's code gradient there
+                if quantised:
+                    sx = math.sqrt(noise[1])
+                else:
+                    q = np.float64(quality0[r, col])
+                    var_i = noise[2] + max(0.5 * q, 0.0) * noise[3]
+                    su = noise[0] * math.sqrt(var_i) / q * noise[4] if q > 0.0 else np.inf  # level units
+                    xa = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu), code_offset, max_gap, max_row_jump)
+                    xb = _cross_at(cross1, iy1, y1 - iy1, math.floor(fu) + 1.0, code_offset, max_gap, max_row_jump)
+                    per_level = abs(xb - xa) if xa == xa and xb == xb else 1.0
+                    sx = math.sqrt(2.0) * su * per_level
+                sigma[r, col] = zr * zr * math.sqrt(n2) / base * sx * step  # d(range)/d(disparity) = range zr / base
     return out
 
 

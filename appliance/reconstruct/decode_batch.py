@@ -82,13 +82,14 @@ def _outputs(
     # the y axis is not coded: v is NaN everywhere, one shared read-only map instead of H x W stores per call
     u, mask, quality, levels, reason = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32),
                                                      (lev_shape, np.uint8), (shape, np.uint8)])  # fmt: skip
-    maps = DecodedMaps(u, _nan_map(shape), mask, quality, levels=levels, reason=reason)  # type: ignore[arg-type]
+    maps = DecodedMaps(u, nan_map(shape), mask, quality, levels=levels, reason=reason)  # type: ignore[arg-type]
     return maps, np.empty((0, shape[1]), np.float32)
 
 
 @functools.lru_cache(maxsize=4)
-def _nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
-    """A read-only all-NaN float32 map of ``shape`` (shared)."""
+def nan_map(shape: tuple[int, int]) -> npt.NDArray[np.float32]:
+    """A read-only all-NaN float32 map of ``shape`` (H, W), shared: the v map of every decode that codes no y
+    axis (and the camera-camera warm-up's, so that it compiles the very kernel variants a scan uses)."""
     nan = np.full(shape, np.nan, np.float32)
     nan.flags.writeable = False
     return nan
@@ -119,11 +120,14 @@ def _saturation_and_reasons(
 ) -> None:
     """Drop the pixels whose needed samples are clipped, then write every pixel's :class:`Reason`."""
     assert out.levels is not None and out.reason is not None
+    # the blend check's regions first (it reads every mark before any is cleared); reason = 1 there until below
+    _k.blend_regions(out.levels, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.reason,
+                     np.empty(out.mask.shape[0], np.bool_))
     _k.drop_clipped(clip, _DROP, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.levels)
     dark = params.min_contrast_dn * _max_value(dtype, params) / 255.0
     _k.decode_reasons(
         hi, lo, float(thr), float(dark), clip, out.mask, out.reason, int(Reason.DECODED), int(Reason.SHADOW),
-        int(Reason.TOO_DARK), int(Reason.SATURATED), int(Reason.WEAK_CODE),
+        int(Reason.TOO_DARK), int(Reason.SATURATED), int(Reason.WEAK_CODE), int(Reason.INTERREFLECTION),
     )  # fmt: skip
 
 
@@ -176,6 +180,9 @@ _ADVICE = {
     Reason.SATURATED: "saturated: add a shorter exposure (sequence.exposures_us) or run scan3d tune",
     Reason.WEAK_CODE: ("weak or inconsistent codes (stripes finer than the optics resolve, interreflection, "
                        "a moving part): use coarser stripes or longer periods, or run scan3d tune"),
+    Reason.INTERREFLECTION: ("lit by two copies of the pattern (a mirror-like face re-projects it onto them, or "
+                             "they see it in one): tilt the part or the scanner so the reflection leaves the view, "
+                             "or dull the shiny face"),
 }
 
 
@@ -264,7 +271,7 @@ def decode(
     _k.decode_stack(
         stack, t.wb, t.used, maxval, t.gray_tab, t.mean_idx, t.axis_tab, t.ph_tab,
         t.ph_period, t.ph_idx, sin, cos, COEFFICIENT_QUANTUM if ints else 1.0,
-        float(params.relative_contrast), float(thr),
+        float(params.relative_contrast), float(params.blend_ratio), float(thr),
         bool(params.finest_bit), numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask,
         out.quality, out.levels,
     )  # fmt: skip

@@ -28,6 +28,7 @@ from appliance.patterns.sequence import (
     gray_bits_needed,
 )
 from appliance.reconstruct import _decode_kernels as _k
+from appliance.reconstruct.settings import ReconstructionSettings
 
 FrameStack = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
 
@@ -65,6 +66,11 @@ class DecodeParams:
         centre of the coarser stripe (``DecodedMaps.levels`` says how many bits). False: such pixels are
         rejected. Likewise a finer phase period without modulation leaves the pixel on the coarser period's
         (unwrapped, sub-pixel) coordinate.
+    blend_ratio : float
+        The check for two copies of the pattern (a mirror-like face, strong interreflection): a pixel fails with
+        reason ``INTERREFLECTION`` where two or more of its fine decoded Gray bits (period up to 512 projector
+        px) have a contrast under this fraction of its ``white - black`` (a clean pixel has at most one, at a
+        stripe edge), and 3 of its 8 neighbours are marked too (see ``_decode_kernels.BLEND_PERIOD_PX``). 0: off.
     """
 
     min_contrast_dn: float = 6.0
@@ -72,6 +78,14 @@ class DecodeParams:
     shadow_fraction: float = 0.2
     max_value: float | None = None
     finest_bit: bool = True
+    blend_ratio: float = 0.4
+
+    @staticmethod
+    def from_settings(settings: ReconstructionSettings, max_value: float | None = None) -> DecodeParams:
+        """The decoder's thresholds from the reconstruction settings (``reconstruction`` of the configuration),
+        as the scan and the replay path both take them; ``max_value`` as the attribute."""
+        return DecodeParams(min_contrast_dn=settings.min_contrast_dn, relative_contrast=settings.relative_contrast,
+                            max_value=max_value, blend_ratio=settings.blend_ratio)  # fmt: skip
 
     @staticmethod
     def for_bits(bits: int, **kwargs: Any) -> DecodeParams:
@@ -87,6 +101,8 @@ class DecodeParams:
             raise DecodeError(
                 f"decode params: relative_contrast = {self.relative_contrast}: must be in [0, 1)"
             )
+        if not 0.0 <= self.blend_ratio < 1.0:
+            raise DecodeError(f"decode params: blend_ratio = {self.blend_ratio}: must be in [0, 1) (0: no check)")
         if not 0.0 <= self.shadow_fraction <= 1.0:
             raise DecodeError(f"decode params: shadow_fraction = {self.shadow_fraction}: must be in [0, 1]")
         if self.max_value is not None and not self.max_value > 0:

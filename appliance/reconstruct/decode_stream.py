@@ -288,7 +288,7 @@ class StreamingDecoder:
         _k.stream_finish(
             self._hi, self._lo, self._code, self._cst, t.gray_tab, self._ssum, self._csum, self._quantum,
             t.axis_tab,
-            t.ph_tab, t.ph_period, float(self.params.relative_contrast), float(thr),
+            t.ph_tab, t.ph_period, float(self.params.relative_contrast), float(self.params.blend_ratio), float(thr),
             bool(self.params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
             out.levels,
         )  # fmt: skip

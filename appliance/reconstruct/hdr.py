@@ -20,7 +20,7 @@ one every pass clipped is ``saturated``.
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from typing import cast
 
 import numpy as np
@@ -191,6 +191,30 @@ def capture_summary(
                     "decoded_share": round(float(decoded[j]) / total, 6),
                     "pixel_share": round(float(chosen[j]) / size, 6)})  # fmt: skip
     return {"passes": out}
+
+
+def capture_record(exposures: Sequence[tuple[float, float]], cameras: Mapping[str, object]) -> dict[str, object]:
+    """The sidecar's ``extra.hdr`` of a multi-pass capture, the same for a scan and the offline decode of its
+    recording.
+
+    Parameters
+    ----------
+    exposures : sequence of (float, float)
+        Per frame of the capture its ``(exposure_us, intensity)``; a pass is the frames sharing one pair.
+    cameras : dict
+        Per camera what each pass gave (:func:`capture_summary`).
+
+    Returns
+    -------
+    dict
+        ``exposures_us`` (µs, per pass in capture order), ``intensities`` (0-1, only when a pass is dimmed),
+        ``frames_per_pass``, ``frames`` and ``cameras``.
+    """
+    pairs = list(dict.fromkeys(exposures))  # the passes, in capture order
+    dimmed = any(i != 1.0 for _e, i in pairs)
+    return {"exposures_us": [float(e) for e, _i in pairs],
+            **({"intensities": [float(i) for _e, i in pairs]} if dimmed else {}),
+            "frames_per_pass": len(exposures) // len(pairs), "frames": len(exposures), "cameras": cameras}  # fmt: skip
 
 
 def decode_passes(

@@ -24,6 +24,7 @@ from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
+from appliance.reconstruct.decode_batch import nan_map
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.fuse import fuse_points_into
 from appliance.reconstruct.residuals import Residual, decoded_ray_ray_residual
@@ -356,11 +357,15 @@ class Reconstructor:
             h, w = cam.height, cam.width
             u = np.empty((h, w), np.float32)
             u[...] = np.arange(w, dtype=np.float32) * np.float32(0.9)
-            v = np.full((h, w), np.nan, np.float32)
+            coded = [u]
             if "y" in self.axes:
+                v = np.empty((h, w), np.float32)
                 v[...] = (np.arange(h, dtype=np.float32) * np.float32(0.9))[:, None]
+                coded.append(v)
+            else:
+                v = nan_map((h, w))  # the decoder's own shared read-only map: the variants a scan compiles
             if quantised:  # stripes of 2 projector px
-                for c in (u, v):
+                for c in coded:
                     np.floor(c * np.float32(0.5), out=c)
                     c *= np.float32(2.0)
                     c += np.float32(1.0)

@@ -64,3 +64,6 @@ class ReconstructionSettings(Protocol):
 
     @property
     def relative_contrast(self) -> float: ...
+
+    @property
+    def blend_ratio(self) -> float: ...

@@ -68,6 +68,11 @@ F64 = npt.NDArray[np.float64]
 
 CODE_OFFSET = 2
 """Levels from -2 up are tabulated."""
+#: The source-pixel maps of the rectified grid keep a knot every MAP_KNOTS[i] rectified pixels, the coarsest
+#: of these whose bilinear interpolation stays within MAP_TOLERANCE_PX of the exact distorted pixel everywhere
+#: the camera sees (a full map is 10 MB a camera; the lens's distortion is smooth at this scale)
+MAP_KNOTS = (8, 4, 2, 1)
+MAP_TOLERANCE_PX = 0.01
 
 SMOOTH_ROWS = 2
 """Quantised codes: the crossing fit spans this many rectified rows either side."""
@@ -330,6 +335,38 @@ def _robust(values: F32) -> tuple[float, float, int]:
     return med, 1.4826 * float(np.median(np.abs(v - med))), int(v.size)
 
 
+def _source_map(rot: F64, a0: float, b0: float, step: float, hr: int, wr: int, cam: CameraModel) -> tuple[F32, int]:
+    """The camera's distorted pixel of rectified pixels (hr, wr) (grid origin (a0, b0), ``step`` apart),
+    ``rot`` device -> rectified: a map of knots (rows, cols, 2) float32 and the knot spacing (rectified px, the
+    coarsest of :data:`MAP_KNOTS` within :data:`MAP_TOLERANCE_PX`; 1, a full map, when none is)."""
+    rot_t = np.ascontiguousarray(rot.T)
+    kmat, d = np.ascontiguousarray(cam.K), distortion12(cam)
+    for knot in MAP_KNOTS[:-1]:
+        srcmap = C.project_dirs(rot_t, a0, b0, step * knot, (hr - 1) // knot + 2, (wr - 1) // knot + 2, kmat, d)
+        err = C.map_error(rot_t, a0, b0, step, hr, wr, kmat, d, srcmap, knot, float(cam.width), float(cam.height))
+        if err <= MAP_TOLERANCE_PX:
+            return srcmap, knot
+    return C.project_dirs(rot_t, a0, b0, step, hr, wr, kmat, d), 1
+
+
+def _pixel_map(full: F32, rot: F64, a0: float, b0: float, step: float, cam: CameraModel) -> tuple[F32, int]:
+    """The camera's pixels on the rectified grid, ``full`` (H, W, 2), as a map of knots every ``knot`` pixels
+    (the coarsest of :data:`MAP_KNOTS` within :data:`MAP_TOLERANCE_PX` of ``full`` everywhere; ``full`` itself
+    when none is): (map, knot)."""
+    h, w = full.shape[0], full.shape[1]
+    for knot in MAP_KNOTS[:-1]:
+        rows, cols = (h - 1) // knot + 2, (w - 1) // knot + 2
+        ys, xs = np.mgrid[0:rows, 0:cols] * knot
+        px = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+        a, b = _rect_coords(rot, cam.undistort_pixels(px))
+        knots = np.empty((rows, cols, 2), np.float32)
+        knots[..., 0] = ((a - a0) / step).reshape(rows, cols)
+        knots[..., 1] = ((b - b0) / step).reshape(rows, cols)
+        if C.grid_error(full, knots, knot) <= MAP_TOLERANCE_PX:
+            return knots, knot
+    return full, 1
+
+
 def _rect_coords(rot: F64, norm: F64) -> tuple[F64, F64]:
     """Rectified (a, b) of device-frame normalised coords (N, 2) under ``rot`` (device -> rect)."""
     p = np.concatenate([norm, np.ones((norm.shape[0], 1))], axis=1) @ rot.T
@@ -445,14 +482,15 @@ class StereoTriangulator:
             )
         self._geom = np.array([a0min, a1min, bmin, step, base])
         self.rect_shape = (hr, wr0, wr1)
-        k0, k1 = np.ascontiguousarray(cam0.K), np.ascontiguousarray(cam1.K)
-        self._map0 = C.project_dirs(np.ascontiguousarray(rot0.T), a0min, bmin, step, hr, wr0, k0, distortion12(cam0))
-        self._map1 = C.project_dirs(np.ascontiguousarray(rot1.T), a1min, bmin, step, hr, wr1, k1, distortion12(cam1))
+        self._map0, self._knot0 = _source_map(rot0, a0min, bmin, step, hr, wr0, cam0)
+        self._map1, self._knot1 = _source_map(rot1, a1min, bmin, step, hr, wr1, cam1)
         rect0 = np.empty((h, w, 2), np.float32)
         rect0[..., 0] = ((a0 - a0min) / step).reshape(h, w)
         rect0[..., 1] = ((b0 - bmin) / step).reshape(h, w)
-        self._rect0 = rect0
-        self._rot1 = rot1
+        del a0, b0
+        self._rect0, self._knot_r0 = _pixel_map(rect0, rot0, a0min, bmin, step, cam0)
+        del rect0
+        self._rot0, self._rot1 = rot0, rot1
         self._rect1: F32 | None = None  # cam1's pixels on the rectified grid: built when cells are matched
         self._cells: dict[str, npt.NDArray[Any]] = {}
         self._r0z = np.ascontiguousarray(cam0.R[2])
@@ -488,11 +526,14 @@ class StereoTriangulator:
         return buf
 
     def _table(self, name: str, nk: int) -> F32:
-        tab = self._tabs.get(name)
-        if tab is None or tab.shape[1] < nk:
-            tab = np.empty((self.rect_shape[0], nk), np.float32)
-            self._tabs[name] = tab
-        return tab[:, :nk]
+        """A C-contiguous (rows, nk) table carved from a kept buffer (a column slice of a wider one would be
+        strided: a second compiled variant of every kernel that reads it, loaded or compiled mid-scan)."""
+        hr = self.rect_shape[0]
+        flat = self._tabs.get(name)
+        if flat is None or flat.size < hr * nk:
+            flat = np.empty(hr * nk, np.float32)
+            self._tabs[name] = flat
+        return flat[: hr * nk].reshape(hr, nk)
 
     def triangulate(
         self,
@@ -577,11 +618,12 @@ class StereoTriangulator:
             return xyz
         hi = max(float(np.nanmax(u0, initial=0.0)), float(np.nanmax(u1, initial=0.0)))
         nk = math.ceil((hi - lev_origin) / dl) + CODE_OFFSET + 3
-        C.remap_codes(u0, mask0, self._map0, spread, self._u0r)
+        C.remap_codes(u0, mask0, self._map0, self._knot0, spread, self._u0r)
         if use_v:  # cam1's u and v in one pass
-            C.remap_pair(u1, v1, mask1, self._map1, spread, 1.5 * vstep + 3.0 * vper, self._u1r, self._vbuf("v1r"))
+            C.remap_pair(u1, v1, mask1, self._map1, self._knot1, spread, 1.5 * vstep + 3.0 * vper, self._u1r,
+                         self._vbuf("v1r"))
         else:
-            C.remap_codes(u1, mask1, self._map1, spread, self._u1r)
+            C.remap_codes(u1, mask1, self._map1, self._knot1, spread, self._u1r)
         C.to_levels(self._u0r, lev_origin, 1.0 / dl)
         C.to_levels(self._u1r, lev_origin, 1.0 / dl)
         np.subtract(u0, np.float32(lev_origin), out=self._lev0)
@@ -611,11 +653,11 @@ class StereoTriangulator:
         q0 = np.ascontiguousarray(maps0.quality, dtype=np.float32)
         args = (self._rr_t, self._c0, self._r0z, self._t0z, tol, zmin, zmax, q0, noise_p, xyz, self._epi,
                 self.sigma, self._status)  # fmt: skip
-        C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v, CODE_OFFSET,
-                   self._geom, shift, *args)  # fmt: skip
+        C.cc_match(self._lev0, mask0, self._rect0, self._knot_r0, cross0, cross1, grid.quantised, v0m, v1m, use_v,
+                   CODE_OFFSET, self._geom, shift, *args)  # fmt: skip
 
         def rematch(shift: F64) -> None:
-            C.cc_match(self._lev0, mask0, self._rect0, cross0, cross1, grid.quantised, v0m, v1m, use_v,
+            C.cc_match(self._lev0, mask0, self._rect0, self._knot_r0, cross0, cross1, grid.quantised, v0m, v1m, use_v,
                        CODE_OFFSET, self._geom, shift, *args)  # fmt: skip
 
         self._check(rep, grid, vgrid, xyz, u0, v0, use_v, False, rematch)
@@ -651,6 +693,12 @@ class StereoTriangulator:
         C.mark_codes(*codes1, cg, table)
         rep.both_seen = int(C.seen_by_both(*codes0, cg, table, axes[0][2], axes[1][2], SEEN_MIN_PX, self._seen))
         rep.both_seen_points = int(C.count_points_in(xyz, self._seen))
+
+    def _rect0_every(self, n: int) -> F32:
+        """cam0's pixels ``[::n, ::n]`` on the rectified grid (grid units), (ceil(H / n), ceil(W / n), 2)."""
+        h, w = self.rays0.shape
+        out: F32 = C.sample_map(self._rect0, self._knot_r0, n, -(-h // n), -(-w // n))
+        return out
 
     def _rect_cam1(self) -> F32:
         """cam1's pixels on the rectified grid (H1, W1, 2), in grid units; built once, on first use."""
@@ -707,7 +755,8 @@ class StereoTriangulator:
         cnt0, acc0, cnt1, acc1, fits = self._cell_buffers(ncu * ncv)
         # codes half way between two cells (pixels that dropped finest Gray bits) count half to each
         sums = K.cell_sums_split if split else K.cell_sums
-        sums(u0, v0, mask0, self._rect0, u1, v1, mask1, self._rect_cam1(), cgrid, ncu, ncv, cnt0, acc0, cnt1, acc1)
+        sums(u0, v0, mask0, self._rect0, self._knot_r0, u1, v1, mask1, self._rect_cam1(), 1, cgrid, ncu, ncv, cnt0,
+             acc0, cnt1, acc1)
         radius = int(min(4, max(1, math.ceil(CELL_SPAN_PX / min(cell_u, cell_v)))))
         jump = 1.0 + 0.15 * max(cell_u, cell_v)
         raw = self._cell_planes(ncu, ncv)
@@ -719,7 +768,7 @@ class StereoTriangulator:
         own = 0.5 * math.hypot(cell_u, cell_v) + 1.0
         var_unit = self._cell_variance(raw, fits, ncu)
         cen_x, cen_y = raw[K.RAW_X].reshape(-1), raw[K.RAW_Y].reshape(-1)
-        K.cell_match(u0, v0, mask0, self._rect0, cgrid, ncu, ncv, cen_x, cen_y, fits, own, var_unit,
+        K.cell_match(u0, v0, mask0, self._rect0, self._knot_r0, cgrid, ncu, ncv, cen_x, cen_y, fits, own, var_unit,
                      self._geom, self._rr_t, self._c0, self._r0z, self._t0z, zmin, zmax, xyz, self._epi, self.sigma,
                      self._status, split)  # fmt: skip
 
@@ -790,13 +839,13 @@ class StereoTriangulator:
             if self.correct_epipolar and n >= MIN_SAMPLES and abs(med) > max(EPIPOLAR_OFFSET_MIN_PX, 0.5 * sig):
                 shift = self._fit_offset(med, sig)
                 if cells:  # the match itself does not depend on the row: only the residuals move
-                    K.sub_plane(self._epi, self._rect0, shift)
+                    K.sub_plane(self._epi, self._rect0, self._knot_r0, shift)
                 else:
                     rematch(shift)
                 med2, sig2, _ = _robust(_sample(self._epi[::3, ::3], self._status[::3, ::3] == C.ST_OK))
+                mean_xy = self._rect0_every(1).mean(axis=(0, 1), dtype=np.float64)
                 rep.epipolar.update(
-                    {"offset_px": float(shift[0] + shift[1] * self._rect0[..., 0].mean()
-                                        + shift[2] * self._rect0[..., 1].mean()),
+                    {"offset_px": float(shift[0] + shift[1] * mean_xy[0] + shift[2] * mean_xy[1]),
                      "corrected_median_px": med2, "corrected_spread_px": sig2}
                 )  # fmt: skip
                 med, sig = med2, sig2
@@ -891,8 +940,9 @@ class StereoTriangulator:
         """Plane ``s0 + sx x + sy y`` (rectified px) through the epipolar residuals near their median."""
         ok = self._status[::4, ::4] == C.ST_OK
         e = self._epi[::4, ::4][ok].astype(np.float64)
-        x = self._rect0[::4, ::4, 0][ok].astype(np.float64)
-        y = self._rect0[::4, ::4, 1][ok].astype(np.float64)
+        grid = self._rect0_every(4)
+        x = grid[..., 0][ok].astype(np.float64)
+        y = grid[..., 1][ok].astype(np.float64)
         good = np.isfinite(e) & (np.abs(e - med) <= max(3.0 * sig, 0.5))
         if good.sum() < MIN_SAMPLES:
             return np.array([med, 0.0, 0.0])

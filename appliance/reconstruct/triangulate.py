@@ -432,12 +432,15 @@ class ProjectorTriangulator:
         else:
             table, code0, c_lo, inv_dc = self._table, self._code0, self._c_lo, self._inv_dc
             und, origin = np.zeros((2, 2, 2), np.float32), 0.0
-        K.depth_filtered(
-            u, v, mask, quality, wimg, white is not None, tx, ty, ROW_TABLE_STEP, ray, table, code0, c_lo, inv_dc,
-            MIN_LINE_SIN, und, origin, self._kp, self._dp, self._rcp, self._tcp, axis, zmin, zmax, params, epi,
-            float(max_sigma_mm), jump, 1.0 / float(self.camera.K[0, 0]), int(min_neighbours), _chunks(shape[0]),
-            numba.get_num_threads(), depth, sigma, counts, stats, spans, reason, reason_out is not None, _RCODES,
+        p = K.DepthParams(
+            has_w=white is not None, step=int(ROW_TABLE_STEP), ray=bool(ray), code0=float(code0), c_lo=float(c_lo),
+            inv_dc=float(inv_dc), min_sin=float(MIN_LINE_SIN), origin=float(origin), axis=int(axis), zmin=zmin,
+            zmax=zmax, max_sigma=float(max_sigma_mm), inv_f=1.0 / float(self.camera.K[0, 0]),
+            min_nb=int(min_neighbours), nchunks=int(_chunks(shape[0])), nthreads=int(numba.get_num_threads()),
+            has_r=reason_out is not None,
         )  # fmt: skip
+        K.depth_filtered(u, v, mask, quality, wimg, tx, ty, table, und, self._kp, self._dp, self._rcp, self._tcp,
+                         params, epi, jump, p, depth, sigma, counts, stats, spans, reason, _RCODES)  # fmt: skip
         return depth, counts
 
     def write_points(

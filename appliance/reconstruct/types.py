@@ -40,6 +40,9 @@ class Reason(IntEnum):
     #: multi-exposure: the pixel decoded only in passes where a neighbour clipped; that neighbour's light (of
     #: unknown level) reaches it through the lens blur, so its code is partly the neighbour's (a bright-dark edge)
     MIXED = 9
+    #: two copies of the pattern reach the pixel (a mirror-like face re-projects it, strong interreflection): several
+    #: of its finest Gray bits have the contrast of a difference of two lights; its code would be neither's
+    INTERREFLECTION = 10
 
 
 #: Plain-words name of each reason (sidecar keys, reports).
@@ -54,6 +57,7 @@ REASON_NAMES: dict[int, str] = {
     Reason.FILTERED: "filtered",
     Reason.EPIPOLAR: "off the epipolar line",
     Reason.MIXED: "next to a clipped pixel",
+    Reason.INTERREFLECTION: "two copies of the pattern",
 }
 
 

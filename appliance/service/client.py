@@ -3,14 +3,13 @@ socket."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from appliance.config import load_config
 from appliance.config.schema import ServiceConfig
 from appliance.errors import ApplianceError, ConfigError
-from appliance.service.control import request
+from appliance.service.control import dumps_json, request
 
 STATUS_TIMEOUT_S = 10.0
 TRIGGER_WAIT_TIMEOUT_S = 660.0
@@ -27,6 +26,14 @@ def socket_for(config: Path | None, socket: Path | None) -> Path:
         except ConfigError:
             pass  # a broken file being edited: the running service still uses its old socket path
     return ServiceConfig().control_socket
+
+
+_CONTROL_CHARS = {c: "?" for c in (*range(0x20), 0x7F, *range(0x80, 0xA0)) if c != 0x0A}
+
+
+def _shown(text: str) -> str:
+    """A reply's text as the terminal shows it: control characters (escape sequences) printed as '?', not obeyed."""
+    return text.translate(_CONTROL_CHARS)
 
 
 def _ms(v: Any) -> str:
@@ -143,10 +150,10 @@ def status_command(config: Path | None, socket: Path | None, *, as_json: bool = 
     if not isinstance(st, dict) or not isinstance(st.get("state"), str):
         raise _not_the_protocol(path, reply)
     try:
-        text = json.dumps(st, indent=2) if as_json else format_status(st)
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        text = dumps_json(st, indent=2) if as_json else format_status(st)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:  # inf: int()
         raise _not_the_protocol(path, reply) from exc
-    print(text)
+    print(_shown(text))
     return 1 if st.get("state") == "fault" else 0
 
 
@@ -168,20 +175,21 @@ def trigger_command(config: Path | None, socket: Path | None, *, wait: bool = Fa
     if not isinstance(reply.get("ok"), bool):
         raise _not_the_protocol(path, reply)
     if not reply["ok"]:
-        print(f"scan3d trigger: {' '.join(str(reply.get('error', reply.get('result', 'refused'))).split())}"[:400])
+        why = ' '.join(str(reply.get('error', reply.get('result', 'refused'))).split())
+        print(_shown(f"scan3d trigger: {why}"[:400]))
         return 1
     scan = reply.get("scan")
     if scan is None:
-        print(f"trigger {reply.get('result')}")
+        print(_shown(f"trigger {reply.get('result')}"))
         return 0
     try:
         t = scan.get("timings_ms") or {}
         lines = [f"scan {scan['scan_id']}: {int(scan['points'])} points, {scan['location']}, "
                  f"trigger to file {_ms(t.get('trigger_to_file_ms'))} ms"]
         lines.extend(f"  {f}" for f in scan.get("files", []))
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:  # inf points: int()
         raise _not_the_protocol(path, reply) from exc
-    print("\n".join(lines))
+    print(_shown("\n".join(lines)))
     return 0
 
 
@@ -197,15 +205,18 @@ def tune_command(config: Path | None, socket: Path | None, *, time_budget_ms: fl
     if not isinstance(reply.get("ok"), bool):
         raise _not_the_protocol(path, reply)
     tune = reply.get("tune")
+    lines = tune.get("lines", []) if isinstance(tune, dict) else None
+    if tune is not None and not (isinstance(lines, list) and all(isinstance(ln, str) for ln in lines)):
+        raise _not_the_protocol(path, reply)  # the service's lines are text: anything else is another program
     if isinstance(tune, dict):
-        for line in tune.get("lines", []):
-            print(line)
+        for line in lines or []:
+            print(_shown(line))
         applied = tune.get("applied")
         if isinstance(applied, dict) and applied.get("reloaded"):
             print(f"written: {applied.get('path')}: sequence.exposures_us = {applied.get('exposures_us')}; "
                   "the service reloaded it")
     if not reply["ok"]:
-        print(f"scan3d tune: {' '.join(str(reply.get('error', 'refused')).split())}"[:400])
+        print(_shown(f"scan3d tune: {' '.join(str(reply.get('error', 'refused')).split())}"[:400]))
         return 1
     return 0
 

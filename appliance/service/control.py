@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import socket
 import stat
@@ -20,6 +21,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+from appliance.config.loader import MAX_SOCKET_PATH
 from appliance.errors import ApplianceError
 
 log = logging.getLogger(__name__)
@@ -29,6 +31,24 @@ MAX_LINE = 64 * 1024
 SOCKET_MODE = 0o660
 REPLY_GRACE_S = 2.0  # at close, requests in progress get this long to send their reply
 ALIVE_TIMEOUT_S = 0.5  # a socket file that accepts no connection within this is stale
+
+
+def finite_json(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN: no measurement yet; inf) as None, through dicts, lists and
+    tuples: what the service's faces print or send is JSON any parser reads (``NaN`` is Python's extension,
+    which jq, browsers' ``JSON.parse`` and strict parsers refuse)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    return value
+
+
+def dumps_json(value: Any, **kwargs: Any) -> str:
+    """``json.dumps`` of :func:`finite_json` (``value``), refusing anything else that is not JSON."""
+    return json.dumps(finite_json(value), allow_nan=False, **kwargs)
 
 
 class ControlServer:
@@ -58,6 +78,10 @@ class ControlServer:
             When the path is taken by a non-socket file or by a live service.
         """
         p = self.path
+        if len(os.fsencode(str(p))) > MAX_SOCKET_PATH:  # bind would fail with a bare OSError
+            raise ApplianceError(f"control socket {p}: {len(os.fsencode(str(p)))} bytes is longer than a unix socket "
+                                 f"path may be ({MAX_SOCKET_PATH}); set service.control_socket (or --control-socket) "
+                                 "to a shorter path such as /run/scan3d/control.sock")
         p.parent.mkdir(parents=True, exist_ok=True)
         if p.exists() or p.is_symlink():
             if not stat.S_ISSOCK(p.lstat().st_mode):
@@ -214,8 +238,9 @@ def request(path: Path, req: dict[str, Any], timeout_s: float = 10.0) -> dict[st
         s.close()
     try:
         reply = json.loads(buf)
-    except json.JSONDecodeError as exc:
-        raise ApplianceError(f"control socket {path}: the reply is not JSON ({buf[:80]!r})") from exc
+    except (ValueError, RecursionError) as exc:  # not JSON, not UTF-8, or nested beyond the parser's depth
+        raise ApplianceError(f"control socket {path}: the reply is not JSON ({buf[:80]!r}); is another program "
+                             "listening there?") from exc
     if not isinstance(reply, dict):
         raise ApplianceError(f"control socket {path}: unexpected reply {reply!r}")
     return reply

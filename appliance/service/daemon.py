@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from appliance._numba_cache import prune_stale
 from appliance.config import AppConfig, load_config
+from appliance.errors import ConfigError
 from appliance.hardware.base import TriggerEvent
 from appliance.output.share import ShareWriter
 from appliance.service.control import ControlServer
@@ -508,6 +509,8 @@ def run_service(config: Path, *, control_socket: Path | None = None, scans: int 
     ground_truth : bool
         On a virtual rig, log each scan's error against ground truth.
     """
+    if scans is not None and scans < 1:  # 0 or -1 would mean "for ever" without saying so
+        raise ConfigError(f"run: --scans {scans}: must be at least 1 (or left out to run until stopped)")
     tune_malloc()
     cfg = load_config(config)
     if cfg.service.numba_cache_dir is not None:

@@ -37,6 +37,7 @@ from aiohttp import web
 
 from appliance.config.schema import HttpConfig
 from appliance.errors import ApplianceError, ConfigError
+from appliance.service.control import dumps_json
 from appliance.service.faces import ServiceView
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,11 @@ CSP = ("default-src 'self'; img-src 'self' data:; style-src 'self'; script-src '
        "frame-ancestors 'none'; base-uri 'none'; form-action 'none'")
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+def _json_response(data: Any, **kwargs: Any) -> web.Response:
+    """A JSON response that any client parses (non-finite numbers as null: :func:`dumps_json`)."""
+    return web.json_response(data, dumps=dumps_json, **kwargs)
 
 
 def parse_listen(listen: str) -> tuple[str, int]:
@@ -208,13 +214,13 @@ class HttpFace:
         if not self._limiter.allow(peer):
             log.warning("HTTP: %s %s from %s: 429 (over service.http.rate_per_s = %g)", request.method,
                         request.path, peer, self.cfg.rate_per_s)
-            return web.json_response({"ok": False, "error": "too many requests; slow down"}, status=429)
+            return _json_response({"ok": False, "error": "too many requests; slow down"}, status=429)
         limit = self.cfg.max_request_kb * 1024
         if request.body_exists and (request.content_length or 0) > limit:
             log.warning("HTTP: %s %s from %s: 413 (body of %d bytes, over service.http.max_request_kb = %d)",
                         request.method, request.path, peer, request.content_length, self.cfg.max_request_kb)
-            return web.json_response({"ok": False, "error": f"request body over {self.cfg.max_request_kb} KiB"},
-                                     status=413)
+            return _json_response({"ok": False, "error": f"request body over {self.cfg.max_request_kb} KiB"},
+                                 status=413)
         try:
             if request.body_exists:
                 await request.read()  # bounded by client_max_size (a chunked body too)
@@ -253,7 +259,7 @@ class HttpFace:
 
     async def _status(self, request: web.Request) -> web.StreamResponse:
         st = await self.view.status()
-        return web.json_response(st)
+        return _json_response(st)
 
     def _unauthorized(self, request: web.Request) -> web.Response | None:
         """The 401 reply for a write without the right token (logged; the token never is); None when allowed."""
@@ -263,8 +269,8 @@ class HttpFace:
         why = ("no token is configured (service.http.token_file)" if self._token is None
                else "missing or wrong bearer token")
         log.warning("HTTP: POST %s from %s refused: 401 (%s)", request.path, request.remote or "?", why)
-        return web.json_response({"ok": False, "error": f"unauthorized: {why}"}, status=401,
-                                 headers={"WWW-Authenticate": 'Bearer realm="scan3d"'})
+        return _json_response({"ok": False, "error": f"unauthorized: {why}"}, status=401,
+                             headers={"WWW-Authenticate": 'Bearer realm="scan3d"'})
 
     async def _tune(self, request: web.Request) -> web.StreamResponse:
         refused = self._unauthorized(request)
@@ -274,11 +280,11 @@ class HttpFace:
         try:
             budget = float(text)
         except ValueError:
-            return web.json_response({"ok": False, "error": f"time_budget_ms = {text!r}: must be a number of ms"},
-                                     status=400)
+            return _json_response({"ok": False, "error": f"time_budget_ms = {text!r}: must be a number of ms"},
+                                 status=400)
         log.info("HTTP: tune from %s (budget %g ms)", request.remote or "?", budget)
         reply = await self.view.tune(budget)
-        return web.json_response(reply, status=_status_of(reply))
+        return _json_response(reply, status=_status_of(reply))
 
     async def _tune_apply(self, request: web.Request) -> web.StreamResponse:
         refused = self._unauthorized(request)
@@ -292,11 +298,11 @@ class HttpFace:
                 if given is not None:
                     exposures = [int(e) for e in given]
             except (ValueError, TypeError):
-                return web.json_response({"ok": False, "error": 'the body is {"exposures_us": [whole numbers of '
-                                          'µs]}, the last tune\'s choice'}, status=400)
+                return _json_response({"ok": False, "error": 'the body is {"exposures_us": [whole numbers of '
+                                      'µs]}, the last tune\'s choice'}, status=400)
         log.info("HTTP: apply the tune's choice from %s", request.remote or "?")
         reply = await self.view.tune_apply(exposures)
-        return web.json_response(reply, status=_status_of(reply))
+        return _json_response(reply, status=_status_of(reply))
 
     async def _trigger(self, request: web.Request) -> web.StreamResponse:
         peer = request.remote or "?"
@@ -307,15 +313,15 @@ class HttpFace:
         log.info("HTTP: trigger from %s%s", peer, " (waiting)" if wait else "")
         reply = await self.view.trigger(wait, "http")
         status = 200 if reply.get("ok") else 409 if str(reply.get("result", "")).startswith("refused") else 500
-        return web.json_response(reply, status=status)
+        return _json_response(reply, status=status)
 
     async def _scans(self, request: web.Request) -> web.StreamResponse:
         try:
             limit = int(request.query.get("limit", "10"))
         except ValueError:
-            return web.json_response({"ok": False, "error": "limit must be a whole number"}, status=400)
+            return _json_response({"ok": False, "error": "limit must be a whole number"}, status=400)
         limit = max(1, min(limit, SCANS_LIMIT_MAX))
-        return web.json_response({"ok": True, "scans": await self.view.scans(limit)})
+        return _json_response({"ok": True, "scans": await self.view.scans(limit)})
 
     async def _scan_file(self, request: web.Request) -> web.StreamResponse:
         scan_id, name = request.match_info["scan_id"], request.match_info["file"]
@@ -334,13 +340,13 @@ class HttpFace:
         return web.FileResponse(path, headers={"Content-Type": ctype, "Cache-Control": "max-age=3600"})
 
     async def _config(self, request: web.Request) -> web.StreamResponse:
-        return web.json_response(self.view.configuration())
+        return _json_response(self.view.configuration())
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
         if len(self._sse) >= self.cfg.max_event_clients:
-            return web.json_response({"ok": False, "error": "too many event streams open "
-                                      f"(service.http.max_event_clients = {self.cfg.max_event_clients})"},
-                                     status=503)
+            return _json_response({"ok": False, "error": "too many event streams open "
+                                  f"(service.http.max_event_clients = {self.cfg.max_event_clients})"},
+                                 status=503)
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store",
                                            "X-Accel-Buffering": "no"})
         resp.headers["Content-Security-Policy"] = CSP
@@ -376,4 +382,5 @@ def _status_of(reply: dict[str, Any]) -> int:
 
 
 def _sse(event: dict[str, Any]) -> bytes:
-    return f"event: {event.get('type', 'message')}\ndata: {json.dumps(event, separators=(',', ':'))}\n\n".encode()
+    data = dumps_json(event, separators=(",", ":"), default=str)
+    return f"event: {event.get('type', 'message')}\ndata: {data}\n\n".encode()

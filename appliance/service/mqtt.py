@@ -27,6 +27,7 @@ import aiomqtt
 
 from appliance.config.schema import MqttConfig
 from appliance.errors import ConfigError
+from appliance.service.control import dumps_json
 from appliance.service.faces import Event, ServiceView
 from appliance.service.http import read_secret
 
@@ -40,7 +41,7 @@ OFFLINE = json.dumps({"state": "offline"})
 
 
 def _dumps(obj: Any) -> str:
-    return json.dumps(obj, separators=(",", ":"), default=str)
+    return dumps_json(obj, separators=(",", ":"), default=str)
 
 
 class MqttFace:

@@ -21,7 +21,6 @@ import asyncio
 import concurrent.futures
 import contextlib
 import hmac
-import json
 import logging
 import threading
 from typing import Any
@@ -33,6 +32,7 @@ from asyncua.server import standard_address_space
 
 from appliance.config.schema import OpcUaConfig
 from appliance.errors import ApplianceError, ConfigError
+from appliance.service.control import dumps_json
 from appliance.service.faces import Event, ServiceView
 from appliance.service.http import read_secret
 
@@ -94,7 +94,7 @@ def _health_text(health: Any) -> str:
         return "not measured"
     if isinstance(health, dict) and isinstance(health.get("status"), str):
         return str(health["status"])
-    return health if isinstance(health, str) else json.dumps(health, separators=(",", ":"))
+    return health if isinstance(health, str) else dumps_json(health, separators=(",", ":"))
 
 
 class OpcUaFace:

@@ -158,17 +158,20 @@ def capture(cfg: AppConfig, folder: Path, name: str, exposures_us: Sequence_[flo
     return rig
 
 
-def decode(folder: Path, name: str, rig: VirtualRig) -> tuple[SceneStats, str]:
+def decode(folder: Path, name: str, rig: VirtualRig, config: Path | None = None,
+           tag: str = "") -> tuple[SceneStats, str]:
     """``scan3d decode`` of a captured manifest (the service's reconstruction); statistics and its output.
 
-    The sidecar (``--report``) is ``folder/name.json``.
+    The sidecar (``--report``) is ``folder/name{tag}.json``; ``config``: ``--config`` (reconstruction settings).
     """
     out = io.StringIO()
+    extra = ["--config", str(config)] if config is not None else []
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
         rc = cli.main(["decode", str(folder / f"{name}.yaml"), "--calibration", str(folder / "cal.yaml"),
-                       "--out", str(folder / f"{name}.ply"), "--report", str(folder / f"{name}.json")])
+                       "--out", str(folder / f"{name}{tag}.ply"), "--report", str(folder / f"{name}{tag}.json"),
+                       *extra])  # fmt: skip
     assert rc == 0, out.getvalue()
-    v = read_ply_vertices(folder / f"{name}.ply")
+    v = read_ply_vertices(folder / f"{name}{tag}.ply")
     n = len(v)
     cloud = PointCloud(
         np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32), v["row"].astype(np.int32),

@@ -97,6 +97,14 @@ MANIFEST_CASES: list[tuple[str, Callable[[str, dict[str, Path]], str | bytes], t
     ("projector_16", lambda t, c: t.replace("width: 160", "width: 16", 1).replace("height: 100", "height: 16", 1),
      ("calibrated at 160x100", "16x16")),
     ("too_big", lambda t, c: t + "#" * (11 * 1024 * 1024), ("too large for a manifest",)),
+    # the second sweep: kept as an unknown pattern kind and ignored, or images ignored for stacks, with exit 0
+    ("pattern_number", lambda t, c: t.replace("pattern: white", "pattern: 5", 1), ("pattern = 5", "must be a name")),
+    ("pattern_null", lambda t, c: t.replace("pattern: white", "pattern: null", 1), ("pattern = None",)),
+    ("stacks_and_images", lambda t, c: t.replace("cameras: [cam0]\n", "cameras: [cam0]\nstacks: {cam0: s.npy}\n", 1),
+     ("frames[0]", "'stacks' too")),
+    # the re-sweep's leftover: images of a camera left out of cameras: were dropped without a word
+    ("images_of_an_unlisted_camera", lambda t, c: t.replace("{cam0: ", "{cam9: x.png, cam0: ", 1),
+     ("frames[0]", "['cam9'] are not in cameras", "add them to cameras:")),
 ]
 
 
@@ -124,6 +132,13 @@ CALIBRATION_CASES: list[tuple[str, Callable[[str], str], tuple[str, ...]]] = [
     ("dt_u", lambda t: t.replace("dt: d", "dt: u", 1), ("dt: u", "float64")),
     ("rms_bad", lambda t: t.replace("rms:", 'rms: "bad"\n   old_rms:', 1), ("rms = 'bad'",)),
     ("no_camera", lambda t: t.replace("cam0:", "camX:", 1), ("cam0", "no entry")),
+    # the second sweep: OpenCV kept one of two keys silently; its messages span lines
+    ("camera_twice", lambda t: t + "cam0:\n   rms: 0.\n", ("'cam0' is given twice (lines 3 and",)),
+    ("K_twice", lambda t: t.replace("   dist: !!opencv-matrix", "   K: [1, 0, 0]\n   dist: !!opencv-matrix", 1),
+     ("'K' is given twice (lines 4 and 9)",)),
+    ("K_short", lambda t: t.replace("      rows: 3\n      cols: 3\n      dt: d\n      data: [",
+                                    "      rows: 3\n      cols: 3\n      dt: d\n      data: [ 1. ]\n      old: [", 1),
+     ("cam0.K: unreadable",)),
 ]
 
 
@@ -195,7 +210,8 @@ def test_validate_config_refuses_in_one_line(tmp_path: Path, case: str, text: st
     assert all(w in lines[0] for w in words), lines[0]
 
 
-@pytest.mark.parametrize("case", ["state_is_a_file", "socket_too_long", "share_is_a_file", "share_has_nul"])
+@pytest.mark.parametrize("case", ["state_is_a_file", "socket_too_long", "share_is_a_file", "share_has_nul",
+                                  "socket_is_a_file"])
 def test_validate_config_checks_what_the_service_needs(tmp_path: Path, case: str) -> None:
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder\n")
@@ -207,6 +223,8 @@ def test_validate_config_checks_what_the_service_needs(tmp_path: Path, case: str
         service["control_socket"], words = str(tmp_path / ("s" * 120) / "c.sock"), "longer than a unix socket path"
     elif case == "share_is_a_file":
         output["directory"], words = str(blocker / "scans"), "is a file, not a folder"
+    elif case == "socket_is_a_file":  # scan3d run refuses to replace it; validate-config said valid
+        service["control_socket"], words = str(blocker), "a file that is not a socket is there"
     else:
         output["directory"], words = str(tmp_path / "sha\x00re"), "NUL"
     path = tmp_path / "appliance.yaml"
@@ -385,3 +403,197 @@ def test_run_refuses_to_start_without_its_local_folders(tmp_path: Path, case: st
     assert all(w in lines[0] for w in (key, bad, "is a file, not a folder", "writable folder")), lines[0]
     assert not (tmp_path / "ctl.sock").exists()  # never listened, so never said ready
     assert blocker.read_text() == "not a folder\n"
+
+
+def test_run_refuses_a_read_only_state_folder_even_as_root(tmp_path: Path) -> None:
+    """``scan3d run`` whose state folder is on a read-only filesystem stops at start with one line. A chmod
+    proves nothing as root (root writes through the mode bits), so the folder is a read-only tmpfs mounted in a
+    mount namespace of the command's own (``unshare -m``: private, gone with the process)."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    probe = subprocess.run(["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o ro tmpfs '{ro}'"],
+                           capture_output=True, text=True, timeout=30, check=False)  # fmt: skip
+    if probe.returncode != 0:
+        pytest.skip(f"no private read-only mount here (unshare -m + mount): {probe.stderr.strip()[:200]}")
+    service = {"state_directory": str(ro), "control_socket": str(tmp_path / "ctl.sock")}
+    output = {"directory": str(tmp_path / "share"), "spool_directory": str(tmp_path / "spool"), "preview": False}
+    config = tmp_path / "appliance.yaml"
+    config.write_text(RIG + yaml.safe_dump({"service": service, "output": output}))
+    env = {**os.environ, "NUMBA_CACHE_DIR": os.environ.get("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))}
+    cmd = (f"mount -t tmpfs -o ro tmpfs '{ro}' && exec '{sys.executable}' -m appliance run --config '{config}' "
+           "--scans 1")
+    done = subprocess.run(["unshare", "-m", "sh", "-c", cmd], capture_output=True, text=True, timeout=120,
+                          cwd=REPO, env=env, check=False)  # fmt: skip
+    said = done.stdout + done.stderr
+    lines = [ln for ln in said.splitlines() if ln.strip() and "compiling the numba kernels" not in ln]
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in said, said
+    assert all(w in lines[0] for w in ("service.state_directory", str(ro), "is not writable", "writable folder")), \
+        lines[0]
+    assert not (tmp_path / "ctl.sock").exists()  # never listened, so never said ready
+    assert list(ro.iterdir()) == []  # the mount was the command's own: the folder beneath is untouched
+
+
+@pytest.mark.parametrize("where", ["config", "option"])
+def test_run_with_a_socket_path_too_long_is_one_line(tmp_path: Path, where: str) -> None:
+    """``scan3d run`` whose control socket path does not fit a unix socket (the config's or --control-socket's)
+    stops at start with one line naming the path and the limit, not bind's traceback."""
+    long = tmp_path / ("s" * 120) / "c.sock"
+    service = {"state_directory": str(tmp_path / "state"),
+               "control_socket": str(long if where == "config" else tmp_path / "c.sock")}
+    output = {"directory": str(tmp_path / "share"), "spool_directory": str(tmp_path / "spool"), "preview": False}
+    config = tmp_path / "appliance.yaml"
+    config.write_text(RIG + yaml.safe_dump({"service": service, "output": output}))
+    extra = ["--control-socket", str(long)] if where == "option" else []
+    done = _scan3d("run", "--config", str(config), "--scans", "1", *extra, timeout=120)
+    said = done.stdout + done.stderr
+    lines = [ln for ln in said.splitlines() if ln.strip() and "compiling the numba kernels" not in ln]
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in said, said
+    assert str(long) in lines[0] and "longer than a unix socket path" in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("case", ["out_is_the_manifest", "maps_is_the_calibration", "out_is_maps",
+                                  "preview_is_a_frame", "manifest_twice"])
+def test_an_output_that_is_an_input_is_refused(capture: dict[str, Path], tmp_path: Path, case: str) -> None:
+    """``scan3d decode`` never writes over its own inputs (the manifest, the calibration, a frame: a cloud's
+    preview goes beside it as .png) nor writes one file twice; the line names both roles."""
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    for p in capture["folder"].iterdir():
+        if p.suffix == ".png" or p.name in ("scan.yaml", "calibration.yaml"):
+            (folder / p.name).write_bytes(p.read_bytes())
+    manifest, calib = folder / "scan.yaml", folder / "calibration.yaml"
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    argv = ["decode", str(manifest), *([str(manifest)] if case == "manifest_twice" else []), "--calibration",
+            str(calib)]
+    argv += {"out_is_the_manifest": ["--out", str(manifest)],
+             "maps_is_the_calibration": ["--maps", str(calib)],
+             "out_is_maps": ["--out", str(tmp_path / "x.out"), "--maps", str(tmp_path / "x.out")],
+             "preview_is_a_frame": ["--out", str(folder / "f05.ply")],
+             "manifest_twice": ["--out", str(tmp_path / "o")]}[case]
+    words = {"out_is_the_manifest": "--out", "maps_is_the_calibration": "is also --calibration",
+             "out_is_maps": "is also --out", "preview_is_a_frame": "is also a frame of the capture",
+             "manifest_twice": "is given twice"}[case]
+    rc, err = _run(argv)
+    _one_line(rc, err, words)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert not (tmp_path / "x.out").exists() and not (tmp_path / "o").exists()
+
+
+def test_an_empty_npy_stack_is_one_line(capture: dict[str, Path], tmp_path: Path) -> None:
+    (tmp_path / "cam0.npy").write_bytes(b"")
+    manifest = tmp_path / "scan.yaml"
+    manifest.write_text("projector: {width: 160, height: 100}\ncameras: [cam0]\nstacks: {cam0: cam0.npy}\n"
+                        "frames:\n- {pattern: white}\n- {pattern: black}\n")
+    rc, err = _run(["decode", str(manifest), "--calibration", str(capture["calibration"]),
+                    "--out", str(tmp_path / "o.ply")])
+    _one_line(rc, err, "cam0.npy", "cannot be read")
+    assert not (tmp_path / "o.ply").exists()
+
+
+@pytest.mark.parametrize("case", ["out_is_an_input", "out_is_a_folder", "out_under_a_file", "input_fifo",
+                                  "input_missing", "input_not_an_image", "square_1e308"])
+def test_calibrate_camera_refuses_bad_paths_before_any_work(tmp_path: Path, case: str) -> None:
+    """``scan3d calibrate camera`` (a subprocess: OpenCV's own log lines go to the process's stderr) checks its
+    --out before it reads an image and reads only regular files: one line, no OpenCV log, no hang, the input
+    image untouched."""
+    photo = tmp_path / "pose0.png"
+    photo.write_bytes(b"not really a photo\n")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    (tmp_path / "folder").mkdir()
+    image, out, square = str(photo), str(tmp_path / "c.yaml"), "25"
+    if case == "out_is_an_input":
+        out = str(photo)
+    elif case == "out_is_a_folder":
+        out = str(tmp_path / "folder")
+    elif case == "out_under_a_file":
+        out = str(blocker / "c.yaml")
+    elif case == "input_fifo":
+        os.mkfifo(tmp_path / "fifo.png")
+        image = str(tmp_path / "fifo.png")
+    elif case == "input_missing":
+        image = str(tmp_path / "nope.png")
+    elif case == "square_1e308":
+        square = "1e308"
+    words = {"out_is_an_input": "is also a board image", "out_is_a_folder": "is a folder",
+             "out_under_a_file": "its folder cannot be made", "input_fifo": "not a regular file",
+             "input_missing": "No such file", "input_not_an_image": "not an image OpenCV can read",
+             "square_1e308": "square_mm = 1e+308"}[case]
+    done = _scan3d("calibrate", "camera", image, "--square-mm", square, "--out", out, timeout=60)
+    lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert words in lines[0], lines[0]
+    assert photo.read_bytes() == b"not really a photo\n" and blocker.read_text() == "x"
+    assert not (tmp_path / "c.yaml").exists()
+
+
+@pytest.mark.parametrize("case", ["nul", "only_header", "twice"])
+def test_validate_config_reads_the_calibration_file(capture: dict[str, Path], tmp_path: Path, case: str) -> None:
+    """The service reads calibration_file at every start: validate-config reads it too (a readable file that
+    is not a calibration was 'valid'; a NUL in the path was a traceback)."""
+    calib = tmp_path / "calibration.yaml"
+    text = capture["calibration"].read_text()
+    calib.write_text({"nul": text, "only_header": "%YAML:1.0\n", "twice": text + "cam0:\n   rms: 0.\n"}[case])
+    path = tmp_path / "appliance.yaml"
+    where = str(tmp_path / "cal\x00ibration.yaml") if case == "nul" else str(calib)
+    path.write_text(yaml.safe_dump({"calibration_file": where}))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        rc = cli.main(["validate-config", str(path)])
+    lines = [ln for ln in out.getvalue().splitlines() if ln.strip()]
+    assert rc == 1 and len(lines) == 1 and "Traceback" not in out.getvalue(), out.getvalue()
+    words = {"nul": "holds a NUL character", "only_header": "holds no device maps", "twice": "given twice"}[case]
+    assert "calibration_file" in lines[0] and words in lines[0], lines[0]
+
+
+COUNT_CASES = [
+    (["run", "--scans", "0"], "--scans 0: must be at least 1"),
+    (["run", "--scans", "-1"], "--scans -1: must be at least 1"),
+    (["grab", "--camera", "cam0", "--frames", "0", "--out", "{tmp}/g"], "--frames 0: must be at least 1"),
+    (["patterns", "--width", "0", "--out", "{tmp}/p"], "--width 0: must be from 16 to 10000"),
+    (["patterns", "--width", "-160", "--out", "{tmp}/p"], "--width -160"),
+    (["patterns", "--height", "1000000", "--out", "{tmp}/p"], "--height 1000000"),
+    (["patterns", "--config", "{tmp}/missing.yaml", "--out", "{tmp}/p"], "configuration file not found"),
+    (["simulate-camera", "--packet-loss", "2"], "--packet-loss 2.0: must be a share from 0 to 1"),
+    (["simulate-camera", "--packet-loss", "nan"], "--packet-loss nan"),
+]
+
+
+@pytest.mark.parametrize(("argv", "words"), COUNT_CASES, ids=[" ".join(c[0][:3]) for c in COUNT_CASES])
+def test_counts_and_sizes_out_of_range_are_one_line(tmp_path: Path, argv: list[str], words: str) -> None:
+    """The sweep: run --scans 0 ran for ever, grab --frames 0 and patterns --width 0 (the configured width)
+    did nothing or something else with exit 0, a negative or huge width was a traceback, a named config that
+    does not exist fell back to the defaults, simulate-camera served with a packet loss of 2 or NaN."""
+    config = tmp_path / "rig.yaml"
+    config.write_text(SMALL_RIG)
+    args = [a.format(tmp=tmp_path) for a in argv]
+    if "--config" not in args:
+        args[1:1] = ["--config", str(config)]
+    rc, err = _run(args)
+    _one_line(rc, err, words)
+    assert not (tmp_path / "g").exists() and not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("victim", ["config", "calibration"])
+def test_verify_never_writes_its_report_over_an_input(capture: dict[str, Path], tmp_path: Path, victim: str) -> None:
+    """The sweep: ``scan3d verify --out rig.yaml`` scanned for 30 s, then replaced the configuration with the
+    HTML report (exit 1: the figures). Now refused before any scan, every input byte-identical."""
+    calib = tmp_path / "calibration.yaml"
+    calib.write_bytes(capture["calibration"].read_bytes())
+    config = tmp_path / "rig.yaml"
+    config.write_text(SMALL_RIG + f"calibration_file: {calib}\n")
+    before = {p: p.read_bytes() for p in (config, calib)}
+    rc, err = _run(["verify", "--config", str(config), "--out", str(config if victim == "config" else calib)])
+    _one_line(rc, err, "which is the configuration" if victim == "config" else "which is calibration_file")
+    assert {p: p.read_bytes() for p in (config, calib)} == before
+
+
+@pytest.mark.parametrize("option", ["--maps", "--out", "--report"])
+def test_an_output_under_a_file_says_so(capture: dict[str, Path], tmp_path: Path, option: str) -> None:
+    """An output whose folder is a plain file: the line says 'is a file, not a folder' (was 'File exists')."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    rc, err = _run(["decode", str(capture["manifest"]), "--calibration", str(capture["calibration"]),
+                    option, str(blocker / "x.npz")])
+    _one_line(rc, err, f"{blocker}: is a file, not a folder; check {option}")
+    assert blocker.read_text() == "x"

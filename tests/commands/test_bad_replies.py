@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import socket
 import tempfile
 import threading
@@ -71,6 +72,21 @@ CASES = [
     ("no_newline", ["status"], b'{"status": {"state": "ready"}}', "no complete reply within 1 s"),
     ("trickle", ["status"], b'{"status": {"state": "ready", "pad": "' + b"x" * 200, "no complete reply within 1 s"),
     ("too_long", ["status"], b'{"status": "' + b"x" * (9 * 1024 * 1024), "longer than"),
+    # the second sweep: what json.loads and int() raise besides JSONDecodeError, and a tune's reply
+    ("nested_too_deeply", ["status"], b"[" * 100_000 + b"]" * 100_000 + b"\n", "not JSON"),
+    ("not_utf8", ["status"], b'{"status": "\xff\xfe"}\n', "not JSON"),
+    ("uptime_infinite", ["status"], b'{"status": {"state": "ready", "uptime_s": Infinity}}\n',
+     "not what scan3d's service answers"),
+    ("uptime_1e400", ["status"], b'{"status": {"state": "ready", "uptime_s": 1e400}}\n',
+     "not what scan3d's service answers"),
+    ("uptime_5000_digits", ["status"], b'{"status": {"state": "ready", "uptime_s": 1' + b"0" * 5000 + b"}}\n",
+     "not JSON"),
+    ("trigger_points_infinite", ["trigger", "--wait"],
+     b'{"ok": true, "scan": {"scan_id": "a", "points": Infinity, "location": "share"}}\n',
+     "not what scan3d's service answers"),
+    ("tune_lines_a_number", ["tune"], b'{"ok": true, "tune": {"lines": 5}}\n', "not what scan3d's service answers"),
+    ("tune_lines_not_text", ["tune"], b'{"ok": true, "tune": {"lines": [1, {"a": 2}]}}\n',
+     "not what scan3d's service answers"),
 ]
 
 
@@ -79,6 +95,7 @@ def test_a_reply_the_client_cannot_use_is_one_line_in_time(monkeypatch: pytest.M
                                                            argv: list[str], reply: bytes, words: str) -> None:
     monkeypatch.setattr(client, "STATUS_TIMEOUT_S", 1.0)
     monkeypatch.setattr(client, "TRIGGER_WAIT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(client, "TUNE_TIMEOUT_S", 1.0)
     with fake_service(reply, trickle=case == "trickle") as path:
         err = io.StringIO()
         start = time.monotonic()
@@ -98,3 +115,34 @@ def test_a_socket_path_too_long_is_one_line(tmp_path: Path) -> None:
         rc = cli.main(["status", "--socket", str(path)])
     lines = [ln for ln in err.getvalue().splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1 and "Traceback" not in err.getvalue(), err.getvalue()
+
+
+def test_escape_sequences_in_a_reply_are_shown_not_obeyed() -> None:
+    """A reply's text goes to a person's terminal: an escape sequence (clear screen, colours) or a carriage
+    return from whatever listens on the socket is printed as '?', never sent to the terminal as is."""
+    reply = b'{"status": {"state": "ready", "detail": "\\u001b[2J\\u001b[31mall good\\r\\u009b"}}\n'
+    with fake_service(reply, hold_s=0.0) as path:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            rc = cli.main(["status", "--socket", str(path)])
+    text = out.getvalue()
+    assert rc == 0, text
+    assert "?[2J?[31mall good??" in text
+    assert not any((ord(c) < 0x20 and c != "\n") or 0x7F <= ord(c) < 0xA0 for c in text), repr(text)
+
+
+def test_status_json_is_strict_json_where_a_value_is_not_a_number() -> None:
+    """A status value that is NaN (no measurement yet) or infinite is printed as null by ``status --json``:
+    Python's ``NaN`` token is not JSON, and jq, browsers and strict parsers refuse the whole document."""
+    reply = b'{"status": {"state": "ready", "last_scan": {"rms_mm": NaN, "sigma": [1.5, -Infinity]}}}\n'
+    with fake_service(reply, hold_s=0.0) as path:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            rc = cli.main(["status", "--json", "--socket", str(path)])
+
+    def refuse(token: str) -> None:
+        raise AssertionError(f"not JSON: {token}")
+
+    doc = json.loads(out.getvalue(), parse_constant=refuse)
+    assert rc == 0 and doc["state"] == "ready"
+    assert doc["last_scan"] == {"rms_mm": None, "sigma": [1.5, None]}

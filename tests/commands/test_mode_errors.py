@@ -38,8 +38,15 @@ def test_every_mode_is_measured_against_ground_truth(tmp_path: Path, capsys: pyt
     lines = capsys.readouterr().out.strip().splitlines()
     print("\n".join(lines))
     heads = [line.split(":")[0] for line in lines]
-    assert heads == ["mode projector, cam0", "mode projector, cam1", "mode stereo (cam0 + cam1)",
-                     "mode both (fused, cam0, cam1)"]  # fmt: skip
+    assert heads[:5] == ["mode projector, cam0", "mode projector, cam1", "mode stereo (cam0 + cam1)",
+                         "mode both (fused, cam0, cam1)",
+                         "calibration health from all three checks (one more scan, both projector axes coded)"]
+    # the exact calibration: ok from the three-view, both ray-ray and the epipolar check
+    health = lines[5]
+    assert health.startswith("calibration health ok: "), health
+    kinds = re.findall(r"(three_view|ray_ray|epipolar):(\S+) ok", health)
+    assert sorted(k for k, _ in kinds) == ["epipolar", "ray_ray", "ray_ray", "three_view"], health
+    lines = lines[:4]
     figures = [re.search(r": (\d+) points: RMS ([0-9.]+) mm", line) for line in lines]
     assert all(f is not None for f in figures), lines
     points = [int(f.group(1)) for f in figures if f]

@@ -199,3 +199,74 @@ def test_decode_refuses_a_missing_gray_bit(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=120, check=False)
     assert out.returncode == 2
     assert "bit 3" in out.stderr
+
+
+SMALL_TWO = SMALL.replace("cameras: {cam0: {type: sim}}", "cameras: {cam0: {type: sim}, cam1: {type: sim}}").replace(
+    "reconstruction: {", "reconstruction: {mode: both, "
+) + "    cam1: {width: 320, height: 256, focal_px: 450, position_mm: [-175, 0, 0], look_at_mm: [0, 0, 580]}\n"
+
+
+def _kernel_variants() -> dict[str, int]:
+    """Compiled (or cache-loaded) variants of every numba kernel of the package imported so far."""
+    from numba.core.registry import CPUDispatcher
+
+    return {f"{name}.{attr}": len(obj.signatures) for name, mod in list(sys.modules.items())
+            if name.startswith("appliance") for attr, obj in list(vars(mod).items())
+            if isinstance(obj, CPUDispatcher)}  # fmt: skip
+
+
+def test_scans_after_the_warm_up_need_no_other_kernel_variant() -> None:
+    """The warm-up runs every kernel a scan runs, with the same argument types: a variant first met in a
+    scan is compiled there (a minute, and hundreds of MB, on a fresh cache) or loaded there (the service's
+    memory peak). Two cameras fused, three scans of the same rig."""
+    cfg = parse_config(SMALL_TWO, "small-two.yaml")
+    rig = build_rig(cfg)
+    scanner = Scanner(cfg, rig, load_calibration_for(cfg, rig), keep_frames=False)  # off the loop: tables
+
+    async def run() -> tuple[dict[str, int], list[dict[str, int]], list[int]]:
+        try:
+            await scanner.warm_up()
+            warm = _kernel_variants()
+            after, points = [], []
+            for _ in range(3):
+                result = await scanner.scan()
+                points.append(len(result.cloud))
+                after.append(_kernel_variants())
+            return warm, after, points
+        finally:
+            await scanner.close()
+
+    warm, after, points = asyncio.run(run())
+    assert min(points) > 1000, points  # the scans reconstruct
+    for i, now in enumerate(after):
+        new = {k: (warm.get(k, 0), n) for k, n in now.items() if n != warm.get(k, 0)}
+        assert not new, f"scan {i + 1} needed kernel variants the warm-up did not make: {new}"
+    # issue 26: an entry point that takes more than a dozen scalars takes a typed parameter object instead
+    many = {k: n for k, n in _scalar_arguments().items() if n > 12 and not k.rsplit(".", 1)[1].startswith("_")}
+    assert not many, f"kernel entry points a scan called with more than 12 scalar arguments: {many}"
+
+
+def _scalar_arguments() -> dict[str, int]:
+    """The most non-array arguments of any compiled variant of every numba kernel of the package."""
+    from numba.core import types
+    from numba.core.registry import CPUDispatcher
+
+    return {f"{name}.{attr}": max(sum(not isinstance(a, types.Array) for a in sig) for sig in obj.signatures)
+            for name, mod in list(sys.modules.items()) if name.startswith("appliance")
+            for attr, obj in list(vars(mod).items()) if isinstance(obj, CPUDispatcher) and obj.signatures}  # fmt: skip
+
+
+def test_stereo_tables_stay_contiguous_when_a_scan_needs_fewer_levels() -> None:
+    """A scan with fewer code levels than an earlier one gets its crossing tables as C-contiguous arrays
+    (a column slice of the kept one would be strided: another kernel variant, met mid-scan)."""
+    from appliance.reconstruct.stereo import StereoTriangulator
+
+    cfg = parse_config(SMALL_TWO, "small-two.yaml")
+    rig = build_rig(cfg)
+    cal = load_calibration_for(cfg, rig)
+    tri = StereoTriangulator(cal.devices["cam0"], cal.devices["cam1"])
+    wide = tri._table("c0", 700)
+    narrow = tri._table("c0", 650)
+    assert wide.shape == (tri.rect_shape[0], 700) and narrow.shape == (tri.rect_shape[0], 650)
+    assert wide.flags.c_contiguous and narrow.flags.c_contiguous
+    assert np.shares_memory(wide, narrow)  # the kept buffer, not a new one

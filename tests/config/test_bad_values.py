@@ -18,6 +18,9 @@ CASES = [
      "'reconstruction' is given twice (lines 1 and 4)"),
     ("sequence:\n  steps: 4\n  steps: 5\n", 3, "'steps' is given twice (lines 2 and 3)"),
     ("sequence: {steps: true}\n", 1, "sequence.steps = True: must be a whole number"),
+    # a board of 1e308 mm squares (scan3d calibrate --square-mm refuses above 10 m; the config did not)
+    ("calibration:\n  board: {type: chessboard, cols: 9, rows: 6, square_mm: 1.0e+308}\n", 2,
+     "square_mm = 1e+308: Input should be less than or equal to 10000"),
     ("sequence: {steps: 2.5}\n", 1, "sequence.steps = 2.5: must be a whole number"),
     ("virtual_rig:\n  imaging:\n    seed: -1\n", 3, "virtual_rig.imaging.seed = -1"),
     ("virtual_rig:\n  imaging: {camera_blur_px: .inf}\n", 2, "camera_blur_px = inf: Input should be a finite"),
@@ -33,8 +36,21 @@ CASES = [
      "virtual_rig.scene.0.center_mm.1 = nan"),
     ("virtual_rig:\n  cameras:\n    cam0: {width: 10000, height: 10000, focal_px: 2000}\n", 3, "100 Mpx"),
     ("sequence: {exposures_us: [true, 100]}\n", 1, "sequence.exposures_us.0 = True: must be a whole number"),
+    ("sequence: {exposures_us: [100, 200], intensities: [0.5]}\n", 1, "intensities: 1 value(s) for 2 exposures_us"),
+    ("sequence: {exposures_us: [100], intensities: [0]}\n", 1, "intensities: 0.0 must be > 0 and at most 1"),
+    ("sequence: {exposures_us: [100], intensities: [.nan]}\n", 1, "intensities"),
+    ("sequence: {exposures_us: [100, 100], intensities: [0.5, 0.5]}\n", 1, "two passes have the same exposure"),
+    ("sequence: {exposures_us: [100, 100]}\n", 1, "lists an exposure twice"),
     ("sequence:\n  periods_px: [64, 1e30]\n", 2, "sequence.periods_px.1 = '1e30': must be a whole number"),
     ('serial: "SN\\n42"\n', 1, "serial = 'SN\\n42': must be 1-64 letters"),
+    # the second sweep: valid, then the scan gave 0 points / NaN rotations
+    ("virtual_rig:\n  scene: []\n", 2, "virtual_rig.scene: an empty scene gives no points"),
+    ("virtual_rig:\n  cameras:\n    cam0: {width: 160, height: 128, focal_px: 240, position_mm: [0, 0, 0],\n"
+     "           look_at_mm: [0, 0, 0]}\n", 3, "look_at_mm [0.0, 0.0, 0.0] is 0 mm from position_mm"),
+    # the re-sweep's leftover: an unknown policy came with pydantic's follow-on "at least 1 item" line
+    ("service:\n  opcua:\n    security_policies: [Basic999]\n", 3,
+     "security_policies.0 = 'Basic999': Input should be 'None'"),
+    ("service:\n  opcua:\n    security_policies: []\n", 3, "security_policies: Tuple should have at least 1 item"),
 ]
 
 

@@ -6,12 +6,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from appliance.config import load_config, parse_config
 from appliance.config.loader import check_files
 from appliance.errors import ConfigError
+from appliance.geometry.calibration_file import Calibration, write_calibration
+from appliance.geometry.camera import CameraModel
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -122,7 +125,9 @@ def test_validate_config_checks_the_files_it_names(tmp_path: Path) -> None:
     assert f"calibration_file = '{cal}': does not exist" in out
     assert f"virtual_rig.scene.0.path = '{tmp_path / 'part.ply'}': does not exist" in out
     assert "output.spool_directory" in out and "is inside the share" in out
-    cal.write_text("%YAML:1.0\n")
+    # a calibration that reads (validate-config reads it as the service will at start)
+    k = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    write_calibration(cal, Calibration({"cam0": CameraModel("cam0", k, np.zeros(5), 640, 480)}))
     (tmp_path / "part.ply").write_text("ply\n")
     doc["output"]["spool_directory"] = str(tmp_path / "spool")
     path.write_text(yaml.safe_dump(doc))

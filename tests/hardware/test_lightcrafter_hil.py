@@ -287,6 +287,37 @@ def test_flash_source_programs_the_image_lut(fake: FakeDLPC350) -> None:
     assert all(LutEntry.from_word(w).trigger == Trigger.INTERNAL for w in fake.lut_entries())
 
 
+def test_intensity_per_pass_dims_the_configured_led_currents_and_never_refuses_the_sequence(
+    fake: FakeDLPC350,
+) -> None:
+    # sequence.intensities on a LightCrafter: between passes the scan writes the LED PWM values (0x0B01, which the
+    # evaluation module takes inverted: 255 - x) scaled from the configured led_current; load sets them back
+    seq = gray_phase_sequence(64, 32, "x", period=8, steps=3)
+    lc = _lc(fake, source="flash", exposure_us=8333, period_us=8333, led_current=(100, 120, 80))
+    seen: list[bytes] = []
+
+    async def go() -> None:
+        await lc.open()
+        await lc.load(seq)
+        seen.append(fake.led_current)
+        for level in (0.25, 1.0):
+            await lc.set_intensity(level)
+            seen.append(fake.led_current)
+            await lc.start()  # the validated sequence runs at either level
+            assert lc.last_status is not None and not lc.last_status.problems
+            await lc.stop()
+        for bad in (0.0, 1.5, float("nan"), 0.001):
+            with pytest.raises(ProjectorError) as err:
+                await lc.set_intensity(bad)
+            assert "intensity" in str(err.value) and "lightcrafter4500" in str(err.value)
+        await lc.close()
+
+    asyncio.run(go())
+    assert seen == [bytes([155, 135, 175]), bytes([230, 225, 235]), bytes([155, 135, 175])]  # 255 - (25, 30, 20)
+    writes = [e.request.data for e in fake.log if e.code == 0x0B01 and not e.request.is_read]
+    assert len(writes) == 3  # load, then one per pass: the refused values sent nothing
+
+
 # --- errors ---------------------------------------------------------------------------------------------
 
 

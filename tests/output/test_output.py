@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +19,8 @@ from appliance.output.preview import render_preview
 from appliance.output.scanfiles import make_scan_id, write_scan_files
 from appliance.output.sidecar import ScanMetadata
 from appliance.reconstruct.types import PointCloud
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _cloud(n: int = 500, cameras: int = 2, normals: bool = False) -> PointCloud:
@@ -67,15 +71,39 @@ def test_empty_cloud(tmp_path: Path) -> None:
     assert PlyData.read(str(path))["vertex"].count == 0
 
 
+_WRITE_INTO = """
+import os, sys
+from pathlib import Path
+from appliance.errors import OutputError
+from appliance.output.atomic import write_bytes_atomic
+try:
+    write_bytes_atomic(Path(sys.argv[1]) / "x.bin", b"abc")
+except OutputError as exc:
+    print("refused:", exc)
+print("left:", sorted(os.listdir(sys.argv[1])))
+"""
+
+
 def test_atomic_write_leaves_nothing_on_failure(tmp_path: Path) -> None:
     ro = tmp_path / "ro"
     ro.mkdir()
     os.chmod(ro, 0o500)
     try:
-        if not os.access(ro, os.W_OK):  # root writes anywhere: the missing-folder case below still runs
+        if not os.access(ro, os.W_OK):
             with pytest.raises(OutputError, match="cannot be written"):
                 write_bytes_atomic(ro / "x.bin", b"abc")
             assert list(ro.iterdir()) == []
+        else:  # root writes through the mode bits: a read-only tmpfs in a mount namespace of the writer's own
+            os.chmod(ro, 0o700)
+            cmd = f"mount -t tmpfs -o ro tmpfs '{ro}' && exec '{sys.executable}' -c \"$0\" '{ro}'"
+            done = subprocess.run(["unshare", "-m", "sh", "-c", cmd, _WRITE_INTO], capture_output=True, text=True,
+                                  timeout=60, cwd=REPO, check=False)  # fmt: skip
+            if done.returncode != 0 and "unshare" in done.stderr + done.stdout:
+                pytest.skip(f"no private read-only mount here: {done.stderr.strip()[:200]}")
+            assert done.returncode == 0, done.stderr
+            out = done.stdout.splitlines()
+            assert out[0].startswith("refused:") and "cannot be written" in out[0], done.stdout
+            assert out[1] == "left: []", done.stdout  # no temporary file left on the read-only filesystem
     finally:
         os.chmod(ro, 0o700)
     with pytest.raises(OutputError, match="cannot be written"):

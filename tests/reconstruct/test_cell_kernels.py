@@ -106,7 +106,7 @@ def test_cell_lookup_matches_integer_arithmetic_and_counts_every_pixel_once() ->
         n = ncu * ncv
         cnt0, cnt1 = np.empty(n, np.int32), np.empty(n, np.int32)
         acc0, acc1 = np.empty((n, 2), np.float32), np.empty((n, 2), np.float32)
-        K.cell_sums(u, v, mask, rect, u, v, mask, rect, grid, ncu, ncv, cnt0, acc0, cnt1, acc1)
+        K.cell_sums(u, v, mask, rect, 1, u, v, mask, rect, 1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1)
         ref_n = np.zeros(n, np.int64)
         ref_a = np.zeros((n, 2))
         sel = expect >= 0
@@ -170,7 +170,7 @@ def test_split_sums_count_a_code_half_way_between_cells_half_to_each() -> None:
                     ref_a[cv * ncu + cu] += fu * fv * rect[r, c].astype(np.float64)
         cnt0, cnt1 = np.empty(n, np.int32), np.empty(n, np.int32)
         acc0, acc1 = np.empty((n, 2), np.float32), np.empty((n, 2), np.float32)
-        K.cell_sums_split(u, v, mask, rect, u, v, mask, rect, grid, ncu, ncv, cnt0, acc0, cnt1, acc1)
+        K.cell_sums_split(u, v, mask, rect, 1, u, v, mask, rect, 1, grid, ncu, ncv, cnt0, acc0, cnt1, acc1)
         np.testing.assert_array_equal(cnt0, ref_n * K.SPLIT_UNIT)
         np.testing.assert_allclose(acc0, ref_a * K.SPLIT_UNIT, rtol=1e-5, atol=1e-2)
         assert np.array_equal(cnt0, cnt1) and np.array_equal(acc0, acc1)

@@ -194,3 +194,51 @@ def test_v_consistency_rejects_matches_off_the_epipolar_line() -> None:
     xyz = _matchers()[0].triangulate(DecodedMaps(m0.u, v, m0.mask, m0.quality), m1)
     assert np.all(np.isnan(xyz[r - 10 : r + 10, c - 10 : c + 10]))
     assert np.isfinite(xyz[r - 40 : r - 20, c - 10 : c + 10, 2]).all()
+
+
+@pytest.mark.parametrize("k3", [-0.02, 9.5])  # the test rig's lens; a strong one (k3 of the real two-camera set)
+def test_knot_maps_stay_within_their_tolerance_of_opencv(k3: float) -> None:
+    """The rectification maps keep a knot every few pixels (memory); interpolated, they match OpenCV's own
+    projection (rectified grid -> camera pixel) and undistortion (camera pixel -> rectified grid) within
+    ``MAP_TOLERANCE_PX`` plus float32 rounding, everywhere the camera sees."""
+    import cv2
+
+    from appliance.reconstruct import _stereo_kernels as C
+    from appliance.reconstruct.stereo import MAP_TOLERANCE_PX
+
+    base0, cam1, _ = _rig()
+    dist = np.array([-0.12, 0.09, 4e-4, -3e-4, k3])
+    cam0 = CameraModel("cam0", base0.K, dist, 1280, 1024)
+    tri = StereoTriangulator(cam0, cam1)
+    a0min, _, bmin, step, _ = tri._geom
+    hr, wr0, _ = tri.rect_shape
+    rng = np.random.default_rng(3)
+
+    # rectified grid -> cam0 pixel, against cv2.projectPoints of the grid's directions
+    grid = C.sample_map(tri._map0, tri._knot0, 1, hr, wr0)
+    ys, xs = rng.integers(0, hr, 20000), rng.integers(0, wr0, 20000)
+    dirs = (tri._rot0.T @ np.stack([a0min + xs * step, bmin + ys * step, np.ones(xs.size)])).T
+    front = dirs[:, 2] > 0
+    want, _ = cv2.projectPoints(dirs[front], np.zeros(3), np.zeros(3), cam0.K, dist)
+    want = want.reshape(-1, 2)
+    got = grid[ys[front], xs[front]].astype(np.float64)
+    seen = (want[:, 0] >= 0) & (want[:, 0] <= 1279) & (want[:, 1] >= 0) & (want[:, 1] <= 1023)
+    assert seen.sum() > 5000
+    err = np.hypot(*(got[seen] - want[seen]).T)
+    assert err.max() <= MAP_TOLERANCE_PX + 2e-3, (tri._knot0, err.max())
+
+    # cam0 pixel -> rectified grid, against cv2.undistortPoints iterated to convergence and the rectifying rotation
+    px = np.stack([rng.uniform(0, 1279, 20000), rng.uniform(0, 1023, 20000)], 1)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    norm = cv2.undistortPoints(px.reshape(-1, 1, 2), cam0.K, dist, None, None, None, crit).reshape(-1, 2)
+    rect = (tri._rot0 @ np.column_stack([norm, np.ones(len(norm))]).T).T
+    want_r = np.stack([(rect[:, 0] / rect[:, 2] - a0min) / step, (rect[:, 1] / rect[:, 2] - bmin) / step], 1)
+    full = C.sample_map(tri._rect0, tri._knot_r0, 1, 1024, 1280)
+    ix, iy = np.floor(px[:, 0]).astype(int), np.floor(px[:, 1]).astype(int)
+    tx, ty = (px[:, 0] - ix)[:, None], (px[:, 1] - iy)[:, None]
+    got_r = ((1 - ty) * ((1 - tx) * full[iy, ix] + tx * full[iy, ix + 1])
+             + ty * ((1 - tx) * full[iy + 1, ix] + tx * full[iy + 1, ix + 1]))  # fmt: skip
+    # the map is exact at pixels; between pixels its own bilinear step adds the curvature over one pixel
+    err_r = np.hypot(*(got_r - want_r).T)
+    assert np.median(err_r) <= MAP_TOLERANCE_PX and err_r.max() <= MAP_TOLERANCE_PX + 0.01, (tri._knot_r0, err_r.max())
+    assert tri._map0.nbytes < 0.5 * hr * wr0 * 8 or tri._knot0 == 1  # kept coarse where the lens allows

@@ -5,7 +5,6 @@ and the service tests that build on it)."""
 from __future__ import annotations
 
 import asyncio
-import datetime as dt
 import json
 import os
 import signal
@@ -83,8 +82,12 @@ def write_config(
     return path
 
 
-def day() -> str:
-    return f"{dt.datetime.now(dt.UTC):%Y-%m-%d}"
+def day_of(scan_id: str) -> str:
+    """The share's day folder of ``scan_id``: the UTC day its scan started, as the id begins with it.
+
+    Never the clock when the test looks: a run across midnight puts scans in two folders.
+    """
+    return f"{scan_id[:4]}-{scan_id[4:6]}-{scan_id[6:8]}"
 
 
 def scan_files(root: Path) -> list[Path]:

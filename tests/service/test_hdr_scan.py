@@ -51,10 +51,15 @@ VIRTUAL_RIG: dict[str, Any] = {
 }  # fmt: skip
 
 
-def _config(tmp: Path, name: str, exposures: list[int]) -> Path:
+#: the short pass taken by dimming the projector to a quarter (a LightCrafter's LED currents) at the middle exposure
+DIMMED = {"exposures_us": [10_000, 10_000, 40_000], "intensities": [0.25, 1.0, 1.0]}
+
+
+def _config(tmp: Path, name: str, exposures: list[int], intensities: list[float] | None = None) -> Path:
     doc = {
         "cameras": {"cam0": {"type": "sim"}},
-        "sequence": {"kind": "gray_phase", "axes": "x", "periods_px": [16], "exposures_us": exposures},
+        "sequence": {"kind": "gray_phase", "axes": "x", "periods_px": [16], "exposures_us": exposures,
+                     **({"intensities": intensities} if intensities else {})},
         "reconstruction": {"min_depth_mm": 300, "max_depth_mm": 900},
         "virtual_rig": VIRTUAL_RIG,
         "service": {"state_directory": str(tmp / f"state-{name}")},
@@ -87,8 +92,9 @@ def _cloud(ply: Path) -> PointCloud:
 def test_scan_command_with_three_exposures_reconstructs_the_dark_and_the_bright(tmp_path: Path) -> None:
     truth: dict[str, dict[str, Any]] = {}
     sidecars: dict[str, dict[str, Any]] = {}
-    for name, exposures in (("short", [2500]), ("long", [40_000]), ("hdr", HDR_US)):
-        rc, text = _cli("scan", "--config", _config(tmp_path, name, exposures), "--out", tmp_path / name)
+    for name, exposures, levels in (("short", [2500], None), ("long", [40_000], None), ("hdr", HDR_US, None),
+                                    ("dimmed", DIMMED["exposures_us"], DIMMED["intensities"])):
+        rc, text = _cli("scan", "--config", _config(tmp_path, name, exposures, levels), "--out", tmp_path / name)
         assert rc == 0, text
         sidecars[name] = _sidecar(tmp_path / name)
         truth[name] = sidecars[name]["extra"]["ground_truth"]
@@ -112,6 +118,15 @@ def test_scan_command_with_three_exposures_reconstructs_the_dark_and_the_bright(
     assert sum(p["pixel_share"] for p in passes) == pytest.approx(1.0, abs=1e-5)
     assert passes[0]["decoded_share"] > 0.6 and passes[2]["decoded_share"] > 0.08  # the plane, the box
     assert "hdr" not in sidecars["short"]["extra"] or len(sidecars["short"]["extra"]["hdr"]["exposures_us"]) == 1
+    # the short pass by a dimmed projector instead (sequence.intensities): the same dark and bright parts
+    dimmed = truth["dimmed"]
+    assert dimmed["completeness"] >= 0.95 and dimmed["share_over_1mm"] <= 0.015
+    assert dimmed["rms_mm"] <= 1.3 * short["rms_mm"]
+    block = sidecars["dimmed"]["extra"]["hdr"]
+    assert block["exposures_us"] == DIMMED["exposures_us"] and block["intensities"] == DIMMED["intensities"]
+    passes = block["cameras"]["cam0"]["passes"]
+    assert [(p["exposure_us"], p["intensity"]) for p in passes] == [(10_000, 0.25), (10_000, 1.0), (40_000, 1.0)]
+    assert passes[0]["decoded_share"] > 0.6  # the plane, from the dimmed pass
 
 
 def test_service_scan_is_hdr_when_the_configuration_says_so(tmp_path: Path) -> None:
@@ -138,9 +153,27 @@ def test_service_scan_is_hdr_when_the_configuration_says_so(tmp_path: Path) -> N
     assert report.completeness >= 0.95 and report.share_over_1mm <= 0.015
 
 
-def test_hdr_scan_equals_the_offline_decode_of_its_recording(tmp_path: Path) -> None:
-    cfg = parse_config(_config(tmp_path, "hdr", HDR_US).read_text(), "hdr.yaml")
+@pytest.mark.parametrize("passes", ["exposures", "intensities"])
+def test_hdr_scan_equals_the_offline_decode_of_its_recording(tmp_path: Path, passes: str) -> None:
+    if passes == "exposures":
+        cfg = parse_config(_config(tmp_path, "hdr", HDR_US).read_text(), "hdr.yaml")
+    else:  # the recording's frames say exposure_us and intensity: the offline decode groups the same passes
+        dimmed = _config(tmp_path, "hdr", DIMMED["exposures_us"], DIMMED["intensities"])
+        cfg = parse_config(dimmed.read_text(), "hdr.yaml")
     result, scanner = asyncio.run(scan_once(cfg))
+    if passes == "intensities":  # the projector dimmed for the first pass: a quarter of the light in its white frame
+        assert scanner.exposures is not None and scanner.exposures[0] == (10_000.0, 0.25)
+        n = len(scanner.sequence)
+        white = next(i for i, f in enumerate(scanner.sequence.frames) if type(f).__name__ == "WhiteFrame")
+        black = next(i for i, f in enumerate(scanner.sequence.frames) if type(f).__name__ == "BlackFrame")
+        frames = result.frames["cam0"].astype(np.float64)
+        lit = [frames[k * n + white] - frames[k * n + black] for k in (0, 1)]  # the projector's light alone
+        sel = (lit[1] > 20) & (lit[1] < 200)  # unclipped in the full pass
+        ratio = float(np.median(lit[0][sel] / lit[1][sel]))
+        print(f"dimmed / full projector light: {ratio:.3f}")
+        assert 0.22 <= ratio <= 0.28
+        assert isinstance(scanner.rig.projector, sim.SimProjector)
+        assert scanner.rig.projector.world.intensity == 1.0  # set back to full after the scan
     assert scanner.exposures is not None and len(scanner.capture) == 3 * len(scanner.sequence)
     stack = result.frames["cam0"]
     np.save(tmp_path / "cam0.npy", stack)
@@ -188,12 +221,29 @@ def test_the_service_scanner_gives_back_every_frame_but_the_white_ones(tmp_path:
     assert len(whites) == 3 and held.tolist() == whites  # one white frame per pass, for the grey image
 
 
-def test_a_camera_without_exposure_control_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delattr(sim.SimCamera, "set_exposure")
-    rc, text = _cli("scan", "--config", _config(tmp_path, "hdr", HDR_US), "--out", tmp_path / "o")
+@pytest.mark.parametrize(
+    ("device", "control", "said"),
+    [
+        (sim.SimCamera, "set_exposure", ["camera 'cam0' (sim): cannot set its exposure",
+                                         "sequence.exposures_us = [2500, 10000, 40000]",
+                                         "remove sequence.exposures_us"]),
+        # as the hdmi backend: it shows what it is given
+        (sim.SimProjector, "set_intensity", ["projector (sim): cannot set its intensity between passes",
+                                             "sequence.intensities = [0.25, 1.0, 1.0]",
+                                             "remove sequence.intensities"]),
+    ],
+)  # fmt: skip
+def test_a_device_without_the_control_a_capture_needs_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, device: type, control: str, said: list[str]
+) -> None:
+    monkeypatch.delattr(device, control)
+    if control == "set_exposure":
+        config = _config(tmp_path, "hdr", HDR_US)
+    else:
+        config = _config(tmp_path, "dimmed", DIMMED["exposures_us"], DIMMED["intensities"])
+    rc, text = _cli("scan", "--config", config, "--out", tmp_path / "o")
     assert rc == 2 and "Traceback" not in text
     lines = [line for line in text.splitlines() if line.startswith("scan3d scan:")]
     assert len(lines) == 1, text
-    assert "camera 'cam0' (sim): cannot set its exposure" in lines[0]
-    assert "sequence.exposures_us = [2500, 10000, 40000]" in lines[0] and "remove sequence.exposures_us" in lines[0]
+    assert all(words in lines[0] for words in said), lines[0]
     assert not list((tmp_path / "o").rglob("*.ply"))

@@ -280,3 +280,22 @@ def test_tune_and_apply_need_the_token_and_write_the_choice(tmp_path: Path, loop
             await wait_until(lambda: svc.board.state == "idle", 60)
 
     asyncio.run(main())
+
+
+def test_api_json_and_events_are_strict_json_where_a_value_is_not_a_number() -> None:
+    """What the HTTP face sends (API replies, server-sent events) parses in a browser's JSON.parse: NaN and
+    infinities (a measurement not made yet) go out as null, not as Python's NaN token."""
+    from appliance.service import http as face
+
+    def refuse(token: str) -> None:
+        raise AssertionError(f"not JSON: {token}")
+
+    status = {"state": "ready", "last_scan": {"rms_mm": float("nan"), "sigma": (1.5, float("-inf"))}}
+    body = face._json_response(status).body
+    assert isinstance(body, bytes)
+    assert json.loads(body, parse_constant=refuse) == {"state": "ready",
+                                                       "last_scan": {"rms_mm": None, "sigma": [1.5, None]}}
+    event = face._sse({"type": "scan", "points": 10, "rms_mm": float("nan")}).decode()
+    assert event.startswith("event: scan\ndata: ")
+    assert json.loads(event.split("data: ", 1)[1], parse_constant=refuse) == {"type": "scan", "points": 10,
+                                                                              "rms_mm": None}

@@ -6,9 +6,11 @@ cheap callbacks on a loop that has been idle, and time spent waiting in ``await`
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from pathlib import Path
 
+import loopguard
 import pytest
 from loopguard import BLOCKED_CALLBACK_S, SLOW_CALLBACK_S, slow_callbacks
 
@@ -45,6 +47,54 @@ def test_a_task_step_that_sleeps_is_reported_as_held(monkeypatch: pytest.MonkeyP
     assert any("test-sleeper" in s for s in slow), slow
     held_ms = float(next(s for s in slow if "test-sleeper" in s).split(" ms held")[0].rsplit(", ", 1)[1])
     assert held_ms >= BLOCKED_CALLBACK_S * 1e3
+
+
+def _hold_the_lock(seconds: float) -> None:
+    """Run C code that never lets go of the interpreter lock for about ``seconds`` (a builtin sum over a range)."""
+    t = time.perf_counter()
+    sum(range(100_000))
+    per = max((time.perf_counter() - t) / 100_000, 1e-9)
+    sum(range(int(seconds / per)))
+
+
+def _loop_waits_for_a_thread_holding_the_lock() -> None:
+    """A cheap task step that lets go of the lock for a moment while a thread takes it for ~0.6 s."""
+    started = threading.Event()
+
+    def worker() -> None:
+        started.set()
+        _hold_the_lock(0.6)
+
+    async def waiter() -> None:
+        t = threading.Thread(target=worker, name="lock-holder")
+        t.start()
+        started.wait()
+        time.sleep(0.001)  # noqa: ASYNC251 - a millisecond: the worker takes the lock meanwhile
+        await asyncio.to_thread(t.join)
+
+    async def main() -> None:
+        await asyncio.create_task(waiter(), name="test-waiter")
+
+    asyncio.run(main())
+
+
+def test_waiting_for_another_threads_interpreter_lock_is_not_a_blocking_call(monkeypatch: pytest.MonkeyPatch) -> None:
+    with slow_callbacks(monkeypatch) as slow:
+        _loop_waits_for_a_thread_holding_the_lock()
+    assert slow == []
+
+
+def test_a_long_wait_for_another_threads_interpreter_lock_is_reported_on_its_own(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(loopguard, "LOCK_WAIT_S", 0.2)
+    with slow_callbacks(monkeypatch) as slow:
+        _loop_waits_for_a_thread_holding_the_lock()
+    assert any("test-waiter" in s and "waiting for another thread's interpreter lock" in s for s in slow), slow
+    line = next(s for s in slow if "test-waiter" in s)
+    waited_ms = float(line.split(" ms waiting for another thread")[0].rsplit("; ", 1)[1])
+    assert waited_ms >= 300, line
+    assert "lock-holder" in line, line  # the thread seen holding it is named
 
 
 def test_cheap_callbacks_on_an_idle_loop_and_awaits_are_not_reported(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -5,7 +5,6 @@ test_service_e2e.py.)"""
 from __future__ import annotations
 
 import asyncio
-import datetime as dt
 import json
 import os
 import re
@@ -60,8 +59,8 @@ def test_button_press_writes_files_and_publishes(tmp_path: Path) -> None:
         rec = st["last_scans"][-1]
         assert rec["ok"] and rec["location"] == "share" and rec["trigger"] == "fake-button"
         assert rec["timings_ms"]["trigger_to_file_ms"] >= rec["timings_ms"]["write_ms"] > 0
-        day = f"{dt.datetime.now(dt.UTC):%Y-%m-%d}"
-        sidecar = json.loads((tmp_path / "share" / day / f"{rec['scan_id']}.json").read_text())
+        sid = rec["scan_id"]  # begins with the UTC day its scan started: the day folder, even across midnight
+        sidecar = json.loads((tmp_path / "share" / f"{sid[:4]}-{sid[4:6]}-{sid[6:8]}" / f"{sid}.json").read_text())
         assert (
             sidecar["appliance_serial"] == "TEST-1" and sidecar["extra"]["trigger"]["source"] == "fake-button"
         )

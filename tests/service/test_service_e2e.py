@@ -26,7 +26,7 @@ from e2e_helpers import (
     ServiceProcess,
     await_for,
     complete_scan,
-    day,
+    day_of,
     no_partial_files,
     run_in_process,
     scan_files,
@@ -81,7 +81,7 @@ def test_serial_button_press_writes_files_and_updates_mdns(tmp_path: Path) -> No
             )
             rec = st["last_scans"][-1]
             assert rec["trigger"] == "trigger" and rec["location"] == "share"
-            complete_scan(tmp_path / "share" / day(), rec["scan_id"])
+            complete_scan(tmp_path / "share" / day_of(rec["scan_id"]), rec["scan_id"])
             txt = watcher.wait_for(lambda t: t.get("scans") == "1", 30)
             assert txt["last"] == rec["scan_id"] and txt["state"] == "idle"
             assert svc.stop() == 0
@@ -243,11 +243,10 @@ def test_share_away_spools_and_delivers_everything_in_order(
 
     rc, svc = run_in_process(config, body)
     assert rc == 0
-    folder = share / day()
-    sidecars = sorted(folder.glob("*.json"), key=lambda p: p.stat().st_mtime_ns)
+    sidecars = sorted(share.glob("*/*.json"), key=lambda p: p.stat().st_mtime_ns)
     assert [p.stem for p in sidecars] == ids  # every scan, in order
     for scan_id in ids:
-        complete_scan(folder, scan_id)
+        complete_scan(share / day_of(scan_id), scan_id)
     assert svc.board.counters["spooled"] == 4 and svc.board.counters["scans_done"] == 6
     no_partial_files(share, tmp_path / "spool")
     assert svc.writer.spool_entries() == []
@@ -311,7 +310,7 @@ def test_200_scans_memory_threads_and_fds_stay_flat(
         )
     assert growth_mb < 16, f"resident memory grew {growth_mb:.1f} MB over 180 scans"
     assert thr200 == thr20 and fd200 == fd20  # (the sampling thread counts in both)
-    assert len(list((tmp_path / "share" / day()).glob("*.json"))) == 200
+    assert len(list((tmp_path / "share").glob("*/*.json"))) == 200  # a run across midnight fills two days
     time.sleep(0.2)
     assert threading.active_count() <= threads_before + 1, [t.name for t in threading.enumerate()]
 

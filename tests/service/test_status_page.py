@@ -175,17 +175,8 @@ def two_camera_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
     asyncio.run(scan_once(load_config(_two_camera_config(tmp_path_factory.mktemp("warm")))))
 
 
-HELD_REASON = (
-    "two-camera service in the full suite's process: 0.8-1.2 s held with 3-7 ms CPU in timer callbacks (two "
-    "cold-cache full runs of stop 30, not stop 29's CI; alone 2 of 2 and 3 of 3 pass), no collection or numba "
-    "compile/load counted during them: another thread holds the interpreter lock, not yet found; the CPU limit "
-    "still holds"
-)
-
-
 @pytest.mark.usefixtures("two_camera_kernels")
 # Open (stop 30): held_s raised for this two-camera test only, as in tests/service/test_stereo_drift_service.py
-@pytest.mark.loop_guard_limits(held_s=2.0, reason=HELD_REASON)
 def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None:
     """A two-camera rig in mode ``both``: each scan's record carries the camera-camera matcher's both-seen figure
     (the sidecar's extra.stereo.both_seen), and the page shows it under the last scan and in the scans table."""
