@@ -140,8 +140,9 @@ def is_ip_address(address: str) -> bool:
 
 
 FOREIGN_STREAM_RETRIES = 3
-"""New streams opened in a row, at most, when one received another camera's packets (see
-``AravisCamera._took_foreign_packets``)."""
+"""New streams through Aravis' packet socket opened in a row, at most, when one received another camera's
+packets (see ``AravisCamera._took_foreign_packets``); the stream after them receives through a UDP socket of
+its own port."""
 
 
 FOREIGN_SETTLE_S = 0.05
@@ -161,6 +162,8 @@ class AcquisitionStats:
     reconnects: int = 0
     foreign_streams: int = 0
     """New streams given up because they received another camera's packets before their first acquisition."""
+    own_port_streams: int = 0
+    """New streams opened with a UDP socket of their own port after ``FOREIGN_STREAM_RETRIES`` such streams."""
 
 
 class FrameLostError(CameraError):
@@ -236,6 +239,7 @@ class AravisCamera:
         self._buffers: list[Any] = []
         self._buffer_size = 0
         self._fresh_stream = False  # no acquisition yet on the current stream
+        self._own_port_socket = False  # the next stream receives through a UDP socket, not a packet socket
         self._job: _Job | None = None
         self._last_frame_id: int | None = None
         self._trigger_now = config.trigger
@@ -463,10 +467,13 @@ class AravisCamera:
             try:
                 self._set_trigger(self._trigger_now)
                 self._fill_pool(job.n_frames + SPARE_BUFFERS)
-                if foreign < FOREIGN_STREAM_RETRIES and self._took_foreign_packets():
+                if foreign <= FOREIGN_STREAM_RETRIES and self._took_foreign_packets():
                     foreign += 1
+                    # the packet socket kept seeing another camera: one that cannot see its port next
+                    self._own_port_socket = foreign >= FOREIGN_STREAM_RETRIES
                     continue
                 self._fresh_stream = False
+                self._own_port_socket = False
                 return
             except self._glib.Error as exc:
                 self._mark_lost(f"configuring the acquisition failed ({exc.message})")
@@ -476,6 +483,16 @@ class AravisCamera:
                     ) from exc
                 failed += 1
 
+    def _disable_packet_socket(self) -> None:
+        """Make the next GigE Vision stream receive through a UDP socket bound to its own port (Aravis without
+        the option keeps its default)."""
+        try:
+            self._device.set_stream_options(self._aravis.GvStreamOption.PACKET_SOCKET_DISABLED)
+        except (AttributeError, TypeError):
+            return
+        self.stats.own_port_streams += 1
+        log.warning("%s", self._msg("the new stream receives through a UDP socket of its own port"))
+
     def _took_foreign_packets(self) -> bool:
         """True (and the camera closed, to be reopened) when a new stream received packets before its first
         acquisition: another camera's.
@@ -484,7 +501,12 @@ class AravisCamera:
         GVSP packet on the interface until its port filter is attached. A stream opened while another camera
         streamed took that camera's frames, and their higher frame ids then made it discard its own first
         frames as late (frame 0 never arrived, 2 in 25 two-camera captures under load). A plain UDP socket
-        (the service, without CAP_NET_RAW) only ever sees its own port.
+        (the service, without CAP_NET_RAW) only ever sees its own port. Replacing the stream once was not
+        always enough under load (CI, 2026-12-04: three polluted streams in a row, and the fourth, not looked
+        at, lost frame 0), so every new stream is looked at, and after ``FOREIGN_STREAM_RETRIES`` polluted
+        ones the next receives through a UDP socket (``_own_port_socket``). The packet socket stays the first
+        choice: it costs less CPU per packet, and a UDP socket's buffer (``net.core.rmem_max``) drops packets
+        of a sender much faster than a GigE link, as the fakes on loopback are.
         """
         if not self._fresh_stream:
             return False
@@ -563,6 +585,8 @@ class AravisCamera:
         self._control_lost_id = self._device.connect("control-lost", self._on_control_lost)
         try:
             self._configure(camera)
+            if camera.is_gv_device() and self._own_port_socket:
+                self._disable_packet_socket()
             stream = camera.create_stream(None, None)
             if stream is None:
                 raise CameraError(
