@@ -11,6 +11,7 @@ import collections
 import contextlib
 import gc
 import logging
+import resource
 import sys
 import threading
 import time
@@ -231,8 +232,16 @@ class _NumbaCompiles:
 _COMPILES = _NumbaCompiles()
 
 
+def _blocked_count() -> int:
+    """How many times this thread has given up its CPU of its own accord so far: each wait in a system call (a
+    sleep, I/O, a lock, the interpreter lock) counts; being preempted does not (``getrusage(RUSAGE_THREAD)``'s
+    voluntary context switches; 0.3 us a call here)."""
+    return resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
+
+
 def _run_delay_s() -> float:
-    """Time this thread has spent runnable but waiting for a CPU (s), from the scheduler's statistics."""
+    """Time this thread has spent runnable but waiting for a CPU (s), from the scheduler's statistics (zero on
+    kernels without them: see :func:`_blocked_count`)."""
     try:
         with open("/proc/thread-self/schedstat", "rb") as f:
             return int(f.read().split()[1]) / 1e9
@@ -253,11 +262,13 @@ def slow_callbacks(
     it gives; ``ran[0]``, where given, counts the callbacks run.
 
     Computing is the loop thread's CPU time; blocking is wall time less the time the thread waited for a CPU
-    (other processes on a busy machine), both less the garbage collections run meanwhile on the loop thread
-    (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of young ones in one callback counts on its own) and less the
-    time pytest's own log handlers took (:class:`_HarnessLogClock`). asyncio's debug mode would measure plain
-    wall time and add its own bookkeeping to every callback, which alone pushes task steps past 20 ms on a
-    loaded machine.
+    (other processes on a busy machine; where the kernel keeps no such statistics, a callback in which the thread
+    never gave up its CPU of its own accord, :func:`_blocked_count`, did not block: its wall time beyond its CPU
+    time was spent preempted, and only its CPU time counts as held), both less the garbage collections run
+    meanwhile on the loop thread (:class:`_GcClock`; more than :data:`GC_PAUSE_S` of young ones in one callback
+    counts on its own) and less the time pytest's own log handlers took (:class:`_HarnessLogClock`). asyncio's
+    debug mode would measure plain wall time and add its own bookkeeping to every callback, which alone pushes
+    task steps past 20 ms on a loaded machine.
     """
     slow: list[str] = []
     cpu_limit = SLOW_CALLBACK_S if cpu_s is None else cpu_s
@@ -270,7 +281,7 @@ def slow_callbacks(
     def timed_run(handle: asyncio.events.Handle) -> None:
         counter[0] += 1
         tid = threading.get_ident()
-        t0, c0, d0 = time.perf_counter(), time.thread_time(), _run_delay_s()
+        t0, c0, d0, v0 = time.perf_counter(), time.thread_time(), _run_delay_s(), _blocked_count()
         gc0, young0, log0 = gc_clock.totals(tid), gc_clock.young.totals(tid), log_clock.totals(tid)
         compiles0 = _COMPILES.mark()
         gc_all0 = gc_clock.wall_all
@@ -284,21 +295,27 @@ def slow_callbacks(
             young_wall = gc_clock.young.since(tid, young0)[1]
             log_cpu, log_wall = log_clock.since(tid, log0)
             cpu = time.thread_time() - c0 - gc_cpu - log_cpu
-            held = time.perf_counter() - t0 - (_run_delay_s() - d0) - gc_wall - log_wall - other_gc_wall
+            delay = _run_delay_s() - d0
+            held = time.perf_counter() - t0 - delay - gc_wall - log_wall - other_gc_wall
             compiled = _COMPILES.since(compiles0)
             # the spans another thread held the interpreter lock, less what the loop thread computed itself (its
-            # own long C call shows as CPU) and the other threads' collections already taken out
+            # own long C call shows as CPU), the time it waited for a CPU holding the lock (preempted: the watch
+            # waits too) and the other threads' collections, each already taken out; counting those twice hid a
+            # 0.3 s sleep in a callback on a crowded CPU
             locked, who = _LOCKS.waited(t0, time.perf_counter())
-            lock_wait = max(0.0, locked - cpu - other_gc_wall)
+            lock_wait = max(0.0, locked - cpu - delay - other_gc_wall)
             held -= lock_wait
+            waits = _blocked_count() - v0
+            if waits == 0:  # never waited: the wall time beyond the CPU time was preemption
+                held = min(held, max(cpu, 0.0))
             if (cpu > cpu_limit or (held > held_limit and not compiled) or young_wall > GC_PAUSE_S
                     or lock_wait > LOCK_WAIT_S):
                 slow.append(
                     f"{cpu * 1e3:.0f} ms CPU, {held * 1e3:.0f} ms held (garbage collection {gc_wall * 1e3:.0f} ms, "
                     f"{gc_cpu * 1e3:.0f} ms CPU, not counted; {young_wall * 1e3:.0f} ms of it young; "
                     f"{other_gc_wall * 1e3:.0f} ms on other threads, not counted; {lock_wait * 1e3:.0f} ms waiting "
-                    f"for another thread's interpreter lock, counted on its own{f' ({who})' if who else ''}), "
-                    f"in {_describe(handle)}"
+                    f"for another thread's interpreter lock, counted on its own{f' ({who})' if who else ''}; "
+                    f"{waits} wait(s) in system calls), in {_describe(handle)}"
                 )
 
     with monkeypatch.context() as patch:

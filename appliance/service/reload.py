@@ -80,7 +80,7 @@ class ConfigWatcher:
             Whether it was applied, and the error message when it was not.
         """
         async with self._lock:
-            self.stamp = file_stamp(self.path)
+            self.stamp = await asyncio.to_thread(file_stamp, self.path)
             loop = asyncio.get_running_loop()
             try:
                 cfg = await loop.run_in_executor(None, load_service_config, self.path)
@@ -104,9 +104,10 @@ class ConfigWatcher:
                 await asyncio.sleep(IDLE_RECHECK_S)  # a reload may turn polling on
                 continue
             await asyncio.sleep(self.poll_s)
-            if file_stamp(self.path) == self.stamp:
+            # a stat is a file-system call: off the loop (the full suite once saw one callback here wait 295 ms)
+            if await asyncio.to_thread(file_stamp, self.path) == self.stamp:
                 continue
             await asyncio.sleep(SETTLE_S)
-            if file_stamp(self.path) is None:
+            if await asyncio.to_thread(file_stamp, self.path) is None:
                 continue  # an editor's rename in progress, or removed: keep the running config
             await self.reload("file changed")

@@ -2,9 +2,10 @@
 
 The virtual rig's scene has a bright plane (albedo 0.95: it clips at 10 ms) and a black box (albedo 0.03: too
 dark at 2.5 ms). One exposure gives one or the other; three (2.5, 10, 40 ms), fused per pixel as the frames
-stream in, give both. Checked where a person meets it: ``scan3d scan`` with a configuration file (accuracy
-against the rig's ground truth, the sidecar's record of the passes), the service (a triggered scan's sidecar
-and cloud), the same frames decoded offline by ``scan3d decode`` (the same cloud, bit for bit), and a camera
+stream in, give both; so does a short pass taken by dimming the projector (``sequence.intensities``). Checked
+where a person meets it: ``scan3d scan`` with a configuration file (accuracy against the rig's ground truth,
+the sidecar's record of the passes), the service (a triggered scan's sidecar and cloud, by exposures and by
+a dimmed pass), the same frames decoded offline by ``scan3d decode`` (the same cloud, bit for bit), and a camera
 that cannot set its exposure (one line).
 """
 
@@ -129,27 +130,49 @@ def test_scan_command_with_three_exposures_reconstructs_the_dark_and_the_bright(
     assert passes[0]["decoded_share"] > 0.6  # the plane, from the dimmed pass
 
 
-def test_service_scan_is_hdr_when_the_configuration_says_so(tmp_path: Path) -> None:
-    sequence = {"kind": "gray_phase", "axes": "x", "periods_px": [16], "exposures_us": HDR_US}
+@pytest.mark.parametrize("passes", ["exposures", "intensities"])
+def test_service_scan_is_hdr_when_the_configuration_says_so(tmp_path: Path, passes: str) -> None:
+    """A triggered scan of the service captures every pass: by exposures (2.5, 10, 40 ms), or with the short
+    pass taken by dimming the projector (10 ms at 0.25, 10 ms, 40 ms), and the projector is set back to full
+    intensity after it."""
+    sequence: dict[str, Any] = {"kind": "gray_phase", "axes": "x", "periods_px": [16]}
+    if passes == "exposures":
+        sequence["exposures_us"] = HDR_US
+    else:
+        sequence.update(DIMMED)
     cfg = e2e.write_config(tmp_path, virtual_rig=VIRTUAL_RIG, sequence=sequence)
     scans: list[dict[str, Any]] = []
     exposures: list[float | None] = []
+    intensities: list[float | None] = []
 
     async def body(svc: D.Service) -> None:
         assert svc.scanner is not None and svc.scanner.n_passes == 3
         scans.append(await e2e.scan_once(svc))
         assert svc.rig is not None
         exposures.extend(getattr(c, "exposure_us", None) for c in svc.rig.cameras.values())
+        projector = svc.rig.projector
+        assert isinstance(projector, sim.SimProjector)
+        intensities.append(projector.world.intensity)
 
     rc, _svc = e2e.run_in_process(cfg, body)
     assert rc == 0 and scans[0]["ok"], scans
     assert exposures == [40_000.0]  # the camera was left at the last pass's exposure
     files = [Path(f) for f in scans[0]["files"]]
     side = json.loads(next(f for f in files if f.suffix == ".json").read_text())
-    assert side["extra"]["hdr"]["exposures_us"] == [float(e) for e in HDR_US]
+    block = side["extra"]["hdr"]
+    if passes == "exposures":
+        assert block["exposures_us"] == [float(e) for e in HDR_US] and "intensities" not in block
+        assert intensities == [None]  # never dimmed: never sent an intensity
+    else:
+        assert block["exposures_us"] == DIMMED["exposures_us"] and block["intensities"] == DIMMED["intensities"]
+        pass_list = block["cameras"]["cam0"]["passes"]
+        assert [(p["exposure_us"], p["intensity"]) for p in pass_list] == [(10_000, 0.25), (10_000, 1.0),
+                                                                           (40_000, 1.0)]  # fmt: skip
+        assert pass_list[0]["decoded_share"] > 0.6  # the bright plane, from the dimmed pass
+        assert intensities == [1.0]  # set back to full after the scan
     rig = VirtualRig(parse_config(cfg.read_text(), str(cfg)).virtual_rig)
     report = compare_to_ground_truth(_cloud(next(f for f in files if f.suffix == ".ply")), rig, ["cam0"])
-    print(report.line())
+    print(passes, report.line())
     assert report.completeness >= 0.95 and report.share_over_1mm <= 0.015
 
 

@@ -176,7 +176,6 @@ def two_camera_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
 
 
 @pytest.mark.usefixtures("two_camera_kernels")
-# Open (stop 30): held_s raised for this two-camera test only, as in tests/service/test_stereo_drift_service.py
 def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None:
     """A two-camera rig in mode ``both``: each scan's record carries the camera-camera matcher's both-seen figure
     (the sidecar's extra.stereo.both_seen), and the page shows it under the last scan and in the scans table."""
