@@ -240,4 +240,4 @@ def test_many_waits_of_a_switch_interval_count_as_waiting_for_the_lock(monkeypat
         found[fn.__name__] = slow
     assert found["lock_like"] == [], found
     assert len(found["one_sleep"]) == 1 and "1 wait(s)" in found["one_sleep"][0], found
-    assert len(found["long_waits"]) == 1 and "60 wait(s)" in found["long_waits"][0], found
+    assert len(found["long_waits"]) == 1 and "long_waits" in found["long_waits"][0], found
