@@ -183,12 +183,16 @@ _ADVICE = {
     Reason.INTERREFLECTION: ("lit by two copies of the pattern (a mirror-like face re-projects it onto them, or "
                              "they see it in one): tilt the part or the scanner so the reflection leaves the view, "
                              "or dull the shiny face"),
+    Reason.MIXED: ("next to a clipped pixel (dark and bright parts side by side: the pass that lights the dark "
+                   "clips the bright, whose light blurs in): add an exposure between those of "
+                   "sequence.exposures_us, or run scan3d tune"),
 }
 
 
 def reason_advice(maps: DecodedMaps, camera: str) -> str | None:
     """One plain-words line when one reason leaves at least :data:`DOMINANT_REASON_SHARE` of the lit pixels
-    without a code (too dark, saturated, weak or inconsistent code), with what to do; None otherwise.
+    without a code (too dark, saturated, weak or inconsistent code, two copies of the pattern, next to a clipped
+    pixel), with what to do; None otherwise.
 
     Parameters
     ----------

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -101,3 +102,42 @@ def seq_phase_frames(seq: Any) -> list[int]:
     from appliance.patterns.sequence import PhaseFrame
 
     return [i for i, f in enumerate(seq.frames) if isinstance(f, PhaseFrame)]
+
+
+def test_next_to_a_clipped_pixel_is_said_with_what_to_do(tmp_path: Path) -> None:
+    """A plane of 3 mm patches, black rubber (0.03) beside white paper (0.95), captured at 2.5 and 80 ms: the long
+    pass that lights the dark patches clips the white ones, whose light blurs into their dark neighbours, and the
+    short one leaves the dark too dark. A quarter of the lit pixels say "next to a clipped pixel", and
+    ``scan3d decode`` says so in one line with what to do; doing it (a 14 ms pass between) brings that reason
+    under a third of it, the line goes, and the completeness rises (measured 24 % -> 5 %, 17 % -> 70 %). The
+    points of such a scene, made all of edges, are not yet as accurate as their sigma says (issue 25: the blur
+    mixes a bright neighbour's phase into a dark pixel)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "accuracy"))
+    from hard_scenes import CAMERA, capture, decode
+
+    text = f"""
+sequence: {{kind: gray_phase, axes: x, periods_px: [16]}}
+virtual_rig:
+  cameras:
+    {CAMERA}
+  scene:
+    - {{type: plane, point_mm: [0, 0, 630], normal: [0, 0, -1], material: {{patches: [0.03, 0.95], patch_mm: 3}}}}
+  imaging: {{ambient_dn: 2, exposure_us: 10000, seed: 3}}
+"""
+    cfg = parse_config(text, "patches.yaml")
+    found = {}
+    for name, exposures in (("two", [2500.0, 80_000.0]), ("three", [2500.0, 14_142.0, 80_000.0])):
+        rig = capture(cfg, tmp_path, name, exposures)
+        stats, out = decode(tmp_path, name, rig)
+        report = json.loads((tmp_path / f"{name}.json").read_text())
+        cam = report["counts"]["cameras"]["cam0"]
+        lit = cam["pixels"] - cam["reasons"].get("shadow", 0)
+        found[name] = (cam["reasons"].get("next to a clipped pixel", 0) / lit, stats.completeness, report, out)
+    share, complete, report, out = found["two"]
+    said = f"cam0: {100 * share:.0f} % of the lit pixels are next to a clipped pixel"
+    assert share >= 0.2 and said in out, (share, out)
+    line = next(w for w in report["warnings"] if w.startswith(said))
+    assert "add an exposure between those of sequence.exposures_us, or run scan3d tune" in line
+    share3, complete3, report3, out3 = found["three"]
+    assert share3 < share / 3 and complete3 > complete + 0.3, (share, share3, complete, complete3)
+    assert "next to a clipped pixel" not in out3 and not any("clipped" in w for w in report3["warnings"])
