@@ -84,7 +84,6 @@ class Camera(Protocol):
         ...
 
 
-@runtime_checkable
 class ExposureControl(Protocol):
     """A camera whose exposure a scan sets between the passes of a multi-exposure (HDR) capture.
 
@@ -114,7 +113,6 @@ def exposure_control(camera: Camera) -> ExposureControl | None:
     return None
 
 
-@runtime_checkable
 class IntensityControl(Protocol):
     """A projector whose brightness a scan sets between the passes of a multi-pass (HDR) capture.
 
@@ -136,7 +134,8 @@ class IntensityControl(Protocol):
 def intensity_control(projector: object) -> IntensityControl | None:
     """``projector`` as an :class:`IntensityControl` when it can set its brightness between passes, else None.
 
-    Read from the object each time (not ``isinstance``, whose answer the ABC machinery caches per class).
+    Read from the object each time (not ``isinstance``, whose answer the ABC machinery caches per class: so
+    neither this protocol nor :class:`ExposureControl` is runtime-checkable).
     """
     if callable(getattr(projector, "set_intensity", None)):
         return cast(IntensityControl, projector)

@@ -81,6 +81,7 @@ class ConfigWatcher:
             Whether it was applied, and the error message when it was not.
         """
         async with self._lock:
+            # the default pool, not the poll's own thread: a reload also runs without run() (SIGHUP, tests)
             self.stamp = await asyncio.to_thread(file_stamp, self.path)
             loop = asyncio.get_running_loop()
             try:
