@@ -140,6 +140,14 @@ class ReconstructionConfig(_Strict):
         description="Two copies of the pattern (a mirror-like face): a pixel is dropped where two of its fine Gray "
         "bits (period up to 512 projector px) have less than this share of its white-black contrast. 0: no check.",
     )
+    hidden_check: Literal["auto", "always", "off"] = Field(
+        "auto",
+        description="Camera-projector: drop a point when another lies nearer the projector on its projector ray (by "
+        "more than a surface 10 degrees from the ray spreads over 2 projector px, plus 5 of its sigmas): the projector "
+        "cannot light it, its light came by a reflection (a ghost of a mirror-like face). auto: when a scan shows "
+        "reflections (>= 0.1 % of the decoded pixels lit by two copies of the pattern, or off their epipolar lines); "
+        "always: every scan (4-9 ns a point); off: never.",
+    )
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
     min_neighbours: int = Field(

@@ -1203,19 +1203,19 @@ def _row_flagged(lev_row):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def blend_regions(lev, u, v, has_v, mask, quality, region, flagged):  # type: ignore[no-untyped-def]
-    """The blend check's regions: a pixel marked (:data:`BLEND_FLAG` in ``lev[0]``) with at least
-    :data:`BLEND_NEIGHBOURS` marked neighbours loses its code (NaN, mask False, quality 0, levels 0) and gets
-    ``region`` = 1; every other pixel ``region`` = 0. The flags are cleared. ``region`` (H, W) uint8;
-    ``flagged`` (H,) bool scratch. Rows without a mark nearby cost one read."""
-    h, w = mask.shape
+def blend_regions(lev, region, flagged, per_row):  # type: ignore[no-untyped-def]
+    """The blend check's regions: ``region`` = 1 on a pixel marked (:data:`BLEND_FLAG` in ``lev[0]``) with at
+    least :data:`BLEND_NEIGHBOURS` marked neighbours, 0 elsewhere; ``per_row`` (H,) int64 their count per row.
+    The marks stay (:func:`blend_undecode` clears them). ``region`` (H, W) uint8; ``flagged`` (H,) bool scratch.
+    Rows without a mark nearby cost one read."""
+    h, w = region.shape
     flag = np.uint8(BLEND_FLAG)
-    keep = np.uint8(0xFF ^ BLEND_FLAG)
     for y in prange(h):
         flagged[y] = _row_flagged(lev[0, y])
     for y in prange(h):
         reg = region[y]
         reg[:] = np.uint8(0)
+        per_row[y] = 0
         if not flagged[y]:
             continue
         y0, y1 = max(y - 1, 0), min(y + 2, h)
@@ -1226,14 +1226,32 @@ def blend_regions(lev, u, v, has_v, mask, quality, region, flagged):  # type: ig
                     if flagged[yy]:
                         for xx in range(max(x - 1, 0), min(x + 2, w)):
                             n += 1 if (lev[0, yy, xx] & flag) != 0 else 0
-                reg[x] = np.uint8(1) if n >= BLEND_NEIGHBOURS else np.uint8(0)
+                if n >= BLEND_NEIGHBOURS:
+                    reg[x] = np.uint8(1)
+                    per_row[y] += 1
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def blend_undecode(lev, u, v, has_v, mask, quality, region, flagged, starts, codes):  # type: ignore[no-untyped-def]
+    """Every pixel of a :func:`blend_regions` region loses its code (NaN, mask False, quality 0, levels 0) after
+    its row, column and code go to ``codes`` (N, 4) float32 from ``starts[y]`` on in row y (v NaN when not
+    coded): the stronger copy's code, which the reconstruction uses only as evidence of a surface in front of
+    another point (never as a point). The blend marks are cleared."""
+    h, w = region.shape
+    keep = np.uint8(0xFF ^ BLEND_FLAG)
     for y in prange(h):
         if not flagged[y]:
             continue
         reg = region[y]
+        i = starts[y]
         for x in range(w):
             lev[0, y, x] &= keep
             if reg[x]:
+                codes[i, 0] = np.float32(y)
+                codes[i, 1] = np.float32(x)
+                codes[i, 2] = u[y, x]
+                codes[i, 3] = v[y, x] if has_v else np.float32(np.nan)
+                i += 1
                 _undecode(u, v, has_v, mask, quality, lev, y, x)
 
 

@@ -121,8 +121,15 @@ def _saturation_and_reasons(
     """Drop the pixels whose needed samples are clipped, then write every pixel's :class:`Reason`."""
     assert out.levels is not None and out.reason is not None
     # the blend check's regions first (it reads every mark before any is cleared); reason = 1 there until below
-    _k.blend_regions(out.levels, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.reason,
-                     np.empty(out.mask.shape[0], np.bool_))
+    h = out.mask.shape[0]
+    flagged, per_row = np.empty(h, np.bool_), np.empty(h, np.int64)
+    _k.blend_regions(out.levels, out.reason, flagged, per_row)
+    starts = np.zeros(h, np.int64)
+    np.cumsum(per_row[:-1], out=starts[1:])
+    codes = np.empty((int(per_row.sum()), 4), np.float32)
+    _k.blend_undecode(out.levels, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.reason, flagged,
+                      starts, codes)  # fmt: skip
+    out.blend_codes = codes
     _k.drop_clipped(clip, _DROP, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.levels)
     dark = params.min_contrast_dn * _max_value(dtype, params) / 255.0
     _k.decode_reasons(
@@ -183,6 +190,9 @@ _ADVICE = {
     Reason.INTERREFLECTION: ("lit by two copies of the pattern (a mirror-like face re-projects it onto them, or "
                              "they see it in one): tilt the part or the scanner so the reflection leaves the view, "
                              "or dull the shiny face"),
+    Reason.HIDDEN: ("hidden from the projector (lit only by a reflection: a mirror-like face shows the camera a lit "
+                    "surface, or lights a face the projector's shadow hides): tilt the part or the scanner so the "
+                    "reflection leaves the view, or dull the shiny face"),
     Reason.MIXED: ("next to a clipped pixel (dark and bright parts side by side: the pass that lights the dark "
                    "clips the bright, whose light blurs in): add an exposure between those of "
                    "sequence.exposures_us, or run scan3d tune"),
@@ -191,8 +201,8 @@ _ADVICE = {
 
 def reason_advice(maps: DecodedMaps, camera: str) -> str | None:
     """One plain-words line when one reason leaves at least :data:`DOMINANT_REASON_SHARE` of the lit pixels
-    without a code (too dark, saturated, weak or inconsistent code, two copies of the pattern, next to a clipped
-    pixel), with what to do; None otherwise.
+    without a point (too dark, saturated, weak or inconsistent code, two copies of the pattern, hidden from the
+    projector, next to a clipped pixel), with what to do; None otherwise.
 
     Parameters
     ----------

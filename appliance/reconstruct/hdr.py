@@ -90,7 +90,16 @@ def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDAr
         np.stack([m.quality for m in passes]), np.stack([m.levels for m in passes if m.levels is not None]),
         np.stack([m.reason for m in passes if m.reason is not None]),
     )  # fmt: skip
-    return stacks.fuse(sorted({s for m in passes for s in m.ignored}))
+    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes))
+
+
+def _blend_codes(passes: Sequence[DecodedMaps]) -> npt.NDArray[np.float32] | None:
+    """Every pass's codes of pixels lit by two copies of the pattern, one array (evidence only: a pixel may be
+    in several passes' lists)."""
+    codes = [m.blend_codes for m in passes if m.blend_codes is not None and len(m.blend_codes)]
+    if not codes:
+        return None
+    return codes[0] if len(codes) == 1 else np.concatenate(codes)
 
 
 class _PassStacks:
@@ -118,13 +127,15 @@ class _PassStacks:
         return DecodedMaps(self.u[k], self.v[k], self.mask[k], self.quality[k], levels=self.levels[k],
                            reason=self.reason[k])  # fmt: skip
 
-    def fuse(self, ignored: list[str]) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
+    def fuse(
+        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None
+    ) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
         shape = (int(self.u.shape[1]), int(self.u.shape[2]))
         choice = np.empty(shape, np.uint8)
         out = DecodedMaps(
             np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.bool_),
             np.empty(shape, np.float32), ignored=ignored, levels=np.empty((2, *shape), np.uint8),
-            reason=np.empty(shape, np.uint8),
+            reason=np.empty(shape, np.uint8), blend_codes=blend_codes,
         )  # fmt: skip
         assert out.levels is not None and out.reason is not None
         _k.choose_pass(self.mask, self.reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED),
@@ -391,6 +402,7 @@ class HdrStreamingDecoder:
         for k, done in enumerate(self._finished):
             if not done:
                 self._finish_pass(k)
-        fused, self.choice = self._stacks.fuse(sorted({s for o in self._out for s in o.ignored}))
+        fused, self.choice = self._stacks.fuse(sorted({s for o in self._out for s in o.ignored}),
+                                               _blend_codes(self._out))
         return fused
 

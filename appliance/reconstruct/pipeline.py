@@ -33,6 +33,7 @@ from appliance.reconstruct.stereo import StereoTriangulator
 from appliance.reconstruct.triangulate import EPIPOLAR_SIGMAS, ProjectorTriangulator
 from appliance.reconstruct.types import DecodedMaps, PointCloud, Reason, StageCounts
 from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
+from appliance.reconstruct.visibility import ProjectorVisibility
 
 F32 = npt.NDArray[np.float32]
 
@@ -221,6 +222,12 @@ def epipolar_warning(camera: str, dropped: int, triangulated: int) -> str:
             "Dull or tilt the shiny surface, or scan it from another side")
 
 
+REFLECTION_SHARE = 1e-3
+"""``hidden_check: auto`` runs the projector visibility check when at least this share of a camera's decoded pixels
+shows a reflection: a normal scene's stray blends stay near 1e-4 (the bench's 2 x 5 MP scene: 0.007 %), a
+mirror-like face in view gives percents (the mirror groove: 20 %)."""
+
+
 class Reconstructor:
     """Turns the decoded maps of one scan into a point cloud; every table is built once, here.
 
@@ -334,6 +341,11 @@ class Reconstructor:
             cam = calibration.devices[names[0]]
             self._xyz[names[0]] = np.empty((cam.height, cam.width, 3), np.float32)
             self._scratch[names[0]] = np.empty((cam.height, cam.width), np.bool_)
+        self._visibility: ProjectorVisibility | None = None
+        if self._depth_path and cfg.hidden_check != "off" and calibration.projector is not None:
+            self._visibility = ProjectorVisibility(calibration.projector, self._proj_tri)
+        self.hidden: dict[str, int] = {}
+        """Points the projector visibility check dropped in the last scan, per camera."""
         if self._depth_path and axes != "xy":  # a scan reads the row tables only (xy: the residual reads all)
             for tri in self._proj_tri.values():
                 tri.rays.row_table()
@@ -372,6 +384,19 @@ class Reconstructor:
             maps.append(DecodedMaps(u, v, np.ones((h, w), np.bool_), np.full((h, w), 50.0, np.float32)))
         self._stereo.triangulate(maps[0], maps[1], self._xyz[names[0]], self.cfg.min_depth_mm, self.cfg.max_depth_mm,
                                  self.noise)  # fmt: skip
+
+    def _shows_reflections(self, maps: dict[str, DecodedMaps]) -> bool:
+        """Whether the last depth pass saw reflections (``hidden_check: auto``): at least :data:`REFLECTION_SHARE`
+        of some camera's decoded pixels lit by two copies of the pattern, or (both axes) off their epipolar lines."""
+        for n in self._proj_tri:
+            s = self._stats[n].sum(axis=0)
+            codes = maps[n].blend_codes
+            blends = 0 if codes is None else len(codes)
+            if blends and blends >= REFLECTION_SHARE * (int(s[0]) + blends):
+                return True
+            if self.axes == "xy" and int(s[1]) - int(s[2]) >= max(1.0, REFLECTION_SHARE * int(s[1])):
+                return True
+        return False
 
     def _fuse_stereo(self, maps: dict[str, DecodedMaps]) -> dict[str, int]:
         """Mode ``'both'``: camera-camera on the reference camera, fused with its camera-projector depth by
@@ -511,6 +536,12 @@ class Reconstructor:
                 # most pixels off their lines is no reflection but a calibration that no longer fits: keep the
                 # points (as one axis would) so that the calibration health judges them all, and say so
                 unchecked[n] = (tri_n - cons_n, tri_n)
+        self.hidden = {}
+        if self._visibility is not None and (cfg.hidden_check == "always" or self._shows_reflections(maps)):
+            self.hidden = self._visibility.apply(
+                self._depth, self._sigma, self._counts, self._stats, {n: _reason_map(maps[n]) for n in self._proj_tri},
+                {n: maps[n].blend_codes for n in self._proj_tri},
+            )  # fmt: skip
         fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
         stages = []

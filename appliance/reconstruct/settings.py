@@ -67,3 +67,9 @@ class ReconstructionSettings(Protocol):
 
     @property
     def blend_ratio(self) -> float: ...
+
+    @property
+    def hidden_check(self) -> str:
+        """``'auto'``, ``'always'`` or ``'off'``: drop points the projector cannot light
+        (:mod:`appliance.reconstruct.visibility`)."""
+        ...

@@ -13,8 +13,8 @@ class Reason(IntEnum):
     """Why a camera pixel has no point (``DecodedMaps.reason``); 0 where it has one.
 
     The decoder sets ``SHADOW`` .. ``WEAK_CODE`` (0 there: decoded); the reconstruction then sets its own on
-    the decoded pixels that gave no point (``NOT_MATCHED``, ``OUT_OF_RANGE``, ``FILTERED``, ``EPIPOLAR``), so
-    that after it 0 means "has a point" and every other pixel has exactly one reason.
+    the decoded pixels that gave no point (``NOT_MATCHED``, ``OUT_OF_RANGE``, ``FILTERED``, ``EPIPOLAR``,
+    ``HIDDEN``), so that after it 0 means "has a point" and every other pixel has exactly one reason.
     """
 
     DECODED = 0
@@ -43,6 +43,11 @@ class Reason(IntEnum):
     #: two copies of the pattern reach the pixel (a mirror-like face re-projects it, strong interreflection): several
     #: of its finest Gray bits have the contrast of a difference of two lights; its code would be neither's
     INTERREFLECTION = 10
+    #: a point the projector cannot light: another point lies nearer the projector on the same projector ray (by
+    #: more than the surface's slope and the errors allow), so its light came by a reflection (the camera sees a
+    #: lit surface in a mirror-like face, or a mirror lights a face the projector's shadow hides); its code belongs
+    #: to another surface (a ghost)
+    HIDDEN = 11
 
 
 #: Plain-words name of each reason (sidecar keys, reports).
@@ -58,6 +63,7 @@ REASON_NAMES: dict[int, str] = {
     Reason.EPIPOLAR: "off the epipolar line",
     Reason.MIXED: "next to a clipped pixel",
     Reason.INTERREFLECTION: "two copies of the pattern",
+    Reason.HIDDEN: "hidden from the projector",
 }
 
 
@@ -80,6 +86,10 @@ class DecodedMaps:
         is a stripe of ``stripe * 2**level`` projector px (0 where undecoded). None when not computed.
     reason : ndarray, shape (H, W), uint8, optional
         Per pixel a :class:`Reason`: 0 where decoded, else why not. None when not computed.
+    blend_codes : ndarray, shape (N, 4), float32, optional
+        The pixels the check for two copies of the pattern undecoded (reason ``INTERREFLECTION``): row, column,
+        u, v (projector px; v NaN when not coded) of the stronger copy. Never a point: the reconstruction uses
+        them only as evidence of a surface that the projector lights in front of another point.
     """
 
     u: npt.NDArray[np.float32]
@@ -89,6 +99,7 @@ class DecodedMaps:
     ignored: list[str] = field(default_factory=list)
     levels: npt.NDArray[np.uint8] | None = None
     reason: npt.NDArray[np.uint8] | None = None
+    blend_codes: npt.NDArray[np.float32] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -33,7 +33,7 @@ virtual_rig:
     cam0: {width: 320, height: 256, focal_px: 450, position_mm: [0, 0, 0], look_at_mm: [0, 0, 580]}
     cam1: {width: 320, height: 256, focal_px: 450, position_mm: [-120, 0, 0], look_at_mm: [0, 0, 580]}
 """
-LATER = {Reason.NOT_MATCHED, Reason.OUT_OF_RANGE, Reason.FILTERED, Reason.EPIPOLAR}
+LATER = {Reason.NOT_MATCHED, Reason.OUT_OF_RANGE, Reason.FILTERED, Reason.EPIPOLAR, Reason.HIDDEN}
 
 
 @pytest.fixture(scope="module")

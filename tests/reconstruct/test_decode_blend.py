@@ -65,6 +65,15 @@ def test_a_mirrored_copy_of_the_pattern_is_said_in_its_region_only_and_alike_in_
     assert np.array_equal(maps.mask[same], off.mask[same])
     assert np.array_equal(maps.u[same], off.u[same], equal_nan=True)
     assert not (off.reason == Reason.INTERREFLECTION).any()
+    # the pixels said keep their stronger copy's code aside, as evidence of a surface (never a point): row, column,
+    # u as the decode without the check has it, v NaN (one axis); batch and streaming alike
+    assert maps.blend_codes is not None and streamed.blend_codes is not None
+    assert np.array_equal(maps.blend_codes, streamed.blend_codes, equal_nan=True)
+    rows, cols = np.nonzero(said)
+    assert np.array_equal(maps.blend_codes[:, 0], rows) and np.array_equal(maps.blend_codes[:, 1], cols)
+    assert np.array_equal(maps.blend_codes[:, 2], off.u[rows, cols], equal_nan=True)
+    assert np.isnan(maps.blend_codes[:, 3]).all()
+    assert off.blend_codes is not None and len(off.blend_codes) == 0
 
 
 def test_a_clean_render_loses_nothing_to_the_check() -> None:
