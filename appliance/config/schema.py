@@ -146,7 +146,7 @@ class ReconstructionConfig(_Strict):
         "more than a surface 10 degrees from the ray spreads over 2 projector px, plus 5 of its sigmas): the projector "
         "cannot light it, its light came by a reflection (a ghost of a mirror-like face). auto: when a scan shows "
         "reflections (>= 0.1 % of the decoded pixels lit by two copies of the pattern, or off their epipolar lines); "
-        "always: every scan (4-9 ns a point); off: never.",
+        "always: every scan (about 25 ns a point); off: never.",
     )
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
