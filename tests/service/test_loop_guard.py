@@ -241,3 +241,24 @@ def test_many_waits_of_a_switch_interval_count_as_waiting_for_the_lock(monkeypat
     assert found["lock_like"] == [], found
     assert len(found["one_sleep"]) == 1 and "1 wait(s)" in found["one_sleep"][0], found
     assert len(found["long_waits"]) == 1 and "long_waits" in found["long_waits"][0], found
+
+
+def test_time_off_the_cpu_without_a_single_wait_is_not_a_blocking_call(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocking is waiting in a system call, and every such wait counts (the sleep above is one). A callback that
+    made none was never blocked, however long it took by the clock, once the time it waited for a CPU is out: the
+    machine stalled it (the full suite saw 0.3-0.75 s with 1-2 ms of CPU, no wait and no lock gap). The rule reads
+    the count of waits only, so a count that stays at 0 makes a sleeping step pass, while its CPU still counts."""
+    async def sleeper() -> None:
+        time.sleep(1.2 * BLOCKED_CALLBACK_S)  # noqa: ASYNC251 - seen with no wait counted: the machine's stall
+
+    async def burner() -> None:
+        burn_cpu(1.6 * SLOW_CALLBACK_S)
+
+    monkeypatch.setattr(loopguard, "_blocked_count", lambda: 7)
+    found = {}
+    for fn in (sleeper, burner):
+        with slow_callbacks(monkeypatch) as slow:
+            asyncio.run(fn())
+        found[fn.__name__] = slow
+    assert found["sleeper"] == [], found
+    assert len(found["burner"]) == 1 and "0 wait(s)" in found["burner"][0], found
