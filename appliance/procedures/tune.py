@@ -356,32 +356,59 @@ async def _choose_for(cfg: AppConfig, pr: Probe, time_budget_ms: float, base: fl
 
 
 _SEQ_KEY = re.compile(r"^sequence:[ \t]*(#.*)?$")
-_EXPOSURES_KEY = re.compile(r"^([ \t]+)exposures_us:.*$")
 
 
-def with_exposures(text: str, exposures_us: tuple[int, ...]) -> str:
-    """The configuration text with ``sequence.exposures_us`` set (comments and layout kept where the
-    ``sequence`` section is a block)."""
-    value = "[" + ", ".join(str(e) for e in exposures_us) + "]"
+def _key_line(key: str) -> re.Pattern[str]:
+    return re.compile(r"^([ \t]+)" + re.escape(key) + r":.*$")
+
+
+def _flow(values: tuple[float, ...]) -> str:
+    """A YAML flow list: whole numbers as integers, others as Python writes them (exactly)."""
+    return "[" + ", ".join(str(int(v)) if float(v).is_integer() else repr(float(v)) for v in values) + "]"
+
+
+def with_exposures(text: str, exposures_us: tuple[int, ...], intensities: tuple[float, ...] | None = None) -> str:
+    """The configuration text with ``sequence.exposures_us`` set, and ``sequence.intensities`` set to
+    ``intensities`` or, when None, removed (every pass at the projector's full intensity, which is what the probe
+    measured); comments and layout kept where the ``sequence`` section is a block.
+
+    An ``intensities`` list left from an earlier configuration would no longer match the passes (one per
+    exposure): the file would be refused.
+    """
+    keys: dict[str, tuple[float, ...] | None] = {"exposures_us": tuple(exposures_us), "intensities": intensities}
     lines = text.splitlines(keepends=True)
     start = next((i for i, ln in enumerate(lines) if _SEQ_KEY.match(ln.rstrip("\r\n"))), None)
     if start is None:
         doc = yaml.safe_load(text) or {}
         if "sequence" in doc:  # a flow-style section: rewritten (its comments are lost)
             seq = dict(doc["sequence"] or {})
-            seq["exposures_us"] = list(exposures_us)
+            for key, values in keys.items():
+                if values is None:
+                    seq.pop(key, None)
+                else:
+                    seq[key] = list(values)
             doc["sequence"] = seq
             return str(yaml.safe_dump(doc, sort_keys=False))
         sep = "" if not text or text.endswith("\n") else "\n"
-        return f"{text}{sep}sequence:\n  exposures_us: {value}\n"
+        body = "".join(f"  {k}: {_flow(v)}\n" for k, v in keys.items() if v is not None)
+        return f"{text}{sep}sequence:\n{body}"
+    for key, values in keys.items():
+        lines = _set_in_block(lines, start, key, values)
+    return "".join(lines)
+
+
+def _set_in_block(lines: list[str], start: int, key: str, values: tuple[float, ...] | None) -> list[str]:
+    """Set (or, ``values`` None, remove) ``key`` in the block-style section whose header is ``lines[start]``."""
     end = start + 1
     indent = "  "
     while end < len(lines) and (lines[end].startswith((" ", "\t")) or not lines[end].strip()):
         if lines[end].strip() and not lines[end].lstrip().startswith("#"):
             indent = lines[end][: len(lines[end]) - len(lines[end].lstrip())]
         end += 1
+    new = [] if values is None else [f"{indent}{key}: {_flow(values)}  # chosen by scan3d tune\n"]
+    pattern = _key_line(key)
     for i in range(start + 1, end):
-        m = _EXPOSURES_KEY.match(lines[i].rstrip("\r\n"))
+        m = pattern.match(lines[i].rstrip("\r\n"))
         if m:
             # a block-style list under the key goes with it ("- 10000" lines, indented or at the key's level)
             key_indent = len(m.group(1))
@@ -394,15 +421,14 @@ def with_exposures(text: str, exposures_us: tuple[int, ...]) -> str:
                 j += 1
             while j > i + 1 and not lines[j - 1].strip():  # blank lines after the list stay
                 j -= 1
-            lines[i:j] = [f"{indent}exposures_us: {value}  # chosen by scan3d tune\n"]
-            return "".join(lines)
-    lines.insert(start + 1, f"{indent}exposures_us: {value}  # chosen by scan3d tune\n")
-    return "".join(lines)
+            return lines[:i] + new + lines[j:]
+    return lines[: start + 1] + new + lines[start + 1 :]
 
 
 def apply_choice(path: Path, exposures_us: tuple[int, ...]) -> None:
-    """Write ``sequence.exposures_us`` into the configuration file: validated first, then written atomically
-    (a running service reloads it as it would an edit over SSH)."""
+    """Write ``sequence.exposures_us`` into the configuration file (and take out ``sequence.intensities``: the
+    choice's passes are at full intensity): validated first, then written atomically (a running service reloads
+    it as it would an edit over SSH)."""
     text = path.read_text()
     new = with_exposures(text, exposures_us)
     parse_config(new, str(path), path.parent)  # raises ConfigError with the file, line and rule

@@ -121,3 +121,29 @@ def test_with_exposures_keeps_the_file_and_replaces_an_earlier_choice() -> None:
     assert with_exposures("serial: X\n", (5,)) == "serial: X\nsequence:\n  exposures_us: [5]\n"
     flow = with_exposures("sequence: {kind: gray}\n", (7,))
     assert "exposures_us:\n  - 7" in flow or "exposures_us: [7]" in flow
+
+
+def test_with_exposures_takes_out_intensities_left_from_an_earlier_configuration() -> None:
+    # tune's passes are at full intensity; an intensities list for other passes would make the file invalid
+    text = ("sequence:\n  kind: gray_phase\n  exposures_us: [10000, 10000, 40000]\n  intensities:\n    - 0.25\n"
+            "    - 1\n    - 1\n  axes: x  # keep\n")  # fmt: skip
+    out = with_exposures(text, (2500, 40000))
+    assert "intensities" not in out and "exposures_us: [2500, 40000]" in out and "  axes: x  # keep\n" in out
+    assert "intensities" not in with_exposures("sequence: {exposures_us: [1, 2], intensities: [0.5, 1]}\n", (7,))
+    both = with_exposures(text, (10000, 10000), (0.25, 1.0))
+    assert "intensities: [0.25, 1]" in both and both.count("intensities") == 1
+
+
+def test_apply_replaces_a_dimmed_pass_configuration(tmp_path: Path) -> None:
+    # a file that scanned with a dimmed pass (sequence.intensities): tune --apply writes its choice and the file
+    # stays valid
+    path = tmp_path / "dimmed.yaml"
+    text = scene_text("dark_shiny").replace("  periods_px: [16]\n", "  periods_px: [16]\n  exposures_us: [10000, "
+                                                                      "10000]\n  intensities: [0.25, 1]\n")
+    assert "intensities" in text
+    path.write_text(text)
+    assert load_config(path).sequence.intensities == (0.25, 1.0)
+    rc, out = _tune("--config", path, "--time-budget-ms", 4000, "--apply")
+    assert rc == 0 and "Traceback" not in out, out
+    cfg = load_config(path)
+    assert cfg.sequence.intensities == () and list(cfg.sequence.exposures_us) == _choice(out)
