@@ -155,6 +155,13 @@ class _GcClock(_ThreadClock):
         if info.get("generation", 2) < 2:
             self.young.add(tid, cpu, wall)
 
+    def running_elsewhere(self, tid: int, since: float) -> float:
+        """Wall seconds since ``since`` of the collections still running on threads other than ``tid``: one
+        that holds the interpreter lock past the end of a callback is not in :attr:`wall_all` yet (its stop
+        callback runs after the loop thread took the lock back)."""
+        now = time.perf_counter()
+        return sum(max(0.0, now - max(w, since)) for t, (_, w) in list(self._start.items()) if t != tid)
+
 
 class _HarnessLogClock(_ThreadClock):
     """Time pytest's own log handlers spent on each thread (s of CPU and of wall, garbage collections left out).
@@ -299,7 +306,7 @@ def slow_callbacks(
             gc_cpu, gc_wall = gc_clock.since(tid, gc0)
             # a collection on another thread holds the interpreter lock as well: the loop waited for the
             # suite's heap, not for the callback (a test's full collection in a worker thread, 1 s here)
-            other_gc_wall = max(0.0, gc_clock.wall_all - gc_all0 - gc_wall)
+            other_gc_wall = max(0.0, gc_clock.wall_all - gc_all0 - gc_wall) + gc_clock.running_elsewhere(tid, t0)
             young_wall = gc_clock.young.since(tid, young0)[1]
             log_cpu, log_wall = log_clock.since(tid, log0)
             cpu = time.thread_time() - c0 - gc_cpu - log_cpu

@@ -537,7 +537,11 @@ class Reconstructor:
                 # points (as one axis would) so that the calibration health judges them all, and say so
                 unchecked[n] = (tri_n - cons_n, tri_n)
         self.hidden = {}
-        if self._visibility is not None and (cfg.hidden_check == "always" or self._shows_reflections(maps)):
+        # not where most pixels lie off their epipolar lines: the calibration no longer fits (said below), and the
+        # check's geometry is the calibration's
+        if self._visibility is not None and not unchecked and (
+            cfg.hidden_check == "always" or self._shows_reflections(maps)
+        ):
             self.hidden = self._visibility.apply(
                 self._depth, self._sigma, self._counts, self._stats, {n: _reason_map(maps[n]) for n in self._proj_tri},
                 {n: maps[n].blend_codes for n in self._proj_tri},
