@@ -93,9 +93,11 @@ class ProjectorVisibility:
         nx = min(math.ceil((hi[0] - lo[0]) / cell), 4 * w)
         ny = min(math.ceil((hi[1] - lo[1]) / cell), 4 * h)
         self._grid = np.array([lo[0], lo[1], 1.0 / cell, nx, ny], np.float64)
-        bands = max(1, min(numba.get_num_threads(), MAX_BANDS))
-        self._fronts = np.empty((bands, nx * ny), np.float32)
-        self._backs = np.empty((bands, nx * ny), np.float32)
+        # the buffers (4 B a cell each, per band) are made at the first scan that runs the check: hidden_check
+        # auto leaves most services without one
+        self._bands = max(1, min(numba.get_num_threads(), MAX_BANDS))
+        self._fronts = np.empty((0, 0), np.float32)
+        self._backs = np.empty((0, 0), np.float32)
         self.slope = cell / math.tan(math.radians(MIN_GRAZING_DEG))
         """Margin per mm of projector depth (mm / mm): one cell's footprint over the tangent of the grazing angle."""
         self._pose = {n: relative_pose(t.camera, projector) for n, t in triangulators.items()}
@@ -135,6 +137,10 @@ class ProjectorVisibility:
         dict of str to int
             Points dropped per camera.
         """
+        if self._fronts.size == 0:
+            cells = int(self._grid[3]) * int(self._grid[4])
+            self._fronts = np.empty((self._bands, cells), np.float32)
+            self._backs = np.empty((self._bands, cells), np.float32)
         fronts, backs, grid = self._fronts, self._backs, self._grid
         fronts.fill(np.inf)
         backs.fill(-np.inf)
