@@ -215,6 +215,8 @@ def _decode_one(
                 arrays[f"{cam}_levels"] = m.levels  # Gray bits dropped per axis (finest resolvable bit)
             if m.reason is not None:
                 arrays[f"{cam}_reason"] = m.reason  # why a pixel has no code (reconstruct.types.Reason)
+            if m.fringe is not None:
+                arrays[f"{cam}_fringe"] = m.fringe  # % of the white - black range that carries the pattern
         _make_folder_of(path, "--maps")
         # through the atomic writer: a full disk keeps an existing file whole
         write_atomic(path, lambda f: np.savez_compressed(f, allow_pickle=False, **arrays))

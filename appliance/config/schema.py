@@ -148,6 +148,13 @@ class ReconstructionConfig(_Strict):
         "reflections (>= 0.1 % of the decoded pixels lit by two copies of the pattern, or off their epipolar lines); "
         "always: every scan (about 25 ns a point); off: never.",
     )
+    indirect_sigma: bool = Field(
+        True,
+        description="Camera-projector with a phase code: widen a point's sigma by the shift light that came another "
+        "way may give its code (diffuse interreflection near a concave corner, subsurface scattering), judged by how "
+        "much of its white - black range lacks the pattern's contrast against the scan's median; max_sigma_mm then "
+        "drops such points too. Off: sigma is the camera noise's alone.",
+    )
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")
     min_neighbours: int = Field(

@@ -485,6 +485,16 @@ def _mask_quality(lit, qmin, mask, quality):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def _fringe_share(pmod, rng, lit, out):  # type: ignore[no-untyped-def]
+    """``out`` = round(100 * pmod / rng), at most 255; 0 where unlit, without a modulation or a range."""
+    for x in range(out.shape[0]):
+        m = np.float64(pmod[x])
+        rr = np.float64(rng[x])
+        ok = lit[x] and rr > 0.0 and m < np.inf
+        out[x] = np.uint8(min(100.0 * m / rr + 0.5, 255.0)) if ok else np.uint8(0)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _emit_level(fl, lit, lev):  # type: ignore[no-untyped-def]
     for x in range(fl.shape[0]):
         lev[x] = np.uint8(min(fl[x], np.uint32(255))) if lit[x] else np.uint8(0)
@@ -537,7 +547,8 @@ def _unlit_outside(u, v, mask, quality, lev0, lev1, c0, c1):  # type: ignore[no-
 @njit(nogil=True, cache=True, error_model="numpy")
 def _finish_row(  # type: ignore[no-untyped-def]
     lit_row, code, weak, qg, m1, m2, ssum, csum, quantum, axis_tab, ph_tab, ph_period, finest, u_row, v_row,
-    mask_row, quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1, xc_row, soft, blend_row,
+    mask_row, quality_row, lev0_row, lev1_row, scratch, fl_row, ok_row, c0, c1, xc_row, soft, blend_row, r_row,
+    fr_row,
 ):  # fmt: skip
     """Per-pixel final step shared by batch and streaming: Gray level and index, phase, unwrapping.
 
@@ -552,6 +563,9 @@ def _finish_row(  # type: ignore[no-untyped-def]
     ``xc_row`` uint32 (W,) holds an XOR axis' Gray code (``code`` stays as folded: streaming state); ``soft``
     uint32 (2, W) each axis' bits under the blend floor, ``blend_row`` bool (W,) scratch: the pixels the blend
     check marked get :data:`BLEND_FLAG` in ``lev0_row`` (see :func:`_blend_gate`, :func:`blend_regions`).
+    ``r_row`` (W,) is the range (white - black) and ``fr_row`` uint8 (W,) out the fringe share: the weakest
+    axis' last phase modulation in percent of the range (0 without a phase set or where unlit; see
+    ``DecodedMaps.fringe``). ``scratch[11]`` holds that modulation.
     """
     lit = lit_row[c0:c1]
     fl = fl_row[c0:c1]
@@ -568,6 +582,8 @@ def _finish_row(  # type: ignore[no-untyped-def]
     blend = blend_row[c0:c1]
     blend[:] = False
     qmin[:] = _FINF
+    pmin = scratch[11, c0:c1]
+    pmin[:] = _FINF
     for a in range(2):
         out = u_row[c0:c1] if a == 0 else v_row[c0:c1]
         lev = lev0_row[c0:c1] if a == 0 else lev1_row[c0:c1]
@@ -601,9 +617,11 @@ def _finish_row(  # type: ignore[no-untyped-def]
             cg[:] = np.float32(0.5 * np.float64(axis_tab[a, 5] - 1))
         res = cg  # the axis' coordinates: the Gray code's until a phase set writes cc (no copy)
         pprev = np.inf
+        phased = False
         for s in range(ph_tab.shape[0]):
             if ph_tab[s, 0] != a:
                 continue
+            phased = True
             period = ph_period[s]
             _phase_wrapped(ssum[s, c0:c1], csum[s, c0:c1], quantum, 4.0 / np.float64(ph_tab[s, 1]), period, mod,
                            cph)  # fmt: skip
@@ -636,7 +654,10 @@ def _finish_row(  # type: ignore[no-untyped-def]
         _emit_axis(res, ok, lit, out)
         _emit_level(fl, lit, lev)
         _min_into(qmin, qa)
+        if phased:
+            _min_into(pmin, mod)
     _mask_quality(lit, qmin, mask_row[c0:c1], quality_row[c0:c1])
+    _fringe_share(pmin, r_row[c0:c1], lit, fr_row[c0:c1])
     _mark_blend(blend, lev0_row[c0:c1])
 
 
@@ -892,9 +913,9 @@ def _phase_row(frames, y, c0, c1, ph_tab, ph_idx, ph_sin, ph_cos, ssum, csum):  
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def decode_stack(  # type: ignore[no-untyped-def]
     frames, wb, used, maxval, gray_tab, mean_idx, axis_tab, ph_tab, ph_period, ph_idx, ph_sin, ph_cos, quantum,
-    rel, blend, thr, finest, nthreads, narrow, u, v, mask, quality, levels,
+    rel, blend, thr, finest, nthreads, narrow, u, v, mask, quality, levels, fringe,
 ):  # fmt: skip
-    """Decode a (F, H, W) stack into u, v, mask, quality (H, W) and levels (2, H, W) in one pass over rows.
+    """Decode a (F, H, W) stack into u, v, mask, quality, fringe (H, W) and levels (2, H, W) in one pass over rows.
 
     ``ph_sin``, ``ph_cos``: the phase coefficients, float64 (``quantum`` 1.0), or int32 in units of
     ``quantum`` where no phase sum can leave int32; the sums take their type.
@@ -922,7 +943,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
         bl = np.empty(w, np.bool_)
         ssum = np.empty((nset, w), ph_sin.dtype)
         csum = np.empty((nset, w), ph_sin.dtype)
-        scratch = np.empty((11, w), np.float32)
+        scratch = np.empty((12, w), np.float32)
         fl = np.empty(w, np.uint32)
         xc = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
@@ -972,6 +993,7 @@ def decode_stack(  # type: ignore[no-untyped-def]
             _finish_row(
                 lit, code, weak, qg, m1, m2, ssum, csum, quantum, axis_tab, ph_tab, ph_period, finest,
                 u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc, soft, bl,
+                r, fringe[y],
             )  # fmt: skip
 
 
@@ -1059,7 +1081,7 @@ def stream_minmax(img, hi, lo):  # type: ignore[no-untyped-def]
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def stream_finish(  # type: ignore[no-untyped-def]
     hi, lo, code, cst, gray_tab, ssum, csum, quantum, axis_tab, ph_tab, ph_period, rel, blend, thr, finest, nthreads,
-    u, v, mask, quality, levels,
+    u, v, mask, quality, levels, fringe,
 ):  # fmt: skip
     """Final step of streaming: state arrays (H, W) / (2, H, W) / (G, H, W) / (S, H, W) -> outputs.
 
@@ -1077,7 +1099,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
         qg = np.empty((2, w), np.float32)
         soft = np.empty((2, w), np.uint32)
         bl = np.empty(w, np.bool_)
-        scratch = np.empty((11, w), np.float32)
+        scratch = np.empty((12, w), np.float32)
         fl = np.empty(w, np.uint32)
         xc = np.empty(w, np.uint32)
         ok = np.empty(w, np.bool_)
@@ -1110,7 +1132,7 @@ def stream_finish(  # type: ignore[no-untyped-def]
             _finish_row(
                 lit, code[:, y, :], weak, qg, m1, m2, ssr, csr, quantum, axis_tab, ph_tab, ph_period,
                 finest, u[y], vrow, mask[y], quality[y], levels[0, y], levels[1, y], scratch, fl, ok, c0, c1, xc, soft,
-                bl,
+                bl, r, fringe[y],
             )  # fmt: skip
 
 
@@ -1169,17 +1191,20 @@ def drop_clipped(clip, drop, u, v, has_v, mask, quality, lev):  # type: ignore[n
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def decode_reasons(hi, lo, thr, dark, clip, mask, reason, r_ok, r_shadow, r_dark, r_sat, r_weak, r_blend):  # type: ignore[no-untyped-def]
+def decode_reasons(hi, lo, thr, dark, clip, mask, reason, fringe, r_ok, r_shadow, r_dark, r_sat, r_weak, r_blend):  # type: ignore[no-untyped-def]
     """Per pixel why it has no code (``r_ok`` where decoded): clipped samples, no lit range above ``dark``
     (shadow), a lit range below the threshold ``thr`` (too dark), two copies of the pattern (``reason`` = 1 on
-    entry: :func:`blend_regions`), else a code too weak or inconsistent."""
+    entry: :func:`blend_regions`), else a code too weak or inconsistent. ``fringe`` (H, W) uint8 is set to 0
+    on every undecoded pixel (the decode step wrote it on the lit ones)."""
     h, w = mask.shape
     for y in prange(h):
         for x in range(w):
             blend = reason[y, x] == 1
             if mask[y, x]:
                 reason[y, x] = r_ok
-            elif clip[y, x] != 0:
+                continue
+            fringe[y, x] = np.uint8(0)
+            if clip[y, x] != 0:
                 reason[y, x] = r_sat
             else:
                 r = float(hi[y, x]) - float(lo[y, x])

@@ -627,3 +627,60 @@ def organised_from_depth(depth, tx, ty, step, rwc, cwc, to_world, out):  # type:
         for c in range(w):  # NaN depth: NaN point
             store_point(out, r, c, np.float64(depth[r, c]), mx[c], my[c], -np.inf, np.inf, to_world, rwc, cwc)
     return out
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def u8_histogram(img, nchunks, out):  # type: ignore[no-untyped-def]
+    """Counts of each value 0..255 of a uint8 image ``img`` (H, W) into ``out`` (256,) int64; ``nchunks`` row
+    chunks counted in parallel."""
+    h = img.shape[0]
+    part = np.zeros((nchunks, 256), np.int64)
+    for ch in prange(nchunks):
+        for y in range(ch * h // nchunks, (ch + 1) * h // nchunks):
+            row = img[y]
+            for x in range(row.shape[0]):
+                part[ch, row[x]] += 1
+    for k in range(256):
+        t = np.int64(0)
+        for ch in range(nchunks):
+            t += part[ch, k]
+        out[k] = t
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def indirect_bias(  # type: ignore[no-untyped-def]
+    depth, sigma, quality, white, has_w, fringe, ftab, noise, max_sigma, reason, has_r, r_filtered, dropped
+):
+    """Widen every point's sigma by the bias of indirect light and drop those then over ``max_sigma`` (mm).
+
+    A point's sigma (its code noise, see ``_finish_row``: ``su2n`` px^2 from ``quality``, ``white`` and
+    ``noise``) becomes ``sigma sqrt(1 + ftab[fringe] / su2n)``: the code variance gains the table's bias
+    variance (px^2) and the derivative along the ray is unchanged. A point whose widened sigma exceeds
+    ``max_sigma`` loses its depth and sigma (NaN), gets reason ``r_filtered`` (when ``has_r``), and counts in
+    ``dropped[r]`` (its row).
+    """
+    h, w = depth.shape
+    g2 = noise[0] * noise[0]
+    svar, rvar, inv_e = noise[1], noise[2], noise[3]
+    for r in prange(h):
+        dropped[r] = 0
+        zr = depth[r]
+        sr = sigma[r]
+        for c in range(w):
+            if not zr[c] == zr[c]:
+                continue
+            b = ftab[fringe[r, c]]
+            if b == 0.0:
+                continue
+            q = np.float64(quality[r, c])
+            a = np.float64(white[r, c]) - 0.5 * q if has_w else 0.5 * q
+            su2n = g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
+            s = np.float64(sr[c]) * math.sqrt(1.0 + b / su2n)
+            if s > max_sigma:
+                zr[c] = np.float32(np.nan)
+                sr[c] = np.float32(np.nan)
+                if has_r:
+                    reason[r, c] = r_filtered
+                dropped[r] += 1
+            else:
+                sr[c] = np.float32(s)

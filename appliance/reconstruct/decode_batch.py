@@ -55,6 +55,7 @@ def empty_maps(shape: tuple[int, int]) -> DecodedMaps:
         np.empty(shape, np.float32),
         levels=np.empty((2, *shape), np.uint8),
         reason=np.empty(shape, np.uint8),
+        fringe=np.empty(shape, np.uint8),
     )
 
 
@@ -68,21 +69,25 @@ def _outputs(
         lev = out.levels
         if lev is None or lev.shape != lev_shape or lev.dtype != np.uint8 or not lev.flags.c_contiguous:
             out.levels = np.empty(lev_shape, np.uint8)
-        rsn = out.reason
-        if rsn is None or rsn.shape != shape or rsn.dtype != np.uint8 or not rsn.flags.c_contiguous:
-            out.reason = np.empty(shape, np.uint8)
+        for name in ("reason", "fringe"):
+            arr = getattr(out, name)
+            if arr is None or arr.shape != shape or arr.dtype != np.uint8 or not arr.flags.c_contiguous:
+                setattr(out, name, np.empty(shape, np.uint8))
         return out, out.v
     # outputs are views of blocks reused once the caller drops them (saves their first-touch page faults)
     if "y" in plan.axes:
-        u, v, mask, quality, levels, reason = _POOL.arrays([(shape, np.float32), (shape, np.float32),
-                                                            (shape, np.bool_), (shape, np.float32),
-                                                            (lev_shape, np.uint8), (shape, np.uint8)])  # fmt: skip
-        maps = DecodedMaps(u, v, mask, quality, levels=levels, reason=reason)  # type: ignore[arg-type]
+        u, v, mask, quality, levels, reason, fringe = _POOL.arrays([(shape, np.float32), (shape, np.float32),
+                                                                    (shape, np.bool_), (shape, np.float32),
+                                                                    (lev_shape, np.uint8), (shape, np.uint8),
+                                                                    (shape, np.uint8)])  # fmt: skip
+        maps = DecodedMaps(u, v, mask, quality, levels=levels, reason=reason, fringe=fringe)  # type: ignore[arg-type]
         return maps, maps.v
     # the y axis is not coded: v is NaN everywhere, one shared read-only map instead of H x W stores per call
-    u, mask, quality, levels, reason = _POOL.arrays([(shape, np.float32), (shape, np.bool_), (shape, np.float32),
-                                                     (lev_shape, np.uint8), (shape, np.uint8)])  # fmt: skip
-    maps = DecodedMaps(u, nan_map(shape), mask, quality, levels=levels, reason=reason)  # type: ignore[arg-type]
+    u, mask, quality, levels, reason, fringe = _POOL.arrays([(shape, np.float32), (shape, np.bool_),
+                                                             (shape, np.float32), (lev_shape, np.uint8),
+                                                             (shape, np.uint8), (shape, np.uint8)])  # fmt: skip
+    maps = DecodedMaps(u, nan_map(shape), mask, quality, levels=levels, reason=reason,  # type: ignore[arg-type]
+                       fringe=fringe)  # type: ignore[arg-type]
     return maps, np.empty((0, shape[1]), np.float32)
 
 
@@ -119,7 +124,7 @@ def _saturation_and_reasons(
     params: DecodeParams,
 ) -> None:
     """Drop the pixels whose needed samples are clipped, then write every pixel's :class:`Reason`."""
-    assert out.levels is not None and out.reason is not None
+    assert out.levels is not None and out.reason is not None and out.fringe is not None
     # the blend check's regions first (it reads every mark before any is cleared); reason = 1 there until below
     h = out.mask.shape[0]
     flagged, per_row = np.empty(h, np.bool_), np.empty(h, np.int64)
@@ -133,8 +138,9 @@ def _saturation_and_reasons(
     _k.drop_clipped(clip, _DROP, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.levels)
     dark = params.min_contrast_dn * _max_value(dtype, params) / 255.0
     _k.decode_reasons(
-        hi, lo, float(thr), float(dark), clip, out.mask, out.reason, int(Reason.DECODED), int(Reason.SHADOW),
-        int(Reason.TOO_DARK), int(Reason.SATURATED), int(Reason.WEAK_CODE), int(Reason.INTERREFLECTION),
+        hi, lo, float(thr), float(dark), clip, out.mask, out.reason, out.fringe, int(Reason.DECODED),
+        int(Reason.SHADOW), int(Reason.TOO_DARK), int(Reason.SATURATED), int(Reason.WEAK_CODE),
+        int(Reason.INTERREFLECTION),
     )  # fmt: skip
 
 
@@ -278,7 +284,7 @@ def decode(
     else:
         hist = _k.range_hist_stack(stack, t.wb, t.used, maxval, shift, nbins)
     thr = lit_threshold(hist, stack.dtype, params)
-    assert out.levels is not None
+    assert out.levels is not None and out.fringe is not None
     # exact phase sums: int32 in units of the quantum where they fit (8-bit frames), else float64
     ints = _int_sums(t, maxval)
     sin, cos = (t.ph_sin_q, t.ph_cos_q) if ints else (t.ph_sin, t.ph_cos)
@@ -287,7 +293,7 @@ def decode(
         t.ph_period, t.ph_idx, sin, cos, COEFFICIENT_QUANTUM if ints else 1.0,
         float(params.relative_contrast), float(params.blend_ratio), float(thr),
         bool(params.finest_bit), numba.get_num_threads(), _narrow(plan, stack.dtype), out.u, v_arg, out.mask,
-        out.quality, out.levels,
+        out.quality, out.levels, out.fringe,
     )  # fmt: skip
     full = int(_max_value(stack.dtype, params))
     clip = np.zeros(shape, np.uint8)

@@ -280,7 +280,7 @@ class StreamingDecoder:
                 "of the sequence before finish()"
             )
         out, v_arg = _outputs(self.plan, self.shape, out)
-        assert out.levels is not None
+        assert out.levels is not None and out.fringe is not None
         t = self.plan.tables
         shift, nbins = _hist_layout(self.dtype, self.params)
         hist = _k.range_hist(self._hi, self._lo, shift, nbins)
@@ -290,7 +290,7 @@ class StreamingDecoder:
             t.axis_tab,
             t.ph_tab, t.ph_period, float(self.params.relative_contrast), float(self.params.blend_ratio), float(thr),
             bool(self.params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
-            out.levels,
+            out.levels, out.fringe,
         )  # fmt: skip
         _saturation_and_reasons(out, v_arg, self._clip, self._hi, self._lo, thr, self.dtype, self.params)
         out.ignored = list(self.plan.ignored)

@@ -89,6 +89,8 @@ def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDAr
         np.stack([m.u for m in passes]), np.stack([m.v for m in passes]), np.stack([m.mask for m in passes]),
         np.stack([m.quality for m in passes]), np.stack([m.levels for m in passes if m.levels is not None]),
         np.stack([m.reason for m in passes if m.reason is not None]),
+        np.stack([m.fringe for m in passes if m.fringe is not None]) if all(m.fringe is not None for m in passes)
+        else None,
     )  # fmt: skip
     return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes))
 
@@ -113,19 +115,22 @@ class _PassStacks:
         quality: npt.NDArray[np.float32],
         levels: npt.NDArray[np.uint8],
         reason: npt.NDArray[np.uint8],
+        fringe: npt.NDArray[np.uint8] | None = None,
     ) -> None:
         self.u, self.v, self.mask, self.quality, self.levels, self.reason = u, v, mask, quality, levels, reason
+        self.fringe = fringe
 
     @classmethod
     def empty(cls, n: int, shape: tuple[int, int]) -> _PassStacks:
         return cls(np.empty((n, *shape), np.float32), np.empty((n, *shape), np.float32),
                    np.empty((n, *shape), np.bool_), np.empty((n, *shape), np.float32),
-                   np.empty((n, 2, *shape), np.uint8), np.empty((n, *shape), np.uint8))  # fmt: skip
+                   np.empty((n, 2, *shape), np.uint8), np.empty((n, *shape), np.uint8),
+                   np.empty((n, *shape), np.uint8))  # fmt: skip
 
     def maps(self, k: int) -> DecodedMaps:
         """Pass ``k``'s maps as views of the stacks (a decoder's ``out``)."""
         return DecodedMaps(self.u[k], self.v[k], self.mask[k], self.quality[k], levels=self.levels[k],
-                           reason=self.reason[k])  # fmt: skip
+                           reason=self.reason[k], fringe=None if self.fringe is None else self.fringe[k])  # fmt: skip
 
     def fuse(
         self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None
@@ -142,6 +147,10 @@ class _PassStacks:
                        choice, out.reason)  # fmt: skip
         _k.gather_pass(choice, out.reason, int(Reason.DECODED), self.mask, self.u, self.v, self.quality,
                        self.levels, out.u, out.v, out.mask, out.quality, out.levels)  # fmt: skip
+        if self.fringe is not None:  # the chosen pass's share (0 where the fused pixel is undecoded)
+            fringe = np.take_along_axis(self.fringe, choice[None], 0)[0]
+            fringe[~out.mask] = 0
+            out.fringe = fringe
         return out, choice
 
 
@@ -276,6 +285,7 @@ def _owned(m: DecodedMaps) -> DecodedMaps:
     return DecodedMaps(
         m.u.copy(), m.v.copy(), m.mask.copy(), m.quality.copy(), list(m.ignored),
         None if m.levels is None else m.levels.copy(), None if m.reason is None else m.reason.copy(),
+        fringe=None if m.fringe is None else m.fringe.copy(),
     )  # fmt: skip
 
 

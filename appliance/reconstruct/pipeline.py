@@ -311,6 +311,9 @@ class Reconstructor:
         self._counts: dict[str, npt.NDArray[np.int64]] = {}
         self._stats: dict[str, npt.NDArray[np.int64]] = {}
         self._spans: dict[str, npt.NDArray[np.int64]] = {}
+        self._bias_dropped: dict[str, npt.NDArray[np.int64]] = {}
+        self.fringe_median: dict[str, float] = {}
+        """Per camera the median fringe share (0..1) the last run's indirect-light term used (absent: none)."""
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
         self._normals: dict[str, F32] = {}
         self._jump: dict[str, tuple[float, float, float]] = {}
@@ -332,6 +335,7 @@ class Reconstructor:
                 self._counts[n] = np.zeros(cam.height + 1, np.int64)
                 self._stats[n] = np.zeros((cam.height, 6), np.int64)
                 self._spans[n] = np.zeros((cam.height, 2), np.int64)
+                self._bias_dropped[n] = np.zeros(cam.height, np.int64)
             else:
                 self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
@@ -384,6 +388,24 @@ class Reconstructor:
             maps.append(DecodedMaps(u, v, np.ones((h, w), np.bool_), np.full((h, w), 50.0, np.float32)))
         self._stereo.triangulate(maps[0], maps[1], self._xyz[names[0]], self.cfg.min_depth_mm, self.cfg.max_depth_mm,
                                  self.noise)  # fmt: skip
+
+    def _indirect_bias(
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None, max_sigma: float
+    ) -> None:
+        """Every camera's sigma widened by the bias of indirect light (after the checks, which judge noise)."""
+        self.fringe_median = {}
+        for n, tri in self._proj_tri.items():
+            dropped = self._bias_dropped[n]
+            median = tri.indirect_bias(maps[n], self._depth[n], self._sigma[n], self.noise,
+                                       None if white is None else white.get(n), dropped, max_sigma,
+                                       _reason_map(maps[n]))  # fmt: skip
+            if median is None:
+                continue
+            self.fringe_median[n] = median
+            total = int(dropped.sum())
+            if total:
+                self._counts[n][1:] -= dropped
+                self._stats[n][:, 5] -= dropped
 
     def _shows_reflections(self, maps: dict[str, DecodedMaps]) -> bool:
         """Whether the last depth pass saw reflections (``hidden_check: auto``): at least :data:`REFLECTION_SHARE`
@@ -546,6 +568,8 @@ class Reconstructor:
                 self._depth, self._sigma, self._counts, self._stats, {n: _reason_map(maps[n]) for n in self._proj_tri},
                 {n: maps[n].blend_codes for n in self._proj_tri},
             )  # fmt: skip
+        if cfg.indirect_sigma:
+            self._indirect_bias(maps, white, max_sigma)
         fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
         stages = []

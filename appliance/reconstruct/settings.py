@@ -73,3 +73,9 @@ class ReconstructionSettings(Protocol):
         """``'auto'``, ``'always'`` or ``'off'``: drop points the projector cannot light
         (:mod:`appliance.reconstruct.visibility`)."""
         ...
+
+    @property
+    def indirect_sigma(self) -> bool:
+        """Widen a camera-projector point's sigma by the bias of indirect light
+        (:func:`appliance.reconstruct.uncertainty.fringe_variance_table`)."""
+        ...

@@ -50,7 +50,7 @@ from appliance.geometry.camera import CameraModel
 from appliance.geometry.rays import ROW_TABLE_STEP, RayTable
 from appliance.reconstruct import _procam_kernels as K
 from appliance.reconstruct.types import DecodedMaps, PointCloud, Reason
-from appliance.reconstruct.uncertainty import CodeNoise
+from appliance.reconstruct.uncertainty import CodeNoise, fringe_variance_table
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -163,6 +163,7 @@ class ProjectorTriangulator:
         )
         self._kp = np.ascontiguousarray(projector.K)
         self._dp = distortion12(projector)
+        self._fringe_hist = np.zeros(256, np.int64)
         self.table_error = 0.0
         """Largest interpolation error of the code table, normalised projector units (measured)."""
         if axes == "xy" and like is not None and like.projector is projector and like.axes == "xy":
@@ -442,6 +443,70 @@ class ProjectorTriangulator:
         K.depth_filtered(u, v, mask, quality, wimg, tx, ty, table, und, self._kp, self._dp, self._rcp, self._tcp,
                          params, epi, jump, p, depth, sigma, counts, stats, spans, reason, _RCODES)  # fmt: skip
         return depth, counts
+
+    def indirect_bias(
+        self,
+        maps: DecodedMaps,
+        depth: F32,
+        sigma: F32,
+        noise: CodeNoise | None,
+        white: npt.NDArray[np.generic] | None,
+        dropped: npt.NDArray[np.int64],
+        max_sigma_mm: float = math.inf,
+        reason_out: npt.NDArray[np.uint8] | None = None,
+    ) -> float | None:
+        """Widen the sigma of the points of :meth:`triangulate_depth` by the bias of light that came another way.
+
+        The code of a pixel whose fringe share (``maps.fringe``) lies below the scan's median may be shifted
+        by indirect light; its variance gains
+        :func:`~appliance.reconstruct.uncertainty.fringe_variance_table`'s term. Run after the consistency
+        checks (epipolar, neighbours, visibility), which judge noise: a bias is shared by neighbours.
+
+        Parameters
+        ----------
+        maps : DecodedMaps
+            The decoded maps the depth came from (``fringe``, ``quality``).
+        depth, sigma : ndarray, shape (H, W), float32
+            Depth and 1-sigma error (mm) of :meth:`triangulate_depth`, changed in place.
+        noise : CodeNoise, optional
+            The code noise model triangulate_depth used; nothing happens without one or without a phase code.
+        white : ndarray, shape (H, W), optional
+            The white image triangulate_depth used.
+        dropped : ndarray, shape (H,), int64
+            Receives per row the points dropped for a widened sigma over ``max_sigma_mm``.
+        max_sigma_mm : float
+            The sigma limit of the depth pass (mm).
+        reason_out : ndarray, shape (H, W), uint8, optional
+            Gets ``FILTERED`` on the points dropped.
+
+        Returns
+        -------
+        float or None
+            The scan's median fringe share (0..1) the term used; None where no term applied (``dropped`` 0).
+        """
+        shape = self.rays.shape
+        dropped[:] = 0
+        fringe = maps.fringe
+        if noise is None or noise.period_px <= 0 or fringe is None:
+            return None
+        if fringe.shape != shape or fringe.dtype != np.uint8 or not fringe.flags.c_contiguous:
+            raise ValueError(f"{self.camera.name}: fringe map is {fringe.shape} {fringe.dtype}: must be a "
+                             f"C-contiguous {shape} uint8 map")  # fmt: skip
+        K.u8_histogram(fringe, int(_chunks(shape[0])), self._fringe_hist)
+        got = fringe_variance_table(self._fringe_hist, noise.period_px)
+        if got is None:
+            return None
+        table, median = got
+        wimg: npt.NDArray[np.generic] = (
+            np.zeros((1, 1), np.float32) if white is None
+            else np.ascontiguousarray(white if white.ndim == 2 else white.mean(axis=2, dtype=np.float32))
+        )  # fmt: skip
+        quality = np.ascontiguousarray(maps.quality, np.float32)
+        has_r = reason_out is not None
+        K.indirect_bias(depth, sigma, quality, wimg, white is not None, fringe, table, noise.params(),
+                        float(max_sigma_mm), reason_out if has_r else np.zeros((1, 1), np.uint8), has_r,
+                        np.uint8(Reason.FILTERED), dropped)  # fmt: skip
+        return median
 
     def write_points(
         self,

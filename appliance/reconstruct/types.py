@@ -90,6 +90,11 @@ class DecodedMaps:
         The pixels the check for two copies of the pattern undecoded (reason ``INTERREFLECTION``): row, column,
         u, v (projector px; v NaN when not coded) of the stronger copy. Never a point: the reconstruction uses
         them only as evidence of a surface that the projector lights in front of another point.
+    fringe : ndarray, shape (H, W), uint8, optional
+        Per decoded pixel its ``quality`` as a share of its white - black range (percent, at most 255; 0 where
+        undecoded): how much of the pixel's projector light carries the pattern. Light that came another way
+        (diffuse interreflection, subsurface scattering) adds to the range, not to the pattern's contrast. None
+        when not computed.
     """
 
     u: npt.NDArray[np.float32]
@@ -100,6 +105,7 @@ class DecodedMaps:
     levels: npt.NDArray[np.uint8] | None = None
     reason: npt.NDArray[np.uint8] | None = None
     blend_codes: npt.NDArray[np.float32] | None = None
+    fringe: npt.NDArray[np.uint8] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -38,7 +38,7 @@ from appliance.reconstruct.decode import (
 def _same(a: DecodedMaps, b: DecodedMaps) -> bool:
     return all(
         np.array_equal(getattr(a, k).view(np.uint8), getattr(b, k).view(np.uint8))
-        for k in ("u", "v", "mask", "quality", "reason")
+        for k in ("u", "v", "mask", "quality", "reason", "fringe")
     )
 
 
