@@ -649,7 +649,7 @@ def u8_histogram(img, nchunks, out):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def indirect_bias(  # type: ignore[no-untyped-def]
-    depth, sigma, quality, white, has_w, fringe, ftab, noise, max_sigma, reason, has_r, r_filtered, dropped
+    depth, sigma, quality, white, has_w, fringe, ftab, noise, max_sigma, reason, has_r, r_filtered, dropped, widened
 ):
     """Widen every point's sigma by the bias of indirect light and drop those then over ``max_sigma`` (mm).
 
@@ -657,13 +657,14 @@ def indirect_bias(  # type: ignore[no-untyped-def]
     ``noise``) becomes ``sigma sqrt(1 + ftab[fringe] / su2n)``: the code variance gains the table's bias
     variance (px^2) and the derivative along the ray is unchanged. A point whose widened sigma exceeds
     ``max_sigma`` loses its depth and sigma (NaN), gets reason ``r_filtered`` (when ``has_r``), and counts in
-    ``dropped[r]`` (its row).
+    ``dropped[r]`` (its row); ``widened[r]`` counts the row's points whose sigma grew (kept or not).
     """
     h, w = depth.shape
     g2 = noise[0] * noise[0]
     svar, rvar, inv_e = noise[1], noise[2], noise[3]
     for r in prange(h):
         dropped[r] = 0
+        widened[r] = 0
         zr = depth[r]
         sr = sigma[r]
         for c in range(w):
@@ -676,6 +677,7 @@ def indirect_bias(  # type: ignore[no-untyped-def]
             a = np.float64(white[r, c]) - 0.5 * q if has_w else 0.5 * q
             su2n = g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
             s = np.float64(sr[c]) * math.sqrt(1.0 + b / su2n)
+            widened[r] += 1
             if s > max_sigma:
                 zr[c] = np.float32(np.nan)
                 sr[c] = np.float32(np.nan)

@@ -222,6 +222,22 @@ def epipolar_warning(camera: str, dropped: int, triangulated: int) -> str:
             "Dull or tilt the shiny surface, or scan it from another side")
 
 
+INDIRECT_WARN_SHARE = 0.2
+"""A camera whose points got a widened sigma for indirect light (``indirect_sigma``) in at least this share is
+told in words."""
+
+
+def indirect_warning(camera: str, widened: int, points: int, dropped: int, max_sigma_mm: float | None) -> str:
+    """The plain-words line for a scan whose points are largely lit by light that came another way."""
+    pct = f"{100.0 * widened / max(points, 1):.0f} %"
+    tail = (f"; {dropped} of them exceeded reconstruction.max_sigma_mm = {max_sigma_mm} mm and were dropped"
+            if dropped else "; set reconstruction.max_sigma_mm to drop the worst")
+    return (f"{pct} of camera {camera}'s points are lit partly by light that came another way (their pattern "
+            "contrast is more than 10 % below the scan's median: interreflection in a concave part, a translucent "
+            f"material): their sigma says how far that light may shift them{tail}. Matte spray or another view "
+            "angle helps")
+
+
 REFLECTION_SHARE = 1e-3
 """``hidden_check: auto`` runs the projector visibility check when at least this share of a camera's decoded pixels
 shows a reflection: a normal scene's stray blends stay near 1e-4 (the bench's 2 x 5 MP scene: 0.007 %), a
@@ -312,6 +328,7 @@ class Reconstructor:
         self._stats: dict[str, npt.NDArray[np.int64]] = {}
         self._spans: dict[str, npt.NDArray[np.int64]] = {}
         self._bias_dropped: dict[str, npt.NDArray[np.int64]] = {}
+        self._bias_widened: dict[str, npt.NDArray[np.int64]] = {}
         self.fringe_median: dict[str, float] = {}
         """Per camera the median fringe share (0..1) the last run's indirect-light term used (absent: none)."""
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
@@ -336,6 +353,7 @@ class Reconstructor:
                 self._stats[n] = np.zeros((cam.height, 6), np.int64)
                 self._spans[n] = np.zeros((cam.height, 2), np.int64)
                 self._bias_dropped[n] = np.zeros(cam.height, np.int64)
+                self._bias_widened[n] = np.zeros(cam.height, np.int64)
             else:
                 self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
@@ -393,12 +411,11 @@ class Reconstructor:
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None, max_sigma: float
     ) -> None:
         """Every camera's sigma widened by the bias of indirect light (after the checks, which judge noise)."""
-        self.fringe_median = {}
         for n, tri in self._proj_tri.items():
             dropped = self._bias_dropped[n]
             median = tri.indirect_bias(maps[n], self._depth[n], self._sigma[n], self.noise,
                                        None if white is None else white.get(n), dropped, max_sigma,
-                                       _reason_map(maps[n]))  # fmt: skip
+                                       _reason_map(maps[n]), self._bias_widened[n])  # fmt: skip
             if median is None:
                 continue
             self.fringe_median[n] = median
@@ -568,6 +585,7 @@ class Reconstructor:
                 self._depth, self._sigma, self._counts, self._stats, {n: _reason_map(maps[n]) for n in self._proj_tri},
                 {n: maps[n].blend_codes for n in self._proj_tri},
             )  # fmt: skip
+        self.fringe_median = {}
         if cfg.indirect_sigma:
             self._indirect_bias(maps, white, max_sigma)
         fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
@@ -580,6 +598,12 @@ class Reconstructor:
             stages.append(StageCounts(n, h * w, int(s[0]), int(s[1]), int(s[3]), int(s[4]), int(s[5]), cons))
         warnings = stage_warnings(stages, cfg)
         warnings += [epipolar_warning(n, off, tri_n) for n, (off, tri_n) in unchecked.items()]
+        for n in self.fringe_median:
+            widened = int(self._bias_widened[n].sum())
+            points = int(self._counts[n][1:].sum()) + int(self._bias_dropped[n].sum())  # before the bias drops
+            if widened >= INDIRECT_WARN_SHARE * max(points, 1):
+                warnings.append(indirect_warning(n, widened, points, int(self._bias_dropped[n].sum()),
+                                                 cfg.max_sigma_mm))  # fmt: skip
         residuals = list(self._stereo.residuals) if self._stereo is not None else []
         if self.axes == "xy" and self.calibration.projector is not None:
             for n, tri in self._proj_tri.items():

@@ -454,6 +454,7 @@ class ProjectorTriangulator:
         dropped: npt.NDArray[np.int64],
         max_sigma_mm: float = math.inf,
         reason_out: npt.NDArray[np.uint8] | None = None,
+        widened: npt.NDArray[np.int64] | None = None,
     ) -> float | None:
         """Widen the sigma of the points of :meth:`triangulate_depth` by the bias of light that came another way.
 
@@ -478,6 +479,8 @@ class ProjectorTriangulator:
             The sigma limit of the depth pass (mm).
         reason_out : ndarray, shape (H, W), uint8, optional
             Gets ``FILTERED`` on the points dropped.
+        widened : ndarray, shape (H,), int64, optional
+            Receives per row the points whose sigma grew (dropped or not).
 
         Returns
         -------
@@ -486,6 +489,8 @@ class ProjectorTriangulator:
         """
         shape = self.rays.shape
         dropped[:] = 0
+        if widened is not None:
+            widened[:] = 0
         fringe = maps.fringe
         if noise is None or noise.period_px <= 0 or fringe is None:
             return None
@@ -505,7 +510,8 @@ class ProjectorTriangulator:
         has_r = reason_out is not None
         K.indirect_bias(depth, sigma, quality, wimg, white is not None, fringe, table, noise.params(),
                         float(max_sigma_mm), reason_out if has_r else np.zeros((1, 1), np.uint8), has_r,
-                        np.uint8(Reason.FILTERED), dropped)  # fmt: skip
+                        np.uint8(Reason.FILTERED), dropped,
+                        widened if widened is not None else np.zeros(shape[0], np.int64))  # fmt: skip
         return median
 
     def write_points(

@@ -178,7 +178,11 @@ def test_decode_command_on_a_recorded_capture(tmp_path: Path) -> None:
                             "write_ms", "total_ms"}  # fmt: skip
     assert summary["summary"] and summary["captures"] == 1
     maps = np.load(tmp_path / "m.npz")
-    assert set(maps.files) == {"cam0_u", "cam0_v", "cam0_mask", "cam0_quality", "cam0_levels", "cam0_reason"}
+    assert set(maps.files) == {"cam0_u", "cam0_v", "cam0_mask", "cam0_quality", "cam0_levels", "cam0_reason",
+                               "cam0_fringe"}  # fmt: skip
+    fringe, mask = maps["cam0_fringe"], maps["cam0_mask"]
+    assert fringe.dtype == np.uint8 and not fringe[~mask].any()
+    assert 70 <= np.median(fringe[mask]) <= 100  # a plain scene: nearly all its light carries the pattern
     v = PlyData.read(str(tmp_path / "c.ply"))["vertex"]
     gt = rig.virtual.ground_truth("cam0")
     truth = gt.xyz[v["row"], v["col"]]
