@@ -630,13 +630,15 @@ def organised_from_depth(depth, tx, ty, step, rwc, cwc, to_world, out):  # type:
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def u8_histogram(img, nchunks, out):  # type: ignore[no-untyped-def]
-    """Counts of each value 0..255 of a uint8 image ``img`` (H, W) into ``out`` (256,) int64; ``nchunks`` row
-    chunks counted in parallel."""
+def u8_histogram(img, nchunks, step, out):  # type: ignore[no-untyped-def]
+    """Counts of each value 0..255 of every ``step``-th row of a uint8 image ``img`` (H, W) into ``out`` (256,)
+    int64; ``nchunks`` row chunks counted in parallel."""
     h = img.shape[0]
     part = np.zeros((nchunks, 256), np.int64)
     for ch in prange(nchunks):
-        for y in range(ch * h // nchunks, (ch + 1) * h // nchunks):
+        y0 = ch * h // nchunks
+        y0 += (-y0) % step
+        for y in range(y0, (ch + 1) * h // nchunks, step):
             row = img[y]
             for x in range(row.shape[0]):
                 part[ch, row[x]] += 1
@@ -667,11 +669,10 @@ def indirect_bias(  # type: ignore[no-untyped-def]
         widened[r] = 0
         zr = depth[r]
         sr = sigma[r]
+        fr = fringe[r]
         for c in range(w):
-            if not zr[c] == zr[c]:
-                continue
-            b = ftab[fringe[r, c]]
-            if b == 0.0:
+            b = ftab[fr[c]]  # the 1-byte share first: most pixels have no bias, and their depth is not read
+            if b == 0.0 or not zr[c] == zr[c]:
                 continue
             q = np.float64(quality[r, c])
             a = np.float64(white[r, c]) - 0.5 * q if has_w else 0.5 * q
