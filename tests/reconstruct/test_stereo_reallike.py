@@ -43,7 +43,7 @@ from appliance.config.schema import (
 from appliance.geometry.calibration_file import Calibration
 from appliance.patterns.sequence import Sequence, gray_code_sequence
 from appliance.reconstruct.decode import decode
-from appliance.reconstruct.pipeline import Reconstructor
+from appliance.reconstruct.pipeline import Reconstruction, Reconstructor
 from appliance.reconstruct.stereo import code_grid
 from appliance.reconstruct.types import DecodedMaps
 from appliance.sim.rig import VirtualRig
@@ -91,6 +91,23 @@ def _capture(blur: float = 1.0, scale: float = SCALE) -> tuple[VirtualRig, Seque
     return rig, seq, {n: decode(_jpeg(rig.render(seq, n)), seq) for n in rig.camera_names()}
 
 
+def _reconstruct(
+    rig: VirtualRig, seq: Sequence, maps: dict[str, DecodedMaps]
+) -> tuple[Reconstruction, npt.NDArray[np.bool_], npt.NDArray[np.bool_], npt.NDArray[np.float64]]:
+    """The product's camera-camera reconstruction of a capture: the run, the both-seen pixels (truth), the pixels
+    with a point, and each point's error (mm)."""
+    cfg = ReconstructionConfig(mode="stereo", min_depth_mm=2000.0, max_depth_mm=5000.0)
+    rec = Reconstructor(Calibration({"cam0": rig.cameras["cam0"], "cam1": rig.cameras["cam1"]}), "xy", cfg, seq)
+    out = rec.run(maps)
+    cloud = out.cloud
+    truth = rig.ground_truth("cam0").xyz
+    both = rendered._seen_by_both(rig, maps)
+    got = np.zeros_like(both)
+    got[cloud.row, cloud.col] = True
+    err: npt.NDArray[np.float64] = np.linalg.norm(cloud.xyz - truth[cloud.row, cloud.col], axis=1)
+    return out, both, got, err
+
+
 def _hole_pattern(holes: npt.NDArray[np.bool_], region: npt.NDArray[np.bool_]) -> tuple[float, float]:
     """Share of the region's interior in small holes (components of <= 16 px), and the hole map's strongest
     spatial frequency over the median of its spectrum (a moire is a sharp peak)."""
@@ -111,15 +128,7 @@ def test_real_like_capture_gets_a_point_for_every_pixel_both_cameras_see() -> No
         for code, along in ((m.u, 1), (m.v, 0)):
             grid = code_grid(code, m.mask, along=along)
             assert grid is not None and grid.quantised and grid.step == 1.0, (name, grid)
-    cfg = ReconstructionConfig(mode="stereo", min_depth_mm=2000.0, max_depth_mm=5000.0)
-    rec = Reconstructor(Calibration({"cam0": rig.cameras["cam0"], "cam1": rig.cameras["cam1"]}), "xy", cfg, seq)
-    out = rec.run(maps)
-    cloud = out.cloud
-    truth = rig.ground_truth("cam0").xyz
-    both = rendered._seen_by_both(rig, maps)
-    got = np.zeros_like(both)
-    got[cloud.row, cloud.col] = True
-    err = np.linalg.norm(cloud.xyz - truth[cloud.row, cloud.col], axis=1)
+    out, both, got, err = _reconstruct(rig, seq, maps)
     coverage, median = float(got[both].mean()), float(np.median(err))
     small, peak = _hole_pattern(both & ~got, both)
     print(f"real-like: coverage {100 * coverage:.2f} % of {both.sum()} both-seen pixels, median {median:.3f} mm, "
@@ -155,15 +164,7 @@ def test_twice_the_blur_drops_finest_bits_and_the_codes_are_still_quantised() ->
             assert dropped > 0.3, (name, a, dropped)  # the case this test is about
             grid = code_grid(code, m.mask, along=along, levels=m.levels[a])
             assert grid is not None and grid.quantised and grid.step == 1.0 and grid.origin == 0.0, (name, grid)
-    cfg = ReconstructionConfig(mode="stereo", min_depth_mm=2000.0, max_depth_mm=5000.0)
-    rec = Reconstructor(Calibration({"cam0": rig.cameras["cam0"], "cam1": rig.cameras["cam1"]}), "xy", cfg, seq)
-    out = rec.run(maps)
-    cloud = out.cloud
-    truth = rig.ground_truth("cam0").xyz
-    both = rendered._seen_by_both(rig, maps)
-    got = np.zeros_like(both)
-    got[cloud.row, cloud.col] = True
-    err = np.linalg.norm(cloud.xyz - truth[cloud.row, cloud.col], axis=1)
+    out, both, got, err = _reconstruct(rig, seq, maps)
     coverage, median = float(got[both].mean()), float(np.median(err))
     print(f"blur x2: coverage {100 * coverage:.2f} % of {both.sum()} both-seen pixels, median {median:.3f} mm, "
           f"p99 {np.percentile(err, 99):.2f} mm")  # fmt: skip
@@ -185,15 +186,7 @@ def test_at_the_real_capture_s_size_every_pixel_both_cameras_see_gets_a_point() 
     rig, seq, maps = _capture.__wrapped__(2.0, 1.0)  # not kept: 0.2 GB for the rest of the suite
     for m in maps.values():
         assert m.levels is not None and float(np.mean(m.levels[0][m.mask] > 0)) > 0.3  # the case this is about
-    cfg = ReconstructionConfig(mode="stereo", min_depth_mm=2000.0, max_depth_mm=5000.0)
-    rec = Reconstructor(Calibration({"cam0": rig.cameras["cam0"], "cam1": rig.cameras["cam1"]}), "xy", cfg, seq)
-    out = rec.run(maps)
-    cloud = out.cloud
-    truth = rig.ground_truth("cam0").xyz
-    both = rendered._seen_by_both(rig, maps)
-    got = np.zeros_like(both)
-    got[cloud.row, cloud.col] = True
-    err = np.linalg.norm(cloud.xyz - truth[cloud.row, cloud.col], axis=1)
+    out, both, got, err = _reconstruct(rig, seq, maps)
     coverage, median = float(got[both].mean()), float(np.median(err))
     small, _ = _hole_pattern(both & ~got, both)
     # the holes left are mostly one band on the box's right face, steep to the cameras' baseline (its spectrum
