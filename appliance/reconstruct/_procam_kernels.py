@@ -283,6 +283,14 @@ def _z_ray(cu, cv, mx, my, und, origin, kmat, d, rcp, tcp):  # type: ignore[no-u
     return (z if zp > 0.0 else np.nan), zp / rn, abs(a1 * b2 - a2 * b1) / (rn * zp)
 
 
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def code_noise_var(q, w, has_w, g2, svar, rvar, inv_e):  # type: ignore[no-untyped-def]
+    """A pixel's code variance from the camera noise (px^2): ``g2 (rvar + A inv_e) / q^2 + svar`` with the mean
+    level ``A = w - q / 2`` (``q / 2`` without a white image); see ``uncertainty.CodeNoise``."""
+    a = np.float64(w) - 0.5 * q if has_w else 0.5 * q
+    return g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _finish_row(pz, gz, er, mx, my, qr, wr, has_w, noise, epi, zmin, zmax, jump, inv_f, px, py, ps, pj, pw):  # type: ignore[no-untyped-def]
     """Epipolar check, depth range, 1-sigma error along the ray (mm), jump limit and x, y of every point of a row.
@@ -308,10 +316,9 @@ def _finish_row(pz, gz, er, mx, my, qr, wr, has_w, noise, epi, zmin, zmax, jump,
     for c in range(pz.shape[0]):
         z = np.float64(pz[c])
         q = np.float64(qr[c])
-        a = np.float64(wr[c]) - 0.5 * q if has_w else 0.5 * q
         x = mx[c]
         y = my[c]
-        su2 = g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
+        su2 = code_noise_var(q, wr[c] if has_w else 0.0, has_w, g2, svar, rvar, inv_e)
         sg = gz[c] * math.sqrt(su2 * (1.0 + x * x + y * y))
         fin = z == z
         e = np.float64(er[c]) if use_e else 0.0
@@ -675,8 +682,7 @@ def indirect_bias(  # type: ignore[no-untyped-def]
             if b == 0.0 or not zr[c] == zr[c]:
                 continue
             q = np.float64(quality[r, c])
-            a = np.float64(white[r, c]) - 0.5 * q if has_w else 0.5 * q
-            su2n = g2 * (rvar + max(a, 0.0) * inv_e) / (q * q) + svar
+            su2n = code_noise_var(q, white[r, c] if has_w else 0.0, has_w, g2, svar, rvar, inv_e)
             s = np.float64(sr[c]) * math.sqrt(1.0 + b / su2n)
             widened[r] += 1
             if s > max_sigma:

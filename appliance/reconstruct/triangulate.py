@@ -405,15 +405,7 @@ class ProjectorTriangulator:
             spans = np.empty((shape[0], 2), np.int64)
         elif spans.shape != (shape[0], 2) or spans.dtype != np.int64 or not spans.flags.c_contiguous:
             raise ValueError(f"spans: {spans.shape} {spans.dtype}: must be C-contiguous int64 {(shape[0], 2)}")
-        quality = np.ascontiguousarray(maps.quality, np.float32)
-        if quality.shape != shape:
-            raise ValueError(f"{self.camera.name}: quality is {quality.shape}, camera is {shape} (H, W): must match")
-        if white is None:
-            wimg: npt.NDArray[np.generic] = np.zeros((1, 1), np.float32)
-        else:
-            wimg = np.ascontiguousarray(white if white.ndim == 2 else white.mean(axis=2, dtype=np.float32))
-            if wimg.shape != shape:
-                raise ValueError(f"{self.camera.name}: white image is {wimg.shape}, camera is {shape}: must match")
+        quality, wimg = self._noise_inputs(maps, white, shape)
         params = noise.params() if noise is not None else np.array([np.nan, np.nan, 0.0, 0.0])
         jump = np.array([max_jump_mm, jump_footprints, jump_sigmas], np.float64)
         if not (epipolar_sigmas >= 0 and epipolar_floor_px >= 0):
@@ -443,6 +435,20 @@ class ProjectorTriangulator:
         K.depth_filtered(u, v, mask, quality, wimg, tx, ty, table, und, self._kp, self._dp, self._rcp, self._tcp,
                          params, epi, jump, p, depth, sigma, counts, stats, spans, reason, _RCODES)  # fmt: skip
         return depth, counts
+
+    def _noise_inputs(
+        self, maps: DecodedMaps, white: npt.NDArray[np.generic] | None, shape: tuple[int, int]
+    ) -> tuple[F32, npt.NDArray[np.generic]]:
+        """The quality map and the white image (a (1, 1) placeholder without one) as the noise kernels read them."""
+        quality = np.ascontiguousarray(maps.quality, np.float32)
+        if quality.shape != shape:
+            raise ValueError(f"{self.camera.name}: quality is {quality.shape}, camera is {shape} (H, W): must match")
+        if white is None:
+            return quality, np.zeros((1, 1), np.float32)
+        wimg = np.ascontiguousarray(white if white.ndim == 2 else white.mean(axis=2, dtype=np.float32))
+        if wimg.shape != shape:
+            raise ValueError(f"{self.camera.name}: white image is {wimg.shape}, camera is {shape}: must match")
+        return quality, wimg
 
     def indirect_bias(
         self,
@@ -505,11 +511,7 @@ class ProjectorTriangulator:
         if got is None:
             return None
         table, median = got
-        wimg: npt.NDArray[np.generic] = (
-            np.zeros((1, 1), np.float32) if white is None
-            else np.ascontiguousarray(white if white.ndim == 2 else white.mean(axis=2, dtype=np.float32))
-        )  # fmt: skip
-        quality = np.ascontiguousarray(maps.quality, np.float32)
+        quality, wimg = self._noise_inputs(maps, white, shape)
         has_r = reason_out is not None
         K.indirect_bias(depth, sigma, quality, wimg, white is not None, fringe, table, noise.params(),
                         float(max_sigma_mm), reason_out if has_r else np.zeros((1, 1), np.uint8), has_r,
