@@ -9,12 +9,13 @@ import appliance._numba_cache  # noqa: F401  (the cache folder, before any kerne
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def choose_pass(mask, reason, r_sat, r_ok, r_mixed, choice, out_reason):  # type: ignore[no-untyped-def]
+def choose_pass(mask, reason, r_sat, r_ok, r_mixed, clean_rule, choice, out_reason):  # type: ignore[no-untyped-def]
     """Per pixel the brightest pass (highest index) in which neither the pixel nor any of its 8 neighbours
     clipped: its result, decoded or not (a darker pass has less signal, so no darker one is trusted over its
     verdict). A pixel that decoded only in passes where a neighbour clipped is ``r_mixed`` (the clipped
     neighbour's light, of unknown level, reaches it through the lens blur: its code is the neighbour's as much
-    as its own); the darkest pass ("saturated") where every pass clipped the pixel itself."""
+    as its own); the darkest pass ("saturated") where every pass clipped the pixel itself. Without
+    ``clean_rule`` the neighbours are not looked at: the brightest pass that did not clip the pixel itself."""
     n, h, w = mask.shape
     for y in prange(h):
         for x in range(w):
@@ -26,6 +27,9 @@ def choose_pass(mask, reason, r_sat, r_ok, r_mixed, choice, out_reason):  # type
                 if own < 0:
                     own = k
                 clean = True
+                if not clean_rule:
+                    best = k
+                    break
                 for yy in range(max(y - 1, 0), min(y + 2, h)):
                     for xx in range(max(x - 1, 0), min(x + 2, w)):
                         if reason[k, yy, xx] == r_sat:

@@ -658,15 +658,18 @@ def u8_histogram(img, nchunks, step, out):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def indirect_bias(  # type: ignore[no-untyped-def]
-    depth, sigma, quality, white, has_w, fringe, ftab, noise, max_sigma, reason, has_r, r_filtered, dropped, widened
-):
+    depth, sigma, quality, white, has_w, fringe, has_f, ftab, evar, has_e, noise, max_sigma, reason, has_r,
+    r_filtered, dropped, widened,
+):  # fmt: skip
     """Widen every point's sigma by the bias of indirect light and drop those then over ``max_sigma`` (mm).
 
     A point's sigma (its code noise, see ``_finish_row``: ``su2n`` px^2 from ``quality``, ``white`` and
-    ``noise``) becomes ``sigma sqrt(1 + ftab[fringe] / su2n)``: the code variance gains the table's bias
-    variance (px^2) and the derivative along the ray is unchanged. A point whose widened sigma exceeds
+    ``noise``) becomes ``sigma sqrt(1 + (ftab[fringe] + evar) / su2n)``: the code variance gains the table's
+    bias variance and the pixel's ``evar`` (px^2; each only when ``has_f`` / ``has_e``) and the derivative along
+    the ray is unchanged. A point whose widened sigma exceeds
     ``max_sigma`` loses its depth and sigma (NaN), gets reason ``r_filtered`` (when ``has_r``), and counts in
-    ``dropped[r]`` (its row); ``widened[r]`` counts the row's points whose sigma grew (kept or not).
+    ``dropped[r]`` (its row); ``widened[r]`` counts the row's points whose sigma the indirect term grew (kept or
+    not).
     """
     h, w = depth.shape
     g2 = noise[0] * noise[0]
@@ -676,15 +679,19 @@ def indirect_bias(  # type: ignore[no-untyped-def]
         widened[r] = 0
         zr = depth[r]
         sr = sigma[r]
-        fr = fringe[r]
+        fr = fringe[r] if has_f else fringe[0]
+        er = evar[r] if has_e else evar[0]
         for c in range(w):
-            b = ftab[fr[c]]  # the 1-byte share first: most pixels have no bias, and their depth is not read
+            # the 1-byte share first: most pixels have no bias, and their depth is not read
+            bf = ftab[fr[c]] if has_f else 0.0
+            b = bf + np.float64(er[c]) if has_e else bf
             if b == 0.0 or not zr[c] == zr[c]:
                 continue
             q = np.float64(quality[r, c])
             su2n = code_noise_var(q, white[r, c] if has_w else 0.0, has_w, g2, svar, rvar, inv_e)
             s = np.float64(sr[c]) * math.sqrt(1.0 + b / su2n)
-            widened[r] += 1
+            if bf > 0.0:
+                widened[r] += 1
             if s > max_sigma:
                 zr[c] = np.float32(np.nan)
                 sr[c] = np.float32(np.nan)

@@ -71,6 +71,11 @@ class DecodeParams:
         reason ``INTERREFLECTION`` where two or more of its fine decoded Gray bits (period up to 512 projector
         px) have a contrast under this fraction of its ``white - black`` (a clean pixel has at most one, at a
         stripe edge), and 3 of its 8 neighbours are marked too (see ``_decode_kernels.BLEND_PERIOD_PX``). 0: off.
+    clean_neighbours : bool
+        Several exposures: take a pixel only from a pass where none of its 8 neighbours clipped (the clipped
+        neighbour's light, of unknown level, blurs into it). False where the reconstruction corrects albedo
+        edges from the fused white level (``reconstruction.edge_blur_px`` > 0): the neighbour's level is then
+        known from a darker pass, and the pixel takes the brightest pass that did not clip it.
     """
 
     min_contrast_dn: float = 6.0
@@ -79,13 +84,15 @@ class DecodeParams:
     max_value: float | None = None
     finest_bit: bool = True
     blend_ratio: float = 0.4
+    clean_neighbours: bool = True
 
     @staticmethod
     def from_settings(settings: ReconstructionSettings, max_value: float | None = None) -> DecodeParams:
         """The decoder's thresholds from the reconstruction settings (``reconstruction`` of the configuration),
         as the scan and the replay path both take them; ``max_value`` as the attribute."""
         return DecodeParams(min_contrast_dn=settings.min_contrast_dn, relative_contrast=settings.relative_contrast,
-                            max_value=max_value, blend_ratio=settings.blend_ratio)  # fmt: skip
+                            max_value=max_value, blend_ratio=settings.blend_ratio,
+                            clean_neighbours=not settings.edge_blur_px > 0)  # fmt: skip
 
     @staticmethod
     def for_bits(bits: int, **kwargs: Any) -> DecodeParams:

@@ -59,20 +59,25 @@ def exposure_passes(keys: Sequence[Hashable], light: Sequence[float]) -> list[tu
     return sorted(passes.values(), key=lambda p: p[0])
 
 
-def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
+def fuse_exposures(
+    passes: Sequence[DecodedMaps], clean_neighbours: bool = True
+) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
     """Fuse the decodes of one scene's exposure passes, given darkest first.
 
     Parameters
     ----------
     passes : sequence of DecodedMaps
         One decode per pass, same shape, ordered by increasing light, each with ``reason``.
+    clean_neighbours : bool
+        See ``DecodeParams.clean_neighbours`` (False: the brightest pass that did not clip the pixel itself).
 
     Returns
     -------
     maps : DecodedMaps
         Per pixel the brightest pass that clipped neither it nor its 8 neighbours (``u``, ``v``, ``mask``,
-        ``quality`` in that pass's DN, ``levels``), and the fused ``reason`` (``MIXED`` where the pixel decoded only
-        in passes with a clipped neighbour: undecoded here).
+        ``quality`` in that pass's DN, ``levels``; with ``clean_neighbours`` False the brightest that did not clip
+        it), and the fused ``reason`` (``MIXED`` where the pixel decoded only in passes with a clipped neighbour:
+        undecoded here).
     choice : ndarray, shape (H, W), uint8
         Index of the pass each pixel's result came from (the pass its reason came from where undecoded).
     """
@@ -92,7 +97,7 @@ def fuse_exposures(passes: Sequence[DecodedMaps]) -> tuple[DecodedMaps, npt.NDAr
         np.stack([m.fringe for m in passes if m.fringe is not None]) if all(m.fringe is not None for m in passes)
         else None,
     )  # fmt: skip
-    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes))
+    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes), clean_neighbours)
 
 
 def _blend_codes(passes: Sequence[DecodedMaps]) -> npt.NDArray[np.float32] | None:
@@ -133,7 +138,7 @@ class _PassStacks:
                            reason=self.reason[k], fringe=None if self.fringe is None else self.fringe[k])  # fmt: skip
 
     def fuse(
-        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None
+        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None, clean_neighbours: bool = True
     ) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
         shape = (int(self.u.shape[1]), int(self.u.shape[2]))
         choice = np.empty(shape, np.uint8)
@@ -144,7 +149,7 @@ class _PassStacks:
         )  # fmt: skip
         assert out.levels is not None and out.reason is not None
         _k.choose_pass(self.mask, self.reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED),
-                       choice, out.reason)  # fmt: skip
+                       bool(clean_neighbours), choice, out.reason)  # fmt: skip
         _k.gather_pass(choice, out.reason, int(Reason.DECODED), self.mask, self.u, self.v, self.quality,
                        self.levels, out.u, out.v, out.mask, out.quality, out.levels)  # fmt: skip
         if self.fringe is not None:  # the chosen pass's share (0 where the fused pixel is undecoded)
@@ -172,6 +177,37 @@ def pick_per_pixel(images: Sequence[npt.NDArray[np.generic]], choice: npt.NDArra
     stack = np.stack([np.asarray(im) for im in images])
     picked: npt.NDArray[np.generic] = np.take_along_axis(stack, choice[None].astype(np.intp), axis=0)[0]
     return picked
+
+
+def radiance(
+    greys: Sequence[npt.NDArray[np.uint8]], lights: Sequence[float], top: int = 255
+) -> npt.NDArray[np.float32]:
+    """White-light level per pixel in one scale across exposure passes (``DecodedMaps.radiance``).
+
+    Parameters
+    ----------
+    greys : sequence of ndarray, shape (H, W), uint8
+        Each pass's grey image under white light (darkest pass first, as ``passes``).
+    lights : sequence of float
+        Each pass's relative light (exposure x intensity).
+    top : int
+        The grey value at which a pixel clipped.
+
+    Returns
+    -------
+    ndarray, shape (H, W), float32
+        Per pixel its grey in the brightest pass that did not clip it, times the brightest pass's light over
+        that pass's (DN of the brightest pass, beyond 255 where it clipped there); the darkest pass's where
+        every pass clipped it.
+    """
+    if not greys or len(greys) != len(lights):
+        raise DecodeError(f"radiance: {len(greys)} grey images for {len(lights)} lights: one per pass, at least one")
+    top_light = float(max(lights))
+    out = greys[0].astype(np.float32) * np.float32(top_light / float(lights[0]))
+    for g, lv in zip(greys[1:], lights[1:], strict=True):
+        ok = g < top
+        np.multiply(g, np.float32(top_light / float(lv)), out=out, where=ok, casting="unsafe")
+    return out
 
 
 def capture_summary(
@@ -276,7 +312,7 @@ def decode_passes(
         sub_frames = cast("npt.NDArray[np.uint8] | npt.NDArray[np.uint16]", np.ascontiguousarray(frames[idx]))
         m = decode(sub_frames, plan, params)
         decoded.append(_owned(m))
-    fused, choice = fuse_exposures(decoded)
+    fused, choice = fuse_exposures(decoded, params.clean_neighbours)
     return fused, choice, passes
 
 
@@ -346,6 +382,7 @@ class HdrStreamingDecoder:
         borrow_frames: bool = False,
     ) -> None:
         prm = DecodeParams() if params is None else params
+        self._clean = prm.clean_neighbours
         self.passes, plans = _pass_plans(sequence, exposures)
         self.shape = (int(shape[0]), int(shape[1]))
         self._decoders = [StreamingDecoder(p, self.shape, dtype, prm, borrow_frames=borrow_frames) for p in plans]
@@ -413,6 +450,6 @@ class HdrStreamingDecoder:
             if not done:
                 self._finish_pass(k)
         fused, self.choice = self._stacks.fuse(sorted({s for o in self._out for s in o.ignored}),
-                                               _blend_codes(self._out))
+                                               _blend_codes(self._out), self._clean)
         return fused
 

@@ -24,6 +24,7 @@ from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
+from appliance.reconstruct.albedo_edges import correct_albedo_edges
 from appliance.reconstruct.decode_batch import nan_map
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.fuse import fuse_points_into
@@ -329,6 +330,9 @@ class Reconstructor:
         self._spans: dict[str, npt.NDArray[np.int64]] = {}
         self._bias_dropped: dict[str, npt.NDArray[np.int64]] = {}
         self._bias_widened: dict[str, npt.NDArray[np.int64]] = {}
+        self._edge: dict[str, tuple[F32, F32, F32, npt.NDArray[np.int64]]] = {}  # corrected u, v, variance, counts
+        self.edge_corrected: dict[str, int] = {}
+        """Per camera the pixels whose code the last run corrected for an albedo edge (absent: no correction)."""
         self.fringe_median: dict[str, float] = {}
         """Per camera the median fringe share (0..1) the last run's indirect-light term used (absent: none)."""
         self._scratch: dict[str, npt.NDArray[np.bool_]] = {}
@@ -354,6 +358,10 @@ class Reconstructor:
                 self._spans[n] = np.zeros((cam.height, 2), np.int64)
                 self._bias_dropped[n] = np.zeros(cam.height, np.int64)
                 self._bias_widened[n] = np.zeros(cam.height, np.int64)
+                if cfg.edge_blur_px > 0:
+                    self._edge[n] = (np.empty((cam.height, cam.width), np.float32),
+                                     np.empty((cam.height, cam.width), np.float32),
+                                     np.empty((cam.height, cam.width), np.float32), np.zeros(cam.height, np.int64))
             else:
                 self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
@@ -407,18 +415,41 @@ class Reconstructor:
         self._stereo.triangulate(maps[0], maps[1], self._xyz[names[0]], self.cfg.min_depth_mm, self.cfg.max_depth_mm,
                                  self.noise)  # fmt: skip
 
+    def _edge_corrected(
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
+    ) -> dict[str, DecodedMaps]:
+        """Each camera-projector camera's codes corrected for the light albedo edges blur into a pixel
+        (:mod:`appliance.reconstruct.albedo_edges`): with a phase code and a white-light level (the maps'
+        ``radiance``, else the white image); the others as given."""
+        self.edge_corrected = {}
+        if not self._edge or self.noise is None or self.noise.phase_px <= 0:
+            return maps
+        out = dict(maps)
+        for n, (u, v, var, counts) in self._edge.items():
+            m = maps[n]
+            level = m.radiance if m.radiance is not None else (None if white is None else white.get(n))
+            if level is None:
+                continue
+            out[n] = correct_albedo_edges(m, level, self.cfg.edge_blur_px, self.axes, u, v, var, counts)
+            self.edge_corrected[n] = int(counts.sum())
+        return out
+
     def _indirect_bias(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None, max_sigma: float
     ) -> None:
-        """Every camera's sigma widened by the bias of indirect light (after the checks, which judge noise)."""
+        """Every camera's sigma widened by the bias of indirect light and the albedo-edge correction's
+        uncertainty (after the checks, which judge noise)."""
         for n, tri in self._proj_tri.items():
             dropped = self._bias_dropped[n]
+            extra = self._edge[n][2] if n in self.edge_corrected else None
             median = tri.indirect_bias(maps[n], self._depth[n], self._sigma[n], self.noise,
                                        None if white is None else white.get(n), dropped, max_sigma,
-                                       _reason_map(maps[n]), self._bias_widened[n])  # fmt: skip
+                                       _reason_map(maps[n]), self._bias_widened[n], self.cfg.indirect_sigma,
+                                       extra)  # fmt: skip
             if median is None:
                 continue
-            self.fringe_median[n] = median
+            if median > 0:
+                self.fringe_median[n] = median
             total = int(dropped.sum())
             if total:
                 self._counts[n][1:] -= dropped
@@ -558,6 +589,7 @@ class Reconstructor:
         cfg = self.cfg
         max_sigma = math.inf if cfg.max_sigma_mm is None else cfg.max_sigma_mm
         t0 = time.perf_counter()
+        given, maps = maps, self._edge_corrected(maps, white)
         unchecked: dict[str, tuple[int, int]] = {}
         for n, tri in self._proj_tri.items():
             const, fp, ks = self._jump[n]
@@ -586,9 +618,9 @@ class Reconstructor:
                 {n: maps[n].blend_codes for n in self._proj_tri},
             )  # fmt: skip
         self.fringe_median = {}
-        if cfg.indirect_sigma:
+        if cfg.indirect_sigma or self.edge_corrected:
             self._indirect_bias(maps, white, max_sigma)
-        fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
+        fusion = self._fuse_stereo(given) if self._stereo is not None else {}
         t1 = time.perf_counter()
         stages = []
         for n in self.outputs:

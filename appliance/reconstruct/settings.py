@@ -75,6 +75,12 @@ class ReconstructionSettings(Protocol):
         ...
 
     @property
+    def edge_blur_px(self) -> float:
+        """The cameras' blur (camera px) the albedo-edge correction assumes; 0: off
+        (:mod:`appliance.reconstruct.albedo_edges`)."""
+        ...
+
+    @property
     def indirect_sigma(self) -> bool:
         """Widen a camera-projector point's sigma by the bias of indirect light
         (:func:`appliance.reconstruct.uncertainty.fringe_variance_table`)."""

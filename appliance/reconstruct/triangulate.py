@@ -461,13 +461,16 @@ class ProjectorTriangulator:
         max_sigma_mm: float = math.inf,
         reason_out: npt.NDArray[np.uint8] | None = None,
         widened: npt.NDArray[np.int64] | None = None,
+        indirect: bool = True,
+        extra_var: F32 | None = None,
     ) -> float | None:
         """Widen the sigma of the points of :meth:`triangulate_depth` by the bias of light that came another way.
 
         The code of a pixel whose fringe share (``maps.fringe``) lies below the scan's median may be shifted
         by indirect light; its variance gains
-        :func:`~appliance.reconstruct.uncertainty.fringe_variance_table`'s term. Run after the consistency
-        checks (epipolar, neighbours, visibility), which judge noise: a bias is shared by neighbours.
+        :func:`~appliance.reconstruct.uncertainty.fringe_variance_table`'s term, and ``extra_var`` (px^2, per
+        pixel: e.g. the albedo-edge correction's uncertainty). Run after the consistency checks (epipolar,
+        neighbours, visibility), which judge noise: a bias is shared by neighbours.
 
         Parameters
         ----------
@@ -486,36 +489,49 @@ class ProjectorTriangulator:
         reason_out : ndarray, shape (H, W), uint8, optional
             Gets ``FILTERED`` on the points dropped.
         widened : ndarray, shape (H,), int64, optional
-            Receives per row the points whose sigma grew (dropped or not).
+            Receives per row the points whose sigma the indirect term grew (dropped or not).
+        indirect : bool
+            Apply the indirect-light term (off: ``extra_var`` alone).
+        extra_var : ndarray, shape (H, W), float32, optional
+            A further code variance per pixel (projector px^2).
 
         Returns
         -------
         float or None
-            The scan's median fringe share (0..1) the term used; None where no term applied (``dropped`` 0).
+            The scan's median fringe share (0..1) the indirect term used, 0.0 where only ``extra_var`` applied;
+            None where no term applied (``dropped`` 0).
         """
         shape = self.rays.shape
         dropped[:] = 0
         if widened is not None:
             widened[:] = 0
         fringe = maps.fringe
-        if noise is None or noise.period_px <= 0 or fringe is None:
+        if noise is None or noise.period_px <= 0:
             return None
-        if fringe.shape != shape or fringe.dtype != np.uint8 or not fringe.flags.c_contiguous:
-            raise ValueError(f"{self.camera.name}: fringe map is {fringe.shape} {fringe.dtype}: must be a "
-                             f"C-contiguous {shape} uint8 map")  # fmt: skip
-        # the median share from every 4th row: a quarter of the reads, the same median to a percent
-        step = FRINGE_ROW_STEP if shape[0] >= 1000 else 1
-        K.u8_histogram(fringe, int(_chunks(shape[0])), step, self._fringe_hist)
-        self._fringe_hist *= step
-        got = fringe_variance_table(self._fringe_hist, noise.period_px)
-        if got is None:
+        got = None
+        if indirect and fringe is not None:
+            if fringe.shape != shape or fringe.dtype != np.uint8 or not fringe.flags.c_contiguous:
+                raise ValueError(f"{self.camera.name}: fringe map is {fringe.shape} {fringe.dtype}: must be a "
+                                 f"C-contiguous {shape} uint8 map")  # fmt: skip
+            # the median share from every 4th row: a quarter of the reads, the same median to a percent
+            step = FRINGE_ROW_STEP if shape[0] >= 1000 else 1
+            K.u8_histogram(fringe, int(_chunks(shape[0])), step, self._fringe_hist)
+            self._fringe_hist *= step
+            got = fringe_variance_table(self._fringe_hist, noise.period_px)
+        has_e = extra_var is not None
+        if got is None and not has_e:
             return None
-        table, median = got
+        if extra_var is not None and (extra_var.shape != shape or extra_var.dtype != np.float32):
+            raise ValueError(f"{self.camera.name}: extra variance map is {extra_var.shape} {extra_var.dtype}: "
+                             f"must be {shape} float32")  # fmt: skip
+        table, median = got if got is not None else (np.zeros(256, np.float64), 0.0)
+        fmap = fringe if got is not None and fringe is not None else np.zeros((1, 1), np.uint8)
         quality, wimg = self._noise_inputs(maps, white, shape)
         has_r = reason_out is not None
-        K.indirect_bias(depth, sigma, quality, wimg, white is not None, fringe, table, noise.params(),
-                        float(max_sigma_mm), reason_out if has_r else np.zeros((1, 1), np.uint8), has_r,
-                        np.uint8(Reason.FILTERED), dropped,
+        K.indirect_bias(depth, sigma, quality, wimg, white is not None, fmap, got is not None, table,
+                        extra_var if extra_var is not None else np.zeros((1, 1), np.float32), has_e,
+                        noise.params(), float(max_sigma_mm), reason_out if has_r else np.zeros((1, 1), np.uint8),
+                        has_r, np.uint8(Reason.FILTERED), dropped,
                         widened if widened is not None else np.zeros(shape[0], np.int64))  # fmt: skip
         return median
 

@@ -95,6 +95,10 @@ class DecodedMaps:
         undecoded): how much of the pixel's projector light carries the pattern. Light that came another way
         (diffuse interreflection, subsurface scattering) adds to the range, not to the pattern's contrast. None
         when not computed.
+    radiance : ndarray, shape (H, W), float32, optional
+        White-light level per pixel in one scale across exposure passes (DN per unit of the brightest pass's
+        light; see :func:`appliance.reconstruct.hdr.radiance`), for the albedo-edge correction. None: the white
+        image is that level (one exposure).
     """
 
     u: npt.NDArray[np.float32]
@@ -106,6 +110,7 @@ class DecodedMaps:
     reason: npt.NDArray[np.uint8] | None = None
     blend_codes: npt.NDArray[np.float32] | None = None
     fringe: npt.NDArray[np.uint8] | None = None
+    radiance: npt.NDArray[np.float32] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
