@@ -61,69 +61,140 @@ def _pull(d, slope):  # type: ignore[no-untyped-def]
     return 0.0 if abs(d) < NEGLIGIBLE_PX else np.nan
 
 
-@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def edge_shift(u, v, mask, rad, s2, max_shift, kappa, min_report2, has_u, has_v, uo, vo, evar, counts):  # type: ignore[no-untyped-def]
-    """Correct every decoded pixel's code for the light its neighbours blur into it.
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _level_slope(rad, r, c, ru, rd, ry, w):  # type: ignore[no-untyped-def]
+    """The white level's slope (DN per px, float32) along x and y at (r, c); one-sided at the image's border."""
+    cl, cr = max(c - 1, 0), min(c + 1, w - 1)
+    rx = np.float32(0.5) if cr - cl == 2 else np.float32(1.0)
+    gx = rx * (np.float32(rad[r, cr]) - np.float32(rad[r, cl]))
+    return gx, ry * (np.float32(rad[rd, c]) - np.float32(rad[ru, c]))
 
-    ``uo``/``vo`` = ``u``/``v`` minus ``d . grad(code)``, with ``d = s2 grad(rad) / rad`` (camera px, its length
-    at most ``max_shift``); ``evar`` (px^2) gets ``(kappa + |d|)^2`` times the larger squared correction of
-    the two axes (the formula is first order in the share of light from aside); ``counts[r]`` the row's pixels
-    whose squared correction exceeds ``min_report2``. Undecoded pixels, and pixels without a code slope along a
-    direction their shift needs (see :func:`_slope_at`, :func:`_pull`), keep their codes (``evar`` 0); at the
-    image border the slopes are one-sided. ``has_u`` / ``has_v``: the axis is coded (an uncoded one is not
-    written).
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _row_span(r, h):  # type: ignore[no-untyped-def]
+    ru, rd = max(r - 1, 0), min(r + 1, h - 1)
+    return ru, rd, (np.float32(1.0) / np.float32(rd - ru) if rd > ru else np.float32(0.0))
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _worth(mask, rad, r, c, ru, rd, ry, w, lim2):  # type: ignore[no-untyped-def]
+    """Whether pixel (r, c) is decoded and its level slope worth a correction: ``|grad|^2 >= lim2 level^2``
+    with ``level > 0`` (no division and no branch: most pixels lie on an even surface)."""
+    level = np.float32(rad[r, c])
+    gx, gy = _level_slope(rad, r, c, ru, rd, ry, w)
+    return mask[r, c] & (gx * gx + gy * gy >= lim2 * level * level) & (level > np.float32(0.0))
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def edge_count(mask, rad, lim2, counts):  # type: ignore[no-untyped-def]
+    """``counts[r]``: row ``r``'s pixels worth a correction (see :func:`_worth`)."""
+    h, w = mask.shape
+    lim = np.float32(lim2)
+    for r in prange(h):
+        ru, rd, ry = _row_span(r, h)
+        n = np.int64(0)
+        if w >= 3:  # the inner columns in a loop without branches (it vectorises)
+            a, b, d, m = rad[r], rad[ru], rad[rd], mask[r]
+            half = np.float32(0.5)
+            zero = np.float32(0.0)
+            for c in range(1, w - 1):
+                level = np.float32(a[c])
+                gx = half * (np.float32(a[c + 1]) - np.float32(a[c - 1]))
+                gy = ry * (np.float32(d[c]) - np.float32(b[c]))
+                n += np.int64(m[c] & (gx * gx + gy * gy >= lim * level * level) & (level > zero))
+            n += np.int64(_worth(mask, rad, r, 0, ru, rd, ry, w, lim)) + np.int64(
+                _worth(mask, rad, r, w - 1, ru, rd, ry, w, lim))
+        else:
+            for c in range(w):
+                n += np.int64(_worth(mask, rad, r, c, ru, rd, ry, w, lim))
+        counts[r] = n
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def edge_shift(  # type: ignore[no-untyped-def]
+    u, v, mask, rad, s2, lim2, max_shift, kappa, min_report2, has_u, has_v, offsets, cols, du, dv, evar, moved
+):  # fmt: skip
+    """The correction of every pixel :func:`edge_count` counted (``offsets`` its running sum), stored sparsely.
+
+    Row ``r``'s pixels go to entries ``offsets[r] ..`` (ascending columns ``cols``): the code shifts ``du``,
+    ``dv`` (projector px) ``= d . grad(code)``, with ``d = s2 grad(rad) / rad`` (camera px, its length at most
+    ``max_shift``), and the variance ``evar`` (px^2) ``= ((kappa + |d|) x`` the larger shift of the two axes
+    ``)^2`` (the formula is first order in the share of light from aside). A pixel without a code slope along
+    a direction its shift needs (see :func:`_slope_at`, :func:`_pull`) gets 0 shifts and 0 variance.
+    ``moved[r]`` counts the row's pixels whose squared shift exceeds ``min_report2``. ``has_u`` / ``has_v``:
+    the axis is coded (an uncoded one's shift is 0).
     """
     h, w = u.shape
     for r in prange(h):
-        counts[r] = 0
+        ru, rd, ry = _row_span(r, h)
+        k = offsets[r]
+        m = 0
+        lim = np.float32(lim2)
         for c in range(w):
-            if has_u:
-                uo[r, c] = u[r, c]
-            if has_v:
-                vo[r, c] = v[r, c]
-            evar[r, c] = np.float32(0.0)
-            if not mask[r, c]:
+            if k == offsets[r + 1]:  # every pixel edge_count counted in the row is done (most rows: none)
+                break
+            if not _worth(mask, rad, r, c, ru, rd, ry, w, lim):
                 continue
-            level = np.float64(rad[r, c])
-            if not level > 0.0:
-                continue
-            # at the image's border the level's slope is one-sided
-            cl, cr, ru, rd = max(c - 1, 0), min(c + 1, w - 1), max(r - 1, 0), min(r + 1, h - 1)
-            gx = (np.float64(rad[r, cr]) - np.float64(rad[r, cl])) / (cr - cl)
-            gy = (np.float64(rad[rd, c]) - np.float64(rad[ru, c])) / (rd - ru)
-            dx = s2 * gx / level
-            dy = s2 * gy / level
-            n = math.sqrt(dx * dx + dy * dy)
-            if n == 0.0:
-                continue
-            if n > max_shift:
-                dx *= max_shift / n
-                dy *= max_shift / n
-            # neighbours off the image count as undecoded (their index clamped to the pixel's own)
-            c2l, c2r, r2u, r2d = max(c - 2, 0), min(c + 2, w - 1), max(r - 2, 0), min(r + 2, h - 1)
-            ml2, ml, mr, mr2 = c >= 2 and mask[r, c2l], c >= 1 and mask[r, cl], c + 1 < w and mask[r, cr], (
-                c + 2 < w and mask[r, c2r])
-            mu2, mu, md, md2 = r >= 2 and mask[r2u, c], r >= 1 and mask[ru, c], r + 1 < h and mask[rd, c], (
-                r + 2 < h and mask[r2d, c])
-            p2 = 0.0
-            pu = 0.0
-            pv = 0.0
-            if has_u:
-                pu = _pull(dx, _slope_at(u[r, c2l], u[r, cl], u[r, c], u[r, cr], u[r, c2r], ml2, ml, mr, mr2))
-                pu += _pull(dy, _slope_at(u[r2u, c], u[ru, c], u[r, c], u[rd, c], u[r2d, c], mu2, mu, md, md2))
-                if not pu == pu:  # no slope where the shift matters: the formula cannot be applied
-                    continue
-                p2 = pu * pu
-            if has_v:
-                pv = _pull(dx, _slope_at(v[r, c2l], v[r, cl], v[r, c], v[r, cr], v[r, c2r], ml2, ml, mr, mr2))
-                pv += _pull(dy, _slope_at(v[r2u, c], v[ru, c], v[r, c], v[rd, c], v[r2d, c], mu2, mu, md, md2))
-                if not pv == pv:
-                    continue
-                vo[r, c] = np.float32(np.float64(v[r, c]) - pv)
-                p2 = max(p2, pv * pv)
-            if has_u:
-                uo[r, c] = np.float32(np.float64(u[r, c]) - pu)
-            k = kappa + min(n, max_shift)  # first order fails as more of the light comes from aside
-            evar[r, c] = np.float32(k * k * p2)
-            if p2 > min_report2:
-                counts[r] += 1
+            gx, gy = _level_slope(rad, r, c, ru, rd, ry, w)
+            cols[k] = c
+            pu, pv, e = _correct_pixel(u, v, mask, r, c, np.float64(gx), np.float64(gy), np.float64(rad[r, c]), s2,
+                                       max_shift, kappa, has_u, has_v)  # fmt: skip
+            du[k] = np.float32(pu)
+            dv[k] = np.float32(pv)
+            evar[k] = np.float32(e)
+            if max(pu * pu, pv * pv) > min_report2:
+                m += 1
+            k += 1
+        moved[r] = m
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def shift_codes(code, offsets, cols, delta, old):  # type: ignore[no-untyped-def]
+    """``code`` minus the sparse ``delta`` in place; ``old`` keeps the values it had (for :func:`put_codes`)."""
+    for r in prange(code.shape[0]):
+        for k in range(offsets[r], offsets[r + 1]):
+            c = cols[k]
+            old[k] = code[r, c]
+            code[r, c] = np.float32(np.float64(code[r, c]) - np.float64(delta[k]))
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def put_codes(code, offsets, cols, values):  # type: ignore[no-untyped-def]
+    """The sparse ``values`` written back into ``code`` (undoes :func:`shift_codes` exactly)."""
+    for r in prange(code.shape[0]):
+        for k in range(offsets[r], offsets[r + 1]):
+            code[r, cols[k]] = values[k]
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _correct_pixel(u, v, mask, r, c, gx, gy, level, s2, max_shift, kappa, has_u, has_v):  # type: ignore[no-untyped-def]
+    """The code shifts (u, v; projector px) and variance (px^2) of one pixel with level slope (``gx``, ``gy``)
+    (see :func:`edge_shift`); (0, 0, 0) where a slope it needs is unknown."""
+    h, w = u.shape
+    dx = s2 * gx / level
+    dy = s2 * gy / level
+    n = math.sqrt(dx * dx + dy * dy)
+    if n > max_shift:
+        dx *= max_shift / n
+        dy *= max_shift / n
+    # neighbours off the image count as undecoded (their index clamped to the pixel's own)
+    cl, cr, ru, rd = max(c - 1, 0), min(c + 1, w - 1), max(r - 1, 0), min(r + 1, h - 1)
+    c2l, c2r, r2u, r2d = max(c - 2, 0), min(c + 2, w - 1), max(r - 2, 0), min(r + 2, h - 1)
+    ml2, ml, mr, mr2 = c >= 2 and mask[r, c2l], c >= 1 and mask[r, cl], c + 1 < w and mask[r, cr], (
+        c + 2 < w and mask[r, c2r])
+    mu2, mu, md, md2 = r >= 2 and mask[r2u, c], r >= 1 and mask[ru, c], r + 1 < h and mask[rd, c], (
+        r + 2 < h and mask[r2d, c])
+    pu = 0.0
+    pv = 0.0
+    if has_u:
+        pu = _pull(dx, _slope_at(u[r, c2l], u[r, cl], u[r, c], u[r, cr], u[r, c2r], ml2, ml, mr, mr2))
+        pu += _pull(dy, _slope_at(u[r2u, c], u[ru, c], u[r, c], u[rd, c], u[r2d, c], mu2, mu, md, md2))
+        if not pu == pu:  # no slope where the shift matters: the formula cannot be applied
+            return 0.0, 0.0, 0.0
+    if has_v:
+        pv = _pull(dx, _slope_at(v[r, c2l], v[r, cl], v[r, c], v[r, cr], v[r, c2r], ml2, ml, mr, mr2))
+        pv += _pull(dy, _slope_at(v[r2u, c], v[ru, c], v[r, c], v[rd, c], v[r2d, c], mu2, mu, md, md2))
+        if not pv == pv:
+            return 0.0, 0.0, 0.0
+    k = kappa + min(n, max_shift)  # first order fails as more of the light comes from aside
+    return pu, pv, k * k * max(pu * pu, pv * pv)

@@ -656,20 +656,34 @@ def u8_histogram(img, nchunks, step, out):  # type: ignore[no-untyped-def]
         out[k] = t
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _widen(zr, sr, c, b, q, wv, has_w, g2, svar, rvar, inv_e, max_sigma):  # type: ignore[no-untyped-def]
+    """Widen the sigma of the point at column ``c`` of a row by the code variance ``b`` (px^2); True when that
+    takes it over ``max_sigma`` (its depth and sigma are then NaN)."""
+    su2n = code_noise_var(np.float64(q), wv, has_w, g2, svar, rvar, inv_e)
+    s = np.float64(sr[c]) * math.sqrt(1.0 + b / su2n)
+    if s > max_sigma:
+        zr[c] = np.float32(np.nan)
+        sr[c] = np.float32(np.nan)
+        return True
+    sr[c] = np.float32(s)
+    return False
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def indirect_bias(  # type: ignore[no-untyped-def]
-    depth, sigma, quality, white, has_w, fringe, has_f, ftab, evar, has_e, noise, max_sigma, reason, has_r,
-    r_filtered, dropped, widened,
+    depth, sigma, quality, white, has_w, fringe, has_f, ftab, eoff, ecols, evar, has_e, noise, max_sigma, reason,
+    has_r, r_filtered, dropped, widened,
 ):  # fmt: skip
     """Widen every point's sigma by the bias of indirect light and drop those then over ``max_sigma`` (mm).
 
     A point's sigma (its code noise, see ``_finish_row``: ``su2n`` px^2 from ``quality``, ``white`` and
-    ``noise``) becomes ``sigma sqrt(1 + (ftab[fringe] + evar) / su2n)``: the code variance gains the table's
-    bias variance and the pixel's ``evar`` (px^2; each only when ``has_f`` / ``has_e``) and the derivative along
-    the ray is unchanged. A point whose widened sigma exceeds
-    ``max_sigma`` loses its depth and sigma (NaN), gets reason ``r_filtered`` (when ``has_r``), and counts in
-    ``dropped[r]`` (its row); ``widened[r]`` counts the row's points whose sigma the indirect term grew (kept or
-    not).
+    ``noise``) becomes ``sigma sqrt(1 + (ftab[fringe] + e) / su2n)``: the code variance gains the table's
+    bias variance (when ``has_f``) and the pixel's extra variance ``e`` (px^2; when ``has_e``, given sparsely:
+    row ``r``'s entries are ``eoff[r] .. eoff[r + 1] - 1`` of ``ecols`` (ascending columns) and ``evar``), and
+    the derivative along the ray is unchanged. A point whose widened sigma exceeds ``max_sigma`` loses its depth
+    and sigma (NaN), gets reason ``r_filtered`` (when ``has_r``), and counts in ``dropped[r]`` (its row);
+    ``widened[r]`` counts the row's points whose sigma the indirect term grew (kept or not).
     """
     h, w = depth.shape
     g2 = noise[0] * noise[0]
@@ -679,24 +693,35 @@ def indirect_bias(  # type: ignore[no-untyped-def]
         widened[r] = 0
         zr = depth[r]
         sr = sigma[r]
-        fr = fringe[r] if has_f else fringe[0]
-        er = evar[r] if has_e else evar[0]
+        k = eoff[r] if has_e else 0
+        kend = eoff[r + 1] if has_e else 0
+        if not has_f:  # the sparse entries alone
+            for j in range(k, kend):
+                c = ecols[j]
+                b = np.float64(evar[j])
+                if b == 0.0 or not zr[c] == zr[c]:
+                    continue
+                if _widen(zr, sr, c, b, quality[r, c], white[r, c] if has_w else 0.0, has_w, g2, svar, rvar, inv_e,
+                          max_sigma):  # fmt: skip
+                    if has_r:
+                        reason[r, c] = r_filtered
+                    dropped[r] += 1
+            continue
+        fr = fringe[r]
         for c in range(w):
             # the 1-byte share first: most pixels have no bias, and their depth is not read
-            bf = ftab[fr[c]] if has_f else 0.0
-            b = bf + np.float64(er[c]) if has_e else bf
+            b = ftab[fr[c]]
+            bf = b
+            while k < kend and ecols[k] < c:
+                k += 1
+            if k < kend and ecols[k] == c:
+                b += np.float64(evar[k])
             if b == 0.0 or not zr[c] == zr[c]:
                 continue
-            q = np.float64(quality[r, c])
-            su2n = code_noise_var(q, white[r, c] if has_w else 0.0, has_w, g2, svar, rvar, inv_e)
-            s = np.float64(sr[c]) * math.sqrt(1.0 + b / su2n)
             if bf > 0.0:
                 widened[r] += 1
-            if s > max_sigma:
-                zr[c] = np.float32(np.nan)
-                sr[c] = np.float32(np.nan)
+            if _widen(zr, sr, c, b, quality[r, c], white[r, c] if has_w else 0.0, has_w, g2, svar, rvar, inv_e,
+                      max_sigma):  # fmt: skip
                 if has_r:
                     reason[r, c] = r_filtered
                 dropped[r] += 1
-            else:
-                sr[c] = np.float32(s)

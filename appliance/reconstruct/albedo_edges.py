@@ -25,6 +25,8 @@ neighbour's level is known from a darker pass.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
@@ -32,63 +34,100 @@ from appliance.reconstruct import _edge_kernels as K
 from appliance.reconstruct.types import DecodedMaps
 
 EDGE_SIGMA_SHARE = 0.5
-"""The 1-sigma uncertainty of the correction, as a share of it."""
+"""The 1-sigma uncertainty of the correction, as a share of it, where the centroid shift is small; the share
+grows by the shift (camera px): ``0.5 + |d|`` (the formula is first order in the light from aside)."""
+
+MIN_SHIFT_PX = 0.02
+"""The shortest centroid shift corrected (camera px): under it the code moves by less than 0.04 projector px
+at the usual 1-2 projector px per camera pixel, a fifth of the code noise of a well-lit pixel; it spares the
+even surfaces (most pixels) the work and the sigma pass."""
 
 MAX_SHIFT_PX = 1.0
 """The longest centroid shift the correction applies (camera px): the first-order formula's limit (a blur of
 0.5 px puts 2 % of its weight a pixel away from its centre, 0.03 % two pixels away)."""
 
 REPORT_SHIFT_PX = 0.05
-"""A code moved by more than this (projector px) counts as corrected in ``counts_out``."""
+"""A code moved by more than this (projector px) counts as corrected (:attr:`AlbedoEdges.moved`)."""
 
 F32 = npt.NDArray[np.float32]
+I64 = npt.NDArray[np.int64]
 
 
-def correct_albedo_edges(
-    maps: DecodedMaps,
-    level: npt.NDArray[np.generic],
-    blur_px: float,
-    axes: str,
-    u_out: F32,
-    v_out: F32,
-    variance_out: F32,
-    counts_out: npt.NDArray[np.int64],
-) -> DecodedMaps:
-    """Each decoded pixel's code corrected for the light its neighbours blur into it.
+class AlbedoEdges:
+    """One camera's albedo-edge correction, applied to its decoded codes in place for one reconstruction.
+
+    The corrections are few (the pixels beside an edge), so they are kept sparsely: per row the entries
+    ``offsets[r] .. offsets[r + 1] - 1`` of ``cols`` (ascending columns), ``variance`` (projector px^2). The
+    buffers grow as needed and are kept for the next scan.
 
     Parameters
     ----------
-    maps : DecodedMaps
-        One camera's decoded maps (not changed).
-    level : ndarray, shape (H, W)
-        White-light level per pixel in one scale (DN, or DN per unit of light for several exposures); any
-        real dtype.
-    blur_px : float
-        The camera's blur (Gaussian sigma, camera px); 0 copies the codes.
-    axes : str
-        The coded axes: ``'x'`` (``u``), ``'y'`` (``v``) or ``'xy'``.
-    u_out, v_out : ndarray, shape (H, W), float32
-        Receive the corrected codes (projector px) of the coded axes (an uncoded one's is not written).
-    variance_out : ndarray, shape (H, W), float32
-        Receives each pixel's code variance from the correction's uncertainty (projector px^2; 0 where none).
-    counts_out : ndarray, shape (H,), int64
-        Receives per row the pixels whose code moved by more than :data:`REPORT_SHIFT_PX`.
-
-    Returns
-    -------
-    DecodedMaps
-        ``maps`` with each coded axis' code replaced by ``u_out`` / ``v_out`` (the other fields shared).
+    height : int
+        Rows of the camera image.
     """
-    shape = maps.shape
-    if level.shape != shape:
-        raise ValueError(f"albedo edges: level image {level.shape}: must be {shape} (H, W)")
-    for a in (u_out, v_out, variance_out):
-        if a.shape != shape or a.dtype != np.float32:
-            raise ValueError(f"albedo edges: output {a.shape} {a.dtype}: must be {shape} float32")
-    has_u, has_v = "x" in axes, "y" in axes
-    K.edge_shift(maps.u, maps.v, maps.mask, level, float(blur_px) ** 2, MAX_SHIFT_PX, EDGE_SIGMA_SHARE,
-                 REPORT_SHIFT_PX**2, has_u, has_v, u_out, v_out, variance_out, counts_out)  # fmt: skip
-    return DecodedMaps(
-        u_out if has_u else maps.u, v_out if has_v else maps.v, maps.mask, maps.quality, maps.ignored,
-        maps.levels, maps.reason, maps.blend_codes, maps.fringe, maps.radiance,
-    )  # fmt: skip
+
+    def __init__(self, height: int) -> None:
+        self.offsets = np.zeros(int(height) + 1, np.int64)
+        self._rows = np.zeros(int(height), np.int64)
+        self.moved_rows = np.zeros(int(height), np.int64)
+        self._alloc(0)
+        self._applied: list[tuple[F32, F32]] = []
+
+    def _alloc(self, n: int) -> None:
+        self.cols = np.zeros(n, np.int64)
+        self.variance = np.zeros(n, np.float32)
+        self._du = np.zeros(n, np.float32)
+        self._dv = np.zeros(n, np.float32)
+        self._old_u = np.zeros(n, np.float32)
+        self._old_v = np.zeros(n, np.float32)
+
+    @property
+    def moved(self) -> int:
+        """Pixels whose code the last :meth:`apply` moved by more than :data:`REPORT_SHIFT_PX`."""
+        return int(self.moved_rows.sum())
+
+    def apply(self, maps: DecodedMaps, level: npt.NDArray[np.generic], blur_px: float, axes: str) -> None:
+        """Correct the codes of ``maps`` in place (undo with :meth:`restore`).
+
+        Parameters
+        ----------
+        maps : DecodedMaps
+            One camera's decoded maps; the coded axes' ``u`` / ``v`` change (where they are writable; read-only
+            codes stay as they are, their variance still counts).
+        level : ndarray, shape (H, W)
+            White-light level per pixel in one scale (DN, or DN per unit of light for several exposures); any
+            real dtype.
+        blur_px : float
+            The camera's blur (Gaussian sigma, camera px); 0 changes nothing.
+        axes : str
+            The coded axes: ``'x'`` (``u``), ``'y'`` (``v``) or ``'xy'``.
+        """
+        self.restore()
+        shape = maps.shape
+        if level.shape != shape or shape[0] + 1 != self.offsets.shape[0]:
+            raise ValueError(f"albedo edges: level image {level.shape}, maps {shape}: must be "
+                             f"({self.offsets.shape[0] - 1}, W) both")  # fmt: skip
+        s2 = float(blur_px) ** 2
+        lim2 = (MIN_SHIFT_PX / s2) ** 2 if s2 > 0.0 else math.inf
+        K.edge_count(maps.mask, level, lim2, self._rows)
+        self.offsets[0] = 0
+        np.cumsum(self._rows, out=self.offsets[1:])
+        n = int(self.offsets[-1])
+        if n > self.cols.shape[0]:
+            self._alloc(n + n // 4)
+        has_u, has_v = "x" in axes, "y" in axes
+        K.edge_shift(maps.u, maps.v, maps.mask, level, s2, lim2, MAX_SHIFT_PX, EDGE_SIGMA_SHARE, REPORT_SHIFT_PX**2,
+                     has_u, has_v, self.offsets, self.cols, self._du, self._dv, self.variance,
+                     self.moved_rows)  # fmt: skip
+        for code, delta, old, coded in ((maps.u, self._du, self._old_u, has_u), (maps.v, self._dv, self._old_v, has_v)):
+            if coded and n and code.flags.writeable:  # read-only codes keep their values, and the variance
+                K.shift_codes(code, self.offsets, self.cols, delta, old)
+                self._applied.append((code, old))
+
+    def restore(self) -> None:
+        """Put back the codes the last :meth:`apply` changed (nothing when there are none)."""
+        while self._applied:
+            code, old = self._applied.pop()
+            K.put_codes(code, self.offsets, self.cols, old)
+
+

@@ -24,7 +24,7 @@ from appliance.geometry.calibration_file import Calibration
 from appliance.geometry.rays import RayTable
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct._pool import BufferPool
-from appliance.reconstruct.albedo_edges import correct_albedo_edges
+from appliance.reconstruct.albedo_edges import AlbedoEdges
 from appliance.reconstruct.decode_batch import nan_map
 from appliance.reconstruct.filters import estimate_normals, to_point_cloud
 from appliance.reconstruct.fuse import fuse_points_into
@@ -330,7 +330,7 @@ class Reconstructor:
         self._spans: dict[str, npt.NDArray[np.int64]] = {}
         self._bias_dropped: dict[str, npt.NDArray[np.int64]] = {}
         self._bias_widened: dict[str, npt.NDArray[np.int64]] = {}
-        self._edge: dict[str, tuple[F32, F32, F32, npt.NDArray[np.int64]]] = {}  # corrected u, v, variance, counts
+        self._edge: dict[str, AlbedoEdges] = {}
         self.edge_corrected: dict[str, int] = {}
         """Per camera the pixels whose code the last run corrected for an albedo edge (absent: no correction)."""
         self.fringe_median: dict[str, float] = {}
@@ -359,9 +359,7 @@ class Reconstructor:
                 self._bias_dropped[n] = np.zeros(cam.height, np.int64)
                 self._bias_widened[n] = np.zeros(cam.height, np.int64)
                 if cfg.edge_blur_px > 0:
-                    self._edge[n] = (np.empty((cam.height, cam.width), np.float32),
-                                     np.empty((cam.height, cam.width), np.float32),
-                                     np.empty((cam.height, cam.width), np.float32), np.zeros(cam.height, np.int64))
+                    self._edge[n] = AlbedoEdges(cam.height)
             else:
                 self._xyz[n] = np.empty((cam.height, cam.width, 3), np.float32)
                 self._scratch[n] = np.empty((cam.height, cam.width), np.bool_)
@@ -415,24 +413,25 @@ class Reconstructor:
         self._stereo.triangulate(maps[0], maps[1], self._xyz[names[0]], self.cfg.min_depth_mm, self.cfg.max_depth_mm,
                                  self.noise)  # fmt: skip
 
-    def _edge_corrected(
-        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None
-    ) -> dict[str, DecodedMaps]:
-        """Each camera-projector camera's codes corrected for the light albedo edges blur into a pixel
-        (:mod:`appliance.reconstruct.albedo_edges`): with a phase code and a white-light level (the maps'
-        ``radiance``, else the white image); the others as given."""
+    def _correct_edges(self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None) -> None:
+        """Correct each camera-projector camera's codes, in place until :meth:`_restore_edges`, for the light
+        albedo edges blur into a pixel (:mod:`appliance.reconstruct.albedo_edges`): with a phase code and a
+        white-light level (the maps' ``radiance``, else the white image)."""
         self.edge_corrected = {}
         if not self._edge or self.noise is None or self.noise.phase_px <= 0:
-            return maps
-        out = dict(maps)
-        for n, (u, v, var, counts) in self._edge.items():
+            return
+        for n, edges in self._edge.items():
             m = maps[n]
             level = m.radiance if m.radiance is not None else (None if white is None else white.get(n))
             if level is None:
                 continue
-            out[n] = correct_albedo_edges(m, level, self.cfg.edge_blur_px, self.axes, u, v, var, counts)
-            self.edge_corrected[n] = int(counts.sum())
-        return out
+            edges.apply(m, level, self.cfg.edge_blur_px, self.axes)
+            self.edge_corrected[n] = edges.moved
+
+    def _restore_edges(self) -> None:
+        """The decoded codes as the caller gave them again."""
+        for edges in self._edge.values():
+            edges.restore()
 
     def _indirect_bias(
         self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None, max_sigma: float
@@ -441,7 +440,8 @@ class Reconstructor:
         uncertainty (after the checks, which judge noise)."""
         for n, tri in self._proj_tri.items():
             dropped = self._bias_dropped[n]
-            extra = self._edge[n][2] if n in self.edge_corrected else None
+            edges = self._edge.get(n) if n in self.edge_corrected else None
+            extra = None if edges is None else (edges.offsets, edges.cols, edges.variance)
             median = tri.indirect_bias(maps[n], self._depth[n], self._sigma[n], self.noise,
                                        None if white is None else white.get(n), dropped, max_sigma,
                                        _reason_map(maps[n]), self._bias_widened[n], self.cfg.indirect_sigma,
@@ -589,7 +589,18 @@ class Reconstructor:
         cfg = self.cfg
         max_sigma = math.inf if cfg.max_sigma_mm is None else cfg.max_sigma_mm
         t0 = time.perf_counter()
-        given, maps = maps, self._edge_corrected(maps, white)
+        self._correct_edges(maps, white)
+        try:
+            return self._run_depth_corrected(maps, white, max_sigma, t0)
+        finally:
+            self._restore_edges()
+
+    def _run_depth_corrected(
+        self, maps: dict[str, DecodedMaps], white: dict[str, npt.NDArray[np.generic]] | None, max_sigma: float,
+        t0: float,
+    ) -> Reconstruction:
+        """:meth:`_run_depth` once the codes are corrected for albedo edges."""
+        cfg = self.cfg
         unchecked: dict[str, tuple[int, int]] = {}
         for n, tri in self._proj_tri.items():
             const, fp, ks = self._jump[n]
@@ -620,7 +631,7 @@ class Reconstructor:
         self.fringe_median = {}
         if cfg.indirect_sigma or self.edge_corrected:
             self._indirect_bias(maps, white, max_sigma)
-        fusion = self._fuse_stereo(given) if self._stereo is not None else {}
+        fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
         stages = []
         for n in self.outputs:

@@ -462,14 +462,14 @@ class ProjectorTriangulator:
         reason_out: npt.NDArray[np.uint8] | None = None,
         widened: npt.NDArray[np.int64] | None = None,
         indirect: bool = True,
-        extra_var: F32 | None = None,
+        extra_var: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], F32] | None = None,
     ) -> float | None:
         """Widen the sigma of the points of :meth:`triangulate_depth` by the bias of light that came another way.
 
         The code of a pixel whose fringe share (``maps.fringe``) lies below the scan's median may be shifted
         by indirect light; its variance gains
         :func:`~appliance.reconstruct.uncertainty.fringe_variance_table`'s term, and ``extra_var`` (px^2, per
-        pixel: e.g. the albedo-edge correction's uncertainty). Run after the consistency checks (epipolar,
+        pixel, sparse: e.g. the albedo-edge correction's uncertainty). Run after the consistency checks (epipolar,
         neighbours, visibility), which judge noise: a bias is shared by neighbours.
 
         Parameters
@@ -492,8 +492,10 @@ class ProjectorTriangulator:
             Receives per row the points whose sigma the indirect term grew (dropped or not).
         indirect : bool
             Apply the indirect-light term (off: ``extra_var`` alone).
-        extra_var : ndarray, shape (H, W), float32, optional
-            A further code variance per pixel (projector px^2).
+        extra_var : tuple of ndarray, optional
+            A further code variance (projector px^2) of some pixels: ``(offsets, cols, variance)``, row ``r``'s
+            pixels being entries ``offsets[r] .. offsets[r + 1] - 1`` (int64 (H + 1,); ascending int64 columns;
+            float32), as :class:`~appliance.reconstruct.albedo_edges.AlbedoEdges` keeps them.
 
         Returns
         -------
@@ -521,15 +523,17 @@ class ProjectorTriangulator:
         has_e = extra_var is not None
         if got is None and not has_e:
             return None
-        if extra_var is not None and (extra_var.shape != shape or extra_var.dtype != np.float32):
-            raise ValueError(f"{self.camera.name}: extra variance map is {extra_var.shape} {extra_var.dtype}: "
-                             f"must be {shape} float32")  # fmt: skip
+        if extra_var is not None and extra_var[0].shape != (shape[0] + 1,):
+            raise ValueError(f"{self.camera.name}: extra variance offsets {extra_var[0].shape}: must be "
+                             f"({shape[0] + 1},)")  # fmt: skip
+        eoff, ecols, evar = extra_var if extra_var is not None else (
+            np.zeros(shape[0] + 1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
         table, median = got if got is not None else (np.zeros(256, np.float64), 0.0)
         fmap = fringe if got is not None and fringe is not None else np.zeros((1, 1), np.uint8)
         quality, wimg = self._noise_inputs(maps, white, shape)
         has_r = reason_out is not None
         K.indirect_bias(depth, sigma, quality, wimg, white is not None, fmap, got is not None, table,
-                        extra_var if extra_var is not None else np.zeros((1, 1), np.float32), has_e,
+                        eoff, ecols, evar, has_e,
                         noise.params(), float(max_sigma_mm), reason_out if has_r else np.zeros((1, 1), np.uint8),
                         has_r, np.uint8(Reason.FILTERED), dropped,
                         widened if widened is not None else np.zeros(shape[0], np.int64))  # fmt: skip

@@ -8,6 +8,8 @@ The end-to-end figures (the dark-and-shiny render with tune's three exposures) a
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import numpy.typing as npt
@@ -17,7 +19,7 @@ from appliance.patterns.render import frame_intensity
 from appliance.patterns.sequence import gray_phase_sequence
 from appliance.reconstruct import albedo_edges
 from appliance.reconstruct._hdr_kernels import choose_pass
-from appliance.reconstruct.albedo_edges import correct_albedo_edges
+from appliance.reconstruct.albedo_edges import AlbedoEdges
 from appliance.reconstruct.decode import decode
 from appliance.reconstruct.hdr import radiance
 from appliance.reconstruct.types import Reason
@@ -57,14 +59,32 @@ def _white(frames: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
 
 
 def _correct(frames: npt.NDArray[np.uint8], blur: float = BLUR) -> tuple[object, object, npt.NDArray[np.float32]]:
+    """The decoded maps, a copy corrected in place, and the dense variance of the corrections."""
     maps = decode(frames, SEQ)
-    white = _white(frames)
-    u, v, var = (np.full((H, W), np.nan, np.float32) for _ in range(3))
-    counts = np.zeros(H, np.int64)
-    fixed = correct_albedo_edges(maps, white, blur, "x", u, v, var, counts)
+    fixed = dataclasses.replace(maps, u=maps.u.copy())
+    edges = AlbedoEdges(H)
+    edges.apply(fixed, _white(frames), blur, "x")
+    var = np.zeros((H, W), np.float32)
+    for r in range(H):
+        k = slice(edges.offsets[r], edges.offsets[r + 1])
+        assert np.all(np.diff(edges.cols[k]) > 0)  # ascending columns
+        var[r, edges.cols[k]] = edges.variance[k]
     moved = np.abs(fixed.u - maps.u) > albedo_edges.REPORT_SHIFT_PX  # counted: moved by more than 0.05 px
-    np.testing.assert_array_equal(counts, moved.sum(axis=1))
+    np.testing.assert_array_equal(edges.moved_rows, moved.sum(axis=1))
+    assert edges.moved == int(moved.sum())
     return maps, fixed, var
+
+
+def test_restore_gives_back_every_code_bit_for_bit() -> None:
+    maps = decode(_frames(), SEQ)
+    before = maps.u.copy()
+    edges = AlbedoEdges(H)
+    edges.apply(maps, _white(_frames()), BLUR, "x")
+    assert not np.array_equal(maps.u, before, equal_nan=True)
+    edges.restore()
+    np.testing.assert_array_equal(maps.u, before)
+    edges.restore()  # twice: nothing more
+    np.testing.assert_array_equal(maps.u, before)
 
 
 def test_the_dark_side_of_an_edge_reads_its_own_code_again() -> None:
@@ -116,12 +136,10 @@ def test_an_even_surface_keeps_its_codes() -> None:
     assert not var.any()
 
 
-def test_outputs_of_another_shape_are_refused() -> None:
+def test_a_level_image_of_another_shape_is_refused() -> None:
     maps = decode(_frames(), SEQ)
-    bad = np.zeros((H, W + 1), np.float32)
-    ok = np.zeros((H, W), np.float32)
     with pytest.raises(ValueError, match="must be"):
-        correct_albedo_edges(maps, np.ones((H, W), np.uint8), BLUR, "x", bad, ok, ok, np.zeros(H, np.int64))
+        AlbedoEdges(H).apply(maps, np.ones((H, W + 1), np.uint8), BLUR, "x")
 
 
 def test_radiance_is_each_pixel_s_brightest_unclipped_pass_in_the_brightest_pass_s_scale() -> None:
