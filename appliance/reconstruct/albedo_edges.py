@@ -9,13 +9,14 @@ that is locally linear, the pull is the light-weighted centroid of the blur, ``d
 kernel times the albedo is ``b^2`` times the gradient of the blurred image. The code is off by ``d . grad(u)``
 (projector px), to first order in ``b |grad(phi)|``.
 
-The correction subtracts that shift from each decoded code and adds half of it, as a 1-sigma term, to the
-code's variance: the blur is a configured estimate (``reconstruction.edge_blur_px``), the first-order
-formula under-reads the strongest edges, and the level's own noise enters the gradient.
+The correction subtracts that shift from each decoded code and adds ``(0.5 + |d|)`` times it, as a 1-sigma
+term, to the code's variance: the blur is a configured estimate (``reconstruction.edge_blur_px``), the
+first-order formula under-reads the strongest edges (most of the pixel's light from aside), and the level's own
+noise enters the gradient.
 
 On the dark-and-shiny render (albedo 0.03 patches beside 0.95 ones, camera blur 0.5 px, tune's three
-exposures), the correction takes the RMS from 0.213 to 0.181 mm and the points beyond 5 sigma from 0.102 to
-0.041 %.
+exposures), with the fusion then free to take a pixel beside a clipped one: 93.4 -> 98.1 % complete, RMS
+0.213 -> 0.162 mm, points beyond 5 sigma 0.102 -> 0 %.
 
 With several exposures ``R`` must be in one scale across pixels that came from different passes:
 :func:`appliance.reconstruct.hdr.radiance` gives it (each pixel's brightest unclipped white, divided by its
