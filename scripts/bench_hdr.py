@@ -71,6 +71,7 @@ async def _scans(exposures: tuple[int, ...], repeats: int) -> dict[str, Any]:
     peak_mb = (_status_kb("VmHWM") - rss0) / 1024 if peak_ok else float("nan")
     med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
     return {"passes": max(1, len(exposures)), "frames": len(scanner.capture), "points": points,
+            "cameras": [f"{c.width}×{c.height}" for n, c in cfg.virtual_rig.cameras.items() if n in cfg.cameras],
             "peak_added_mb": peak_mb, **med}  # fmt: skip
 
 
@@ -86,7 +87,8 @@ def report_line(r: dict[str, Any]) -> str:
     one, three = r["one"], r["three"]
     return (
         f"one exposure ({one['frames']} frames) against three ({', '.join(f'{e / 1000:g}' for e in r['exposures_us'])}"
-        f" ms, {three['frames']} frames), one 1280×1024 camera, service settings, medians: post-capture latency "
+        f" ms, {three['frames']} frames), cameras {' + '.join(one['cameras']) or '?'} (the default configuration's "
+        f"rig), service settings, medians: post-capture latency "
         f"(last frame to cloud) **{one['post_capture_ms']:.0f} → {three['post_capture_ms']:.0f} ms "
         f"({three['post_capture_ms'] / one['post_capture_ms']:.2f}×)** of which the last decode + fusion "
         f"{one['decode_finish_ms']:.0f} → {three['decode_finish_ms']:.0f} ms; whole scan {one['scan_ms']:.0f} → "
