@@ -199,6 +199,9 @@ def scan_metadata(
         per_cam[name] = {"decoded_pixels": int(mask.sum()), "pixels": int(mask.size),
                          "points": int(np.sum(cloud.camera == i)), **reason_block(result.maps[name]),
                          **(per_camera or {}).get(name, {})}  # fmt: skip
+        edges = result.reconstruction.edge_corrected
+        if name in edges:  # the codes the albedo-edge correction moved (reconstruction.edge_blur_px)
+            per_cam[name]["albedo_edge_corrected"] = int(edges[name])
     more: Json = dict(extra or {})
     if result.capture:
         more["hdr"] = result.capture

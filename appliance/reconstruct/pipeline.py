@@ -139,6 +139,9 @@ class Reconstruction:
         Mode ``'both'``: reference-camera pixels by source (see ``fuse_points_into``); else empty.
     stereo : dict, optional
         What the camera-camera matcher did, stage by stage (modes ``'stereo'`` and ``'both'``).
+    edge_corrected : dict of str to int
+        Per camera-projector camera, the pixels whose code the albedo-edge correction moved by more than
+        ``albedo_edges.REPORT_SHIFT_PX`` (absent: no correction ran).
     """
 
     cloud: PointCloud
@@ -148,6 +151,7 @@ class Reconstruction:
     residuals: tuple[Residual, ...] = ()
     fusion: dict[str, int] = field(default_factory=dict)
     stereo: dict[str, object] | None = None
+    edge_corrected: dict[str, int] = field(default_factory=dict)
 
 
 def stage_warnings(stages: list[StageCounts], cfg: ReconstructionSettings) -> list[str]:
@@ -685,7 +689,7 @@ class Reconstructor:
             timings = {"triangulate_ms": 1e3 * (t1 - t0), "filter_ms": 1e3 * (t2 - t1),
                        "cloud_ms": 1e3 * (t3 - t2), "total_ms": 1e3 * (t3 - t0)}  # fmt: skip
             return Reconstruction(cloud, timings, tuple(stages), tuple(warnings), tuple(residuals), fusion,
-                                  self._stereo_report())  # fmt: skip
+                                  self._stereo_report(), dict(self.edge_corrected))  # fmt: skip
         sizes = [int(self._counts[n].sum()) for n in self.outputs]
         total = sum(sizes)
         xyz, row, col, cam, inten8, qual, sig = self._pool.arrays(
@@ -710,4 +714,4 @@ class Reconstructor:
             "total_ms": 1e3 * (t2 - t0),
         }
         return Reconstruction(cloud, timings, tuple(stages), tuple(warnings), tuple(residuals), fusion,
-                              self._stereo_report())
+                              self._stereo_report(), dict(self.edge_corrected))

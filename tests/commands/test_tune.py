@@ -123,6 +123,10 @@ def test_without_the_albedo_edge_correction_pixels_beside_clipped_ones_are_left_
     assert off.completeness < 0.95 and off.over_1mm > 3 * on.over_1mm, off.line()  # type: ignore[attr-defined]
     assert off.over_5sigma > 3 * on.over_5sigma, off.line()  # type: ignore[attr-defined]
     assert "next to a clipped pixel" in json.dumps(report), out
+    # the sidecar says how many codes the correction moved (by more than 0.05 projector px), and none without it
+    moved = json.loads((folder / "hdr.json").read_text())["counts"]["cameras"]["cam0"]["albedo_edge_corrected"]
+    assert 1000 < moved < 0.2 * on.points, moved  # type: ignore[attr-defined]
+    assert "albedo_edge_corrected" not in report["counts"]["cameras"]["cam0"]
 
 
 def test_a_bad_time_budget_is_one_line(tmp_path: Path) -> None:
