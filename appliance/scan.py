@@ -44,13 +44,7 @@ from appliance.patterns.from_config import build_capture
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
-from appliance.reconstruct.hdr import (
-    HdrStreamingDecoder,
-    capture_record,
-    capture_summary,
-    pick_per_pixel,
-    radiance,
-)
+from appliance.reconstruct.hdr import HdrStreamingDecoder, capture_record, capture_summary, fused_white
 from appliance.reconstruct.pipeline import Reconstruction, Reconstructor, white_to_uint8
 from appliance.reconstruct.types import DecodedMaps
 from appliance.replay import ScanResult as ScanResult  # re-exported for callers
@@ -453,8 +447,7 @@ class Scanner:
         assert dec.choice is not None
         greys = [self._white_u8(None if self._white_index is None else buf[idx[self._white_index]], name)
                  for _light, idx in dec.passes]  # fmt: skip
-        white = np.asarray(pick_per_pixel(greys, dec.choice), np.uint8)
-        maps.radiance = radiance(greys, [light for light, _idx in dec.passes])  # one scale for the edge correction
+        white, maps.radiance = fused_white(greys, dec.passes, dec.choice)
         assert self.exposures is not None
         return maps, white, capture_summary(self.exposures, dec.passes, dec.choice, maps.mask)
 

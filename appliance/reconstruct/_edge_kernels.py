@@ -62,27 +62,28 @@ def _pull(d, slope):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _level_slope(rad, r, c, ru, rd, ry, w):  # type: ignore[no-untyped-def]
-    """The white level's slope (DN per px, float32) along x and y at (r, c); one-sided at the image's border."""
-    cl, cr = max(c - 1, 0), min(c + 1, w - 1)
-    rx = np.float32(0.5) if cr - cl == 2 else np.float32(1.0)
-    gx = rx * (np.float32(rad[r, cr]) - np.float32(rad[r, cl]))
-    return gx, ry * (np.float32(rad[rd, c]) - np.float32(rad[ru, c]))
-
-
-@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _row_span(r, h):  # type: ignore[no-untyped-def]
+    """The rows above and below ``r`` (clamped) and the factor of their difference (one-sided at the border)."""
     ru, rd = max(r - 1, 0), min(r + 1, h - 1)
     return ru, rd, (np.float32(1.0) / np.float32(rd - ru) if rd > ru else np.float32(0.0))
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _worth(mask, rad, r, c, ru, rd, ry, w, lim2):  # type: ignore[no-untyped-def]
-    """Whether pixel (r, c) is decoded and its level slope worth a correction: ``|grad|^2 >= lim2 level^2``
-    with ``level > 0`` (no division and no branch: most pixels lie on an even surface)."""
-    level = np.float32(rad[r, c])
-    gx, gy = _level_slope(rad, r, c, ru, rd, ry, w)
-    return mask[r, c] & (gx * gx + gy * gy >= lim2 * level * level) & (level > np.float32(0.0))
+def _col_span(c, w):  # type: ignore[no-untyped-def]
+    """The columns left and right of ``c`` (clamped) and the factor of their difference."""
+    cl, cr = max(c - 1, 0), min(c + 1, w - 1)
+    return cl, cr, (np.float32(0.5) if cr - cl == 2 else np.float32(1.0))
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _worth(row, up, down, m, c, cl, cr, rx, ry, lim2):  # type: ignore[no-untyped-def]
+    """Pixel ``c`` of a row (``row``, the rows ``up`` and ``down`` of the level, mask row ``m``): whether it is
+    decoded and its level slope worth a correction, ``|grad|^2 >= lim2 level^2`` with ``level > 0`` (no
+    division and no branch: most pixels lie on an even surface), and that slope (DN per px, x and y)."""
+    level = np.float32(row[c])
+    gx = rx * (np.float32(row[cr]) - np.float32(row[cl]))
+    gy = ry * (np.float32(down[c]) - np.float32(up[c]))
+    return m[c] & (gx * gx + gy * gy >= lim2 * level * level) & (level > np.float32(0.0)), gx, gy
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
@@ -90,23 +91,16 @@ def edge_count(mask, rad, lim2, counts):  # type: ignore[no-untyped-def]
     """``counts[r]``: row ``r``'s pixels worth a correction (see :func:`_worth`)."""
     h, w = mask.shape
     lim = np.float32(lim2)
+    half = np.float32(0.5)
     for r in prange(h):
         ru, rd, ry = _row_span(r, h)
+        a, b, d, m = rad[r], rad[ru], rad[rd], mask[r]
         n = np.int64(0)
-        if w >= 3:  # the inner columns in a loop without branches (it vectorises)
-            a, b, d, m = rad[r], rad[ru], rad[rd], mask[r]
-            half = np.float32(0.5)
-            zero = np.float32(0.0)
-            for c in range(1, w - 1):
-                level = np.float32(a[c])
-                gx = half * (np.float32(a[c + 1]) - np.float32(a[c - 1]))
-                gy = ry * (np.float32(d[c]) - np.float32(b[c]))
-                n += np.int64(m[c] & (gx * gx + gy * gy >= lim * level * level) & (level > zero))
-            n += np.int64(_worth(mask, rad, r, 0, ru, rd, ry, w, lim)) + np.int64(
-                _worth(mask, rad, r, w - 1, ru, rd, ry, w, lim))
-        else:
-            for c in range(w):
-                n += np.int64(_worth(mask, rad, r, c, ru, rd, ry, w, lim))
+        for c in range(1, w - 1):  # the inner columns: fixed neighbours, a loop without branches (it vectorises)
+            n += np.int64(_worth(a, b, d, m, c, c - 1, c + 1, half, ry, lim)[0])
+        for c in range(0, w, max(w - 1, 1)):  # the two border columns (one column: once)
+            cl, cr, rx = _col_span(c, w)
+            n += np.int64(_worth(a, b, d, m, c, cl, cr, rx, ry, lim)[0])
         counts[r] = n
 
 
@@ -125,17 +119,19 @@ def edge_shift(  # type: ignore[no-untyped-def]
     the axis is coded (an uncoded one's shift is 0).
     """
     h, w = u.shape
+    lim = np.float32(lim2)
     for r in prange(h):
         ru, rd, ry = _row_span(r, h)
+        a, b, d, mr = rad[r], rad[ru], rad[rd], mask[r]
         k = offsets[r]
         m = 0
-        lim = np.float32(lim2)
         for c in range(w):
             if k == offsets[r + 1]:  # every pixel edge_count counted in the row is done (most rows: none)
                 break
-            if not _worth(mask, rad, r, c, ru, rd, ry, w, lim):
+            cl, cr, rx = _col_span(c, w)
+            ok, gx, gy = _worth(a, b, d, mr, c, cl, cr, rx, ry, lim)
+            if not ok:
                 continue
-            gx, gy = _level_slope(rad, r, c, ru, rd, ry, w)
             cols[k] = c
             pu, pv, e = _correct_pixel(u, v, mask, r, c, np.float64(gx), np.float64(gy), np.float64(rad[r, c]), s2,
                                        max_shift, kappa, has_u, has_v)  # fmt: skip

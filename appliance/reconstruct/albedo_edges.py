@@ -51,7 +51,6 @@ REPORT_SHIFT_PX = 0.05
 """A code moved by more than this (projector px) counts as corrected (:attr:`AlbedoEdges.moved`)."""
 
 F32 = npt.NDArray[np.float32]
-I64 = npt.NDArray[np.int64]
 
 
 class AlbedoEdges:

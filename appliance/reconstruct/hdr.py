@@ -214,6 +214,31 @@ def radiance(
     return out
 
 
+def fused_white(
+    greys: Sequence[npt.NDArray[np.uint8]], passes: Sequence[tuple[float, list[int]]], choice: npt.NDArray[np.uint8]
+) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
+    """A fused capture's grey image and white level, as the scan and the replay both take them.
+
+    Parameters
+    ----------
+    greys : sequence of ndarray, shape (H, W), uint8
+        Each pass's grey image under white light, in the order of ``passes`` (darkest first).
+    passes : sequence of (float, list of int)
+        Per pass its relative light and frame indices (:func:`decode_passes`, ``HdrStreamingDecoder.passes``).
+    choice : ndarray, shape (H, W), uint8
+        The pass each pixel came from.
+
+    Returns
+    -------
+    white : ndarray, shape (H, W), uint8
+        Per pixel the chosen pass's grey (intensity and noise model of its point).
+    level : ndarray, shape (H, W), float32
+        :func:`radiance`: the white level in one scale (``DecodedMaps.radiance``, the albedo-edge correction's).
+    """
+    return (np.asarray(pick_per_pixel(greys, choice), np.uint8),
+            radiance(greys, [light for light, _idx in passes]))  # fmt: skip
+
+
 def capture_summary(
     exposures: Sequence[tuple[float, float]],
     passes: Sequence[tuple[float, list[int]]],
