@@ -9,6 +9,14 @@ of sqrt 2) the fewest that bring at least :data:`TARGET_SHARE` of the lit pixels
 the time budget are chosen; what no exposure recovers is named with its cause (too dark even at the longest,
 clipped even at the shortest). ``--apply`` writes the choice to ``sequence.exposures_us`` of the configuration
 file, validated first and written atomically, as an edit over SSH would be (a running service reloads it).
+
+A projector that can dim between passes (lightcrafter4500, sim: see
+:func:`~appliance.hardware.base.intensity_control`) adds one probe pass at the shortest exposure and
+:data:`PROBE_DIM` of its intensity, which measures the pixels that clip at every full-intensity probe exposure
+(specular highlights). The choice may then also take passes at the shortest exposure with the projector dimmed
+(:data:`DIM_LADDER`), written to ``sequence.intensities``. Dimming the projector leaves the ambient light as it
+is, so a pixel's white level at exposure ``t`` and intensity ``i`` is modelled as ``ambient_rate * t +
+contrast_rate * t * i``.
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ import yaml
 from appliance.config import AppConfig
 from appliance.config.loader import parse_config
 from appliance.errors import ConfigError, HardwareError
-from appliance.hardware.base import ExposureControl, exposure_control
+from appliance.hardware.base import ExposureControl, exposure_control, intensity_control
 from appliance.output.atomic import write_bytes_atomic
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
@@ -50,6 +58,11 @@ LIT_CONTRAST = 1.0
 (or it clips)."""
 TARGET_SHARE = 0.99
 """Share of the lit pixels the choice must bring into a decodable range."""
+DIM_LADDER = tuple(round(2.0 ** (-k / 2), 3) for k in range(1, 9))
+"""Projector intensities a dimmed pass may use (0.707 .. 0.0625 of full scale, steps of sqrt 2), at the ladder's
+shortest exposure; only with a projector that can dim."""
+PROBE_DIM = 1.0 / 16.0
+"""Projector intensity of the probe's dimmed pass (at its shortest exposure)."""
 MAX_EXPOSURES = 4
 """The most exposures (capture passes) a choice may have."""
 FRAME_PERIOD_US = 16_667.0
@@ -64,13 +77,16 @@ class Probe:
     Attributes
     ----------
     exposures_us : tuple of float
-        Probe exposures (µs), ascending.
+        Exposure of each probe pass (µs), its light (exposure times intensity) ascending.
     white, black : dict of str to ndarray, shape (E, H, W), float64
-        DN per exposure.
+        DN per probe pass.
     full_scale : dict of str to float
         The sensor's largest value (DN) per camera.
     projector_size : (int, int)
         The projector's width and height (px): the sequence's frame count depends on it.
+    intensities : tuple of float
+        Projector intensity (0-1] of each probe pass; empty: every pass at full intensity (a projector that
+        cannot dim, whose passes the choice then cannot dim either).
     """
 
     exposures_us: tuple[float, ...]
@@ -78,6 +94,12 @@ class Probe:
     black: dict[str, npt.NDArray[np.float64]]
     full_scale: dict[str, float]
     projector_size: tuple[int, int] = (1280, 800)
+    intensities: tuple[float, ...] = ()
+
+    @property
+    def can_dim(self) -> bool:
+        """True when the probe had a dimmed pass (the projector can set its intensity between passes)."""
+        return any(i < 1.0 for i in self.intensities)
 
 
 @dataclass(frozen=True)
@@ -87,7 +109,7 @@ class TuneChoice:
     Attributes
     ----------
     exposures_us : tuple of int
-        Exposure of each capture pass (µs), ascending.
+        Exposure of each capture pass (µs), in the order of the passes' light (exposure times intensity).
     scan_ms : float
         Expected capture time of the scan (ms).
     covered : float
@@ -95,12 +117,22 @@ class TuneChoice:
     lit_pixels : int
         Lit pixels of all cameras.
     too_dark, clipped : float
-        Shares of the lit pixels that no exposure of the ladder recovers: too dark even at the longest,
-        clipped even at the shortest.
+        Shares of the lit pixels that no pass recovers: too dark even at the longest exposure, clipped even at
+        the shortest (and, with a projector that can dim, at its lowest intensity).
     dynamic_range : float
         Ratio of the brightest to the darkest lit pixel's contrast per µs.
     within_budget : bool
         False when no choice reaching :data:`TARGET_SHARE` fits the budget (then the best that fits).
+    ladder_us : tuple of int
+        The exposures the choice could take (µs).
+    intensities : tuple of float
+        Projector intensity (0-1] of each pass, for ``sequence.intensities``; empty when every pass is at full
+        intensity.
+    dim_floor : float
+        The lowest projector intensity the choice could take (1.0: the projector cannot dim).
+    ambient_limited : float
+        Share of the lit pixels that no pass recovers because the ambient light clips them before their
+        projector contrast is enough (dark parts in a bright room).
     """
 
     exposures_us: tuple[int, ...]
@@ -112,14 +144,21 @@ class TuneChoice:
     dynamic_range: float
     within_budget: bool
     ladder_us: tuple[int, ...]
+    intensities: tuple[float, ...] = ()
+    dim_floor: float = 1.0
+    ambient_limited: float = 0.0
 
     def lines(self, time_budget_ms: float) -> list[str]:
         """The plain-words report printed by ``scan3d tune``."""
         ex = ", ".join(str(e) for e in self.exposures_us)
         n = len(self.exposures_us)
+        what = f"{n} exposure{'s' if n > 1 else ''}"
+        if self.intensities:
+            ex += "], sequence.intensities = [" + ", ".join(f"{i:g}" for i in self.intensities)
+            what = f"{n} passes, {sum(i < 1.0 for i in self.intensities)} with the projector dimmed"
         out = [
             f"lit pixels: {self.lit_pixels}; their contrast spans 1:{self.dynamic_range:.0f}",
-            f"choice: sequence.exposures_us = [{ex}] ({n} exposure{'s' if n > 1 else ''}): expected scan time "
+            f"choice: sequence.exposures_us = [{ex}] ({what}): expected scan time "
             f"{self.scan_ms:.0f} ms, {100 * self.covered:.1f} % of the lit pixels in a decodable range",
         ]
         if not self.within_budget:
@@ -129,9 +168,16 @@ class TuneChoice:
         if self.too_dark >= 5e-4:
             lost.append(f"{100 * self.too_dark:.1f} % too dark even at {max(self.ladder_us)} µs (raise the "
                         "projector's brightness or the camera gain, or bring the part closer)")
-        if self.clipped >= 5e-4:
+        if self.clipped >= 5e-4 and self.dim_floor < 1.0:
+            lost.append(f"{100 * self.clipped:.1f} % clipped even at {min(self.ladder_us)} µs with the projector at "
+                        f"{self.dim_floor:g} of its intensity (specular highlights: tilt the part)")
+        elif self.clipped >= 5e-4:
             lost.append(f"{100 * self.clipped:.1f} % clipped even at {min(self.ladder_us)} µs (specular "
-                        "highlights: tilt the part or lower the projector intensity)")
+                        "highlights: tilt the part, or use a projector that can dim between passes: "
+                        "lightcrafter4500)")
+        if self.ambient_limited >= 5e-4:
+            lost.append(f"{100 * self.ambient_limited:.1f} % too dark for the ambient light (it clips them before "
+                        "the projector's contrast is enough: shade the part from room light)")
         out.append("cannot recover: " + "; ".join(lost) if lost else "cannot recover: nothing")
         out.append("not measured by the probe: interreflections (a mirror-like face lighting another); the "
                    "decoder's consistency checks drop those pixels")
@@ -178,8 +224,9 @@ async def probe_rig(rig: Rig, projector_size: tuple[int, int], exposures_us: tup
     """White and black frames of every camera of ``rig`` at each exposure (µs).
 
     The devices are opened (opening is idempotent: an open rig, the service's, is used as it is) and left open;
-    the projector is left with the probe's two frames loaded and the cameras at the last exposure, so the
-    caller closes the rig or rebuilds it.
+    the projector is left with the probe's two frames loaded (at full intensity) and the cameras at the last
+    exposure, so the caller closes the rig or rebuilds it. A projector that can dim gets one more pass first: the
+    shortest exposure at :data:`PROBE_DIM` of its intensity.
 
     Parameters
     ----------
@@ -198,6 +245,10 @@ async def probe_rig(rig: Rig, projector_size: tuple[int, int], exposures_us: tup
     full: dict[str, float] = {}
     bufs: dict[str, npt.NDArray[Any]] = {}
     controls: dict[str, ExposureControl] = {}
+    dim = intensity_control(rig.projector)
+    passes = [(float(e), 1.0) for e in exposures_us]  # (exposure, intensity), their light ascending
+    if dim is not None and exposures_us:
+        passes.insert(0, (float(min(exposures_us)), PROBE_DIM))
     for name, cam in rig.cameras.items():
         info = await cam.open()
         bits = pixel_format_bits(info.pixel_format)
@@ -209,21 +260,28 @@ async def probe_rig(rig: Rig, projector_size: tuple[int, int], exposures_us: tup
         controls[name] = control
         # a few MB per camera: allocated off the event loop
         bufs[name], white[name], black[name] = await asyncio.to_thread(
-            _probe_buffers, len(exposures_us), info.height, info.width, bits)
+            _probe_buffers, len(passes), info.height, info.width, bits)
     await rig.projector.open()
     await rig.projector.load(seq)
-    for k, exposure in enumerate(exposures_us):
-        for name, cam in rig.cameras.items():
-            await controls[name].set_exposure(exposure)
-            await cam.arm(2, bufs[name])
-        await rig.projector.start()
-        software = [c for c in rig.cameras.values() if c.needs_software_trigger]
-        for i in range(2 if software else 0):
-            await asyncio.gather(*(c.trigger(i) for c in software))
-        await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
-        # the copies into float64 take ~10 ms a megapixel: off the event loop
-        await asyncio.to_thread(_store_probe, bufs, white, black, k)
-    return Probe(tuple(exposures_us), white, black, full, (int(projector_size[0]), int(projector_size[1])))
+    try:
+        for k, (exposure, intensity) in enumerate(passes):
+            if dim is not None:
+                await dim.set_intensity(intensity)
+            for name, cam in rig.cameras.items():
+                await controls[name].set_exposure(exposure)
+                await cam.arm(2, bufs[name])
+            await rig.projector.start()
+            software = [c for c in rig.cameras.values() if c.needs_software_trigger]
+            for i in range(2 if software else 0):
+                await asyncio.gather(*(c.trigger(i) for c in software))
+            await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
+            # the copies into float64 take ~10 ms a megapixel: off the event loop
+            await asyncio.to_thread(_store_probe, bufs, white, black, k)
+    finally:
+        if dim is not None:
+            await dim.set_intensity(1.0)  # a scan without sequence.intensities does not set it
+    return Probe(tuple(e for e, _ in passes), white, black, full, (int(projector_size[0]), int(projector_size[1])),
+                 tuple(i for _, i in passes) if dim is not None else ())
 
 
 def _probe_buffers(n: int, height: int, width: int, bits: int) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64],
@@ -243,7 +301,12 @@ def _store_probe(bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray
 
 def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_ms: float,
            base_us: float) -> TuneChoice:
-    """The fewest exposures of the ladder that bring :data:`TARGET_SHARE` of the lit pixels into range.
+    """The fewest passes that bring :data:`TARGET_SHARE` of the lit pixels into range.
+
+    A pass is an exposure of the ladder at full intensity or, when the probe could dim the projector, the
+    ladder's shortest exposure at an intensity of :data:`DIM_LADDER`. Among the fewest that reach the target (or,
+    when none does within the budget, the most covering that fit) the one covering most, then the quickest, then
+    the one with fewest dimmed passes.
 
     Parameters
     ----------
@@ -259,65 +322,78 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         The configured exposure the ladder is relative to (µs).
     """
     ladder = np.asarray(sorted({round(base_us * f) for f in LADDER_FACTORS}), dtype=np.float64)
+    # the passes a choice may take: (exposure µs, intensity); the dimmed ones after, so that ties keep full
+    settings = [(float(t), 1.0) for t in ladder]
+    if pr.can_dim:
+        settings += [(float(ladder[0]), i) for i in DIM_LADDER]
+    s_t = np.asarray([t for t, _ in settings])
+    s_i = np.asarray([i for _, i in settings])
     masks: list[npt.NDArray[np.int64]] = []
-    dark_n = clip_n = 0
+    dark_n = clip_n = ambient_n = 0
     rates: list[npt.NDArray[np.float64]] = []
     e = np.asarray(pr.exposures_us)
+    light = e * (np.asarray(pr.intensities) if pr.intensities else 1.0)  # µs at full intensity, ascending
+    brightest = float(np.max(s_t * s_i))
     for name in pr.white:
         w, b, full = pr.white[name], pr.black[name], pr.full_scale[name]
         scale = (full + 1) / 256.0
-        ok = w < CLIP_MARGIN * full  # per exposure: this pixel's white did not clip
-        # the longest unclipped probe exposure of each pixel; -1 where every one clipped
+        ok = w < CLIP_MARGIN * full  # per probe pass: this pixel's white did not clip
+        # the brightest unclipped probe pass of each pixel; -1 where every one clipped
         idx = np.where(ok.any(axis=0), len(e) - 1 - np.argmax(ok[::-1], axis=0), -1)
         k = np.clip(idx, 0, None)
         wk = np.take_along_axis(w, k[None], 0)[0]
-        ck = wk - np.take_along_axis(b, k[None], 0)[0]
-        c_rate = ck / e[k]  # contrast per µs
-        w_rate = wk / e[k]  # white level per µs
+        bk = np.take_along_axis(b, k[None], 0)[0]
+        c_rate = (wk - bk) / light[k]  # contrast per µs at full intensity
+        a_rate = bk / e[k]  # black (ambient) per µs: dimming the projector leaves it
         clipped_all = idx < 0
-        # lit: clipped at some probe exposure, or with contrast at the longest
+        # lit: clipped at some probe pass, or with contrast at the brightest
         lit = (idx < len(e) - 1) | (w[-1] - b[-1] >= LIT_CONTRAST * min_contrast_dn * scale)
         need = DECODABLE_CONTRAST * min_contrast_dn * scale
-        # decodable at ladder exposure L: contrast reaches need and white stays below the margin (a pixel that
-        # clipped at every probe exposure has no measured rate: it counts as clipped)
-        good = (c_rate[..., None] * ladder >= need) & (w_rate[..., None] * ladder < CLIP_MARGIN * full)
+        # decodable in pass (t, i): contrast reaches need and white stays below the margin (a pixel that clipped
+        # in every probe pass has no measured rate: it counts as clipped)
+        good = (c_rate[..., None] * (s_t * s_i) >= need)
+        good &= a_rate[..., None] * s_t + c_rate[..., None] * (s_t * s_i) < CLIP_MARGIN * full
         good &= ~clipped_all[..., None]
-        bits = (good[lit] * (1 << np.arange(ladder.size))).sum(axis=1)
+        bits = (good[lit] * (1 << np.arange(len(settings)))).sum(axis=1)
         masks.append(bits.astype(np.int64))
         none = bits == 0
-        too_dark = none & (c_rate[lit] * ladder[-1] < need)
+        too_dark = none & (c_rate[lit] * brightest < need)
+        # clipped even in the dimmest pass; the rest reach the contrast only where the ambient light clips them
+        dimmest = a_rate[lit] * s_t[0] + c_rate[lit] * s_t[0] * s_i.min() >= CLIP_MARGIN * full
+        clipped = none & ~too_dark & (dimmest | clipped_all[lit])
         dark_n += int(too_dark.sum())
-        clip_n += int((none & ~too_dark).sum())
+        clip_n += int(clipped.sum())
+        ambient_n += int((none & ~too_dark & ~clipped).sum())
         rates.append(c_rate[lit & ~clipped_all])
     allbits = np.concatenate(masks) if masks else np.zeros(0, np.int64)
     lit_n = int(allbits.size)
     uniq, counts = np.unique(allbits, return_counts=True)
-    best: tuple[float, float, tuple[int, ...]] | None = None
-    chosen: tuple[int, ...] = ()
+    best: tuple[float, float, int, tuple[int, ...]] | None = None
     within = False
     for n in range(1, MAX_EXPOSURES + 1):
-        for combo in itertools.combinations(range(ladder.size), n):
-            t_ms = scan_time_ms([float(ladder[i]) for i in combo], frames_per_pass)
+        for combo in itertools.combinations(range(len(settings)), n):
+            t_ms = scan_time_ms([float(s_t[i]) for i in combo], frames_per_pass)
             if t_ms > time_budget_ms:
                 continue
             m = sum(1 << i for i in combo)
             cov = float(counts[(uniq & m) != 0].sum()) / lit_n if lit_n else 1.0
-            key = (cov, -t_ms, combo)
-            if best is None or key[:2] > best[:2]:
+            key = (cov, -t_ms, -sum(s_i[i] < 1.0 for i in combo), combo)
+            if best is None or key[:3] > best[:3]:
                 best = key
         if best is not None and best[0] >= TARGET_SHARE:
             within = True
             break
-    if best is not None:
-        chosen = best[2]
+    chosen = sorted(best[3] if best is not None else (), key=lambda i: (s_t[i] * s_i[i], s_t[i]))
     cov = best[0] if best is not None else 0.0
-    ex = tuple(int(ladder[i]) for i in chosen)
+    ex = tuple(int(s_t[i]) for i in chosen)
+    levels = tuple(float(s_i[i]) for i in chosen)
     r = np.concatenate(rates) if rates else np.zeros(0)
     r = r[r > 0]
     dr = float(np.percentile(r, 99.9) / np.percentile(r, 0.1)) if r.size else 1.0
     return TuneChoice(ex, scan_time_ms([float(x) for x in ex], frames_per_pass), cov, lit_n,
                       dark_n / lit_n if lit_n else 0.0, clip_n / lit_n if lit_n else 0.0, dr, within,
-                      tuple(int(x) for x in ladder))
+                      tuple(int(x) for x in ladder), levels if any(i < 1.0 for i in levels) else (),
+                      float(s_i.min()), ambient_n / lit_n if lit_n else 0.0)
 
 
 def scan_time_ms(exposures_us: list[float], frames_per_pass: int) -> float:
@@ -425,12 +501,12 @@ def _set_in_block(lines: list[str], start: int, key: str, values: tuple[float, .
     return lines[: start + 1] + new + lines[start + 1 :]
 
 
-def apply_choice(path: Path, exposures_us: tuple[int, ...]) -> None:
-    """Write ``sequence.exposures_us`` into the configuration file (and take out ``sequence.intensities``: the
-    choice's passes are at full intensity): validated first, then written atomically (a running service reloads
-    it as it would an edit over SSH)."""
+def apply_choice(path: Path, exposures_us: tuple[int, ...], intensities: tuple[float, ...] = ()) -> None:
+    """Write ``sequence.exposures_us`` and ``sequence.intensities`` into the configuration file (``intensities``
+    empty: every pass at full intensity, and the key is taken out): validated first, then written atomically (a
+    running service reloads it as it would an edit over SSH)."""
     text = path.read_text()
-    new = with_exposures(text, exposures_us)
+    new = with_exposures(text, exposures_us, tuple(intensities) or None)
     parse_config(new, str(path), path.parent)  # raises ConfigError with the file, line and rule
     write_bytes_atomic(path, new.encode())
 
@@ -443,6 +519,9 @@ async def tune_command(cfg: AppConfig, config_path: Path | None, time_budget_ms:
     if apply:
         if config_path is None:
             raise ConfigError("scan3d tune --apply: no configuration file to write; pass --config FILE")
-        apply_choice(config_path, choice.exposures_us)
-        print(f"written: {config_path}: sequence.exposures_us = {list(choice.exposures_us)}")
+        apply_choice(config_path, choice.exposures_us, choice.intensities)
+        said = f"sequence.exposures_us = {list(choice.exposures_us)}"
+        if choice.intensities:
+            said += f", sequence.intensities = {list(choice.intensities)}"
+        print(f"written: {config_path}: {said}")
     return 0

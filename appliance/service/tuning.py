@@ -125,7 +125,8 @@ class Tuner:
         Returns
         -------
         dict
-            ``path``, ``exposures_us`` and the reload's ``reloaded`` (bool) and ``error``.
+            ``path``, ``exposures_us``, ``intensities`` (empty: every pass at full intensity) and the reload's
+            ``reloaded`` (bool) and ``error``.
 
         Raises
         ------
@@ -142,9 +143,12 @@ class Tuner:
         if exposures_us is not None and [int(e) for e in exposures_us] != chosen:
             raise TuneRefused(f"scan3d tune: {list(exposures_us)} is not the last tune's choice ({chosen}); "
                               "look at its result again and apply that")
+        levels = [float(i) for i in self.last["choice"].get("intensities", [])]
         path = self.host.config_path
-        await asyncio.to_thread(apply_choice, path, tuple(chosen))  # validated, then written atomically
-        log.info("scan3d tune: sequence.exposures_us = %s written to %s", chosen, path)
+        # validated, then written atomically
+        await asyncio.to_thread(apply_choice, path, tuple(chosen), tuple(levels))
+        log.info("scan3d tune: sequence.exposures_us = %s%s written to %s", chosen,
+                 f", sequence.intensities = {levels}" if levels else "", path)
         ok, error = await self.host.reload("scan3d tune --apply")
-        return {"path": str(path), "exposures_us": chosen, "reloaded": ok, "error": error}
+        return {"path": str(path), "exposures_us": chosen, "intensities": levels, "reloaded": ok, "error": error}
 

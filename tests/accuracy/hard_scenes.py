@@ -140,19 +140,24 @@ def stats(cloud: PointCloud, rig: VirtualRig, camera: str = "cam0") -> SceneStat
     )
 
 
-def capture(cfg: AppConfig, folder: Path, name: str, exposures_us: Sequence_[float] = ()) -> VirtualRig:
-    """Render the configured scene (one pass per exposure; none: the configured exposure) into a manifest.
+def capture(cfg: AppConfig, folder: Path, name: str, exposures_us: Sequence_[float] = (),
+            intensities: Sequence_[float] = ()) -> VirtualRig:
+    """Render the configured scene (one pass per exposure, at its projector intensity, full where
+    ``intensities`` is empty; none: the configured exposure) into a manifest.
 
-    Writes ``folder/name.yaml`` (with ``exposure_us`` per frame when several passes), its stack and the rig's
-    exact calibration ``folder/cal.yaml``; returns the rig (its ground truth).
+    Writes ``folder/name.yaml`` (with ``exposure_us`` and ``intensity`` per frame when several passes), its
+    stack and the rig's exact calibration ``folder/cal.yaml``; returns the rig (its ground truth).
     """
     rig = VirtualRig(cfg.virtual_rig)
     seq = build_sequence(cfg.sequence, rig.projector.width, rig.projector.height)
     passes = list(exposures_us) or [None]
-    stacks = [rig.render(seq, "cam0", seed=17 + k, exposure_us=e) for k, e in enumerate(passes)]
+    levels = list(intensities) or [1.0] * len(passes)
+    stacks = [rig.render(seq, "cam0", seed=17 + k, exposure_us=e, intensity=i)
+              for k, (e, i) in enumerate(zip(passes, levels, strict=True))]
     np.save(folder / f"{name}.npy", np.concatenate(stacks))
     frames = Sequence(seq.width, seq.height, tuple(seq.frames) * len(passes))
-    exposures = [(float(e), 1.0) for e in exposures_us for _ in seq.frames] if len(passes) > 1 else None
+    exposures = ([(float(e), float(i)) for e, i in zip(exposures_us, levels, strict=True) for _ in seq.frames]
+                 if len(passes) > 1 else None)
     write_manifest(folder / f"{name}.yaml", frames, ["cam0"], stacks={"cam0": f"{name}.npy"}, exposures=exposures)
     write_calibration(folder / "cal.yaml", virtual_calibration(rig))
     return rig

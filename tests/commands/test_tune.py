@@ -15,11 +15,13 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from appliance import cli
 from appliance.config import load_config
+from appliance.output.ply import read_ply_vertices
 from appliance.procedures.tune import with_exposures
 
 REPO = Path(__file__).resolve().parents[2]
@@ -173,3 +175,67 @@ def test_apply_replaces_a_dimmed_pass_configuration(tmp_path: Path) -> None:
     assert rc == 0 and "Traceback" not in out, out
     cfg = load_config(path)
     assert cfg.sequence.intensities == () and list(cfg.sequence.exposures_us) == _choice(out)
+
+
+def test_a_highlight_clipped_at_the_shortest_exposure_gets_a_dimmed_pass(tmp_path: Path) -> None:
+    # the dark-and-shiny scene configured at 40 ms (the over-exposed scan): the ladder's shortest exposure is
+    # 10 ms, where the sphere's highlight (8x the white level) still clips. The sim projector can dim, so the probe
+    # measures the highlight with the projector at 1/16 and the choice takes the shortest pass dimmed; the file
+    # gets sequence.intensities, and the rendered passes reconstruct the highlight
+    path = tmp_path / "over.yaml"
+    path.write_text(scene_text("dark_shiny", exposure_us=40_000))
+    rc, text = _tune("--config", path, "--time-budget-ms", 4000, "--apply")
+    print(text)
+    assert rc == 0, text
+    cfg = load_config(path)
+    exposures, levels = cfg.sequence.exposures_us, cfg.sequence.intensities
+    assert len(exposures) <= 3 and len(levels) == len(exposures) and min(levels) < 1.0, (exposures, levels)
+    assert "with the projector dimmed" in text and "sequence.intensities = " in text
+    assert "clipped even at" not in text  # measured 0.5 % without the dimmed pass: nothing clipped now
+    rig = capture(scene_config("dark_shiny", exposure_us=40_000), tmp_path, "dim", exposures, levels)
+    dimmed, _ = decode(tmp_path, "dim", rig)
+    # the same exposures with the projector at full intensity in every pass
+    capture(scene_config("dark_shiny", exposure_us=40_000), tmp_path, "full", exposures)
+    full, _ = decode(tmp_path, "full", rig)
+    print("dimmed:", dimmed.line())
+    print("full:  ", full.line())
+    # the patch edges' 0.1 % > 1 mm, as with the 3 exposures chosen at 10 ms (their sigma says so)
+    assert dimmed.completeness >= 0.97 and dimmed.over_1mm <= 2e-3, dimmed.line()
+    assert dimmed.over_5sigma <= 1e-3 and dimmed.completeness > full.completeness, (dimmed.line(), full.line())
+    # the highlight's pixels: clipped in the shortest pass at full intensity
+    from appliance.patterns.sequence import WhiteFrame
+    # (the rest of the 99 % target needs no more; its core clips even dimmed, at a lower intensity it would not)
+    white = rig.render_frame(WhiteFrame(), "cam0", exposure_us=min(exposures))
+    dim_white = rig.render_frame(WhiteFrame(), "cam0", exposure_us=min(exposures), intensity=min(levels))
+    hot = (white >= 255) & rig.ground_truth("cam0").lit
+    kept = hot & (dim_white < 0.95 * 255)  # ... and not clipped in the dimmed pass
+    got = {t: np.zeros(hot.shape, bool) for t in ("dim", "full")}
+    for t in got:
+        v = read_ply_vertices(tmp_path / f"{t}.ply")
+        got[t][np.asarray(v["row"]), np.asarray(v["col"])] = True
+    print(f"highlight: {hot.sum()} px, reconstructed {got['dim'][hot].mean():.3f} dimmed, "
+          f"{got['full'][hot].mean():.3f} at full intensity; of the {kept.sum()} the dimmed pass did not clip "
+          f"{got['dim'][kept].mean():.3f}")
+    assert hot.sum() > 300 and kept.sum() > 0.3 * hot.sum()
+    assert got["dim"][kept].mean() >= 0.9 and got["full"][hot].mean() <= 0.05
+
+
+def test_a_projector_that_cannot_dim_gets_exposures_only() -> None:
+    # choose() on a probe without a dimmed pass (an HDMI projector): a pixel that clips at every probe exposure
+    # is named as clipped, with what to do, and the choice has no intensities
+    from appliance.procedures.tune import Probe, choose
+
+    e = (2500.0, 10_000.0, 40_000.0)
+    rate = np.full((1, 100), 10.0 / 1000)  # DN per µs: 25, 100, 400 (clipped at 40 ms)
+    rate[0, :5] = 1.0  # 2500 DN at the shortest: clipped everywhere
+    white = np.minimum(np.stack([rate * t + 5 for t in e]), 255.0)
+    black = np.full_like(white, 5.0)
+    c = choose(Probe(e, {"c": white}, {"c": black}, {"c": 255.0}), 4.0, 22, 10_000, 10_000)
+    assert c.intensities == () and c.dim_floor == 1.0 and abs(c.clipped - 0.05) < 1e-9
+    assert any("projector that can dim" in line for line in c.lines(10_000)), c.lines(10_000)
+    # the same scene with a dimmed probe pass at 1/16: the clipped pixels get a dimmed pass
+    e2 = (2500.0, *e)
+    white2 = np.concatenate([np.minimum(rate[None] * 2500 / 16 + 5, 255.0), white])
+    c2 = choose(Probe(e2, {"c": white2}, {"c": np.full_like(white2, 5.0)}, {"c": 255.0},
+                      intensities=(1 / 16, 1.0, 1.0, 1.0)), 4.0, 22, 10_000, 10_000)
+    assert c2.clipped == 0.0 and c2.covered == 1.0 and c2.intensities and min(c2.intensities) < 0.25, c2

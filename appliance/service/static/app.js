@@ -414,8 +414,10 @@ async function tune() {
     $("tune-result").hidden = false;
     text("tune-result", (t.lines || []).join("\n"));
     tuneChoice = t.choice.exposures_us;
+    const dimmed = (t.choice.intensities || []).length ?
+      ` and sequence.intensities = [${t.choice.intensities.join(", ")}]` : "";
     text("tune-status", `probed in ${Math.round(t.probe_ms)} ms; Apply writes sequence.exposures_us = ` +
-      `[${tuneChoice.join(", ")}] into the configuration file (validated, then reloaded)`);
+      `[${tuneChoice.join(", ")}]${dimmed} into the configuration file (validated, then reloaded)`);
     $("tune-apply").hidden = false;
   } catch (e) {
     text("tune-status", `no answer: ${e.message}`);
@@ -434,7 +436,9 @@ async function applyTune() {
     if (!res) return;
     if (res.body.ok) {
       const a = res.body.applied;
-      text("tune-status", `applied: ${a.path}: sequence.exposures_us = [${a.exposures_us.join(", ")}]; reloaded`);
+      const dimmed = (a.intensities || []).length ? `, sequence.intensities = [${a.intensities.join(", ")}]` : "";
+      text("tune-status", `applied: ${a.path}: sequence.exposures_us = [${a.exposures_us.join(", ")}]${dimmed}; ` +
+        "reloaded");
       $("tune-apply").hidden = true;
     } else {
       text("tune-status", res.body.error || `HTTP ${res.status}`);
