@@ -333,7 +333,6 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     rates: list[npt.NDArray[np.float64]] = []
     e = np.asarray(pr.exposures_us)
     light = e * (np.asarray(pr.intensities) if pr.intensities else 1.0)  # µs at full intensity, ascending
-    brightest = float(np.max(s_t * s_i))
     for name in pr.white:
         w, b, full = pr.white[name], pr.black[name], pr.full_scale[name]
         scale = (full + 1) / 256.0
@@ -357,7 +356,7 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         bits = (good[lit] * (1 << np.arange(len(settings)))).sum(axis=1)
         masks.append(bits.astype(np.int64))
         none = bits == 0
-        too_dark = none & (c_rate[lit] * brightest < need)
+        too_dark = none & (c_rate[lit] * ladder[-1] < need)  # the brightest pass: the longest, full
         # clipped even in the dimmest pass; the rest reach the contrast only where the ambient light clips them
         dimmest = a_rate[lit] * s_t[0] + c_rate[lit] * s_t[0] * s_i.min() >= CLIP_MARGIN * full
         clipped = none & ~too_dark & (dimmest | clipped_all[lit])
@@ -377,7 +376,7 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
                 continue
             m = sum(1 << i for i in combo)
             cov = float(counts[(uniq & m) != 0].sum()) / lit_n if lit_n else 1.0
-            key = (cov, -t_ms, -sum(s_i[i] < 1.0 for i in combo), combo)
+            key = (cov, -t_ms, -sum(i >= ladder.size for i in combo), combo)  # the dimmed come after the ladder
             if best is None or key[:3] > best[:3]:
                 best = key
         if best is not None and best[0] >= TARGET_SHARE:
