@@ -67,3 +67,70 @@ def test_the_first_bad_frame_in_capture_order_is_named(tmp_path: Path) -> None:
         load_images(paths, "scan.yaml", threads=4)
     with pytest.raises(ManifestError, match="no frames"):
         load_images([], "scan.yaml")
+
+
+def _jpegs(folder: Path, n: int, size: tuple[int, int], params: list[int], colour: bool) -> list[Path]:
+    rng = np.random.default_rng(11)
+    h, w = size
+    yy, xx = np.mgrid[0:h, 0:w]
+    paths = []
+    for i in range(n):
+        stripes = np.where(((xx + 3 * i) // (1 + i % 4)) % 2 == 0, 200.0, 40.0) * (0.6 + 0.4 * yy / h)
+        img = np.clip(stripes + rng.normal(0, 6, (h, w)), 0, 255).astype(np.uint8)
+        if colour:  # channels that differ, so a wrong grey would show
+            img = np.dstack([img, np.roll(img, 1, axis=1), np.clip(img.astype(int) + 30, 0, 255).astype(np.uint8)])
+        paths.append(folder / f"{i:02d}.jpg")
+        cv2.imwrite(str(paths[-1]), img, params)
+    return paths
+
+
+@pytest.mark.parametrize(
+    ("size", "params", "colour"),
+    [((96, 160), [cv2.IMWRITE_JPEG_QUALITY, 90], False),
+     ((97, 161), [cv2.IMWRITE_JPEG_QUALITY, 75], True),  # odd size, 4:2:0 chroma
+     ((64, 80), [cv2.IMWRITE_JPEG_QUALITY, 95, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                 cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444], True),
+     ((64, 80), [cv2.IMWRITE_JPEG_PROGRESSIVE, 1], True)],
+)  # fmt: skip
+def test_jpegs_decoded_into_the_stack_equal_opencvs_grey(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, size: tuple[int, int], params: list[int], colour: bool
+) -> None:
+    """libjpeg-turbo's decode straight into the stack gives OpenCV's grey bit for bit, and is the path taken."""
+    from appliance.patterns import manifest
+
+    assert manifest._simplejpeg is not None, "simplejpeg is a dependency: the fast path must be there"
+    paths = _jpegs(tmp_path, 9, size, params, colour)
+    calls = {"n": 0}
+    real = manifest._simplejpeg.decode_jpeg
+
+    class Spy:
+        decode_jpeg_header = staticmethod(manifest._simplejpeg.decode_jpeg_header)
+
+        @staticmethod
+        def decode_jpeg(*a: object, **k: object) -> object:
+            calls["n"] += 1
+            return real(*a, **k)
+
+    monkeypatch.setattr(manifest, "_simplejpeg", Spy)
+    fast = load_images(paths, threads=2)
+    assert calls["n"] == len(paths) - 1  # every frame after the first went straight into the stack
+    monkeypatch.setattr(manifest, "_simplejpeg", None)  # OpenCV alone, as where simplejpeg is missing
+    slow = load_images(paths, threads=2)
+    np.testing.assert_array_equal(fast, slow)
+    flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
+    for i, p in enumerate(paths):
+        np.testing.assert_array_equal(fast[i], cv2.imread(str(p), flags))
+
+
+def test_a_jpeg_the_fast_path_cannot_take_is_decoded_or_named(tmp_path: Path) -> None:
+    """A JPEG of another size is named as before; a corrupt one (no clean decode) is left to OpenCV's verdict."""
+    paths = _jpegs(tmp_path, 6, (48, 64), [cv2.IMWRITE_JPEG_QUALITY, 90], False)
+    cv2.imwrite(str(paths[4]), np.zeros((40, 64), np.uint8))
+    with pytest.raises(ManifestError, match=r"frame 4: .* is 64x40 uint8, but frame 0 is 64x48 uint8"):
+        load_images(paths, "scan.yaml", threads=2)
+    data = bytearray(paths[0].read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 40] = b"\xff\x00" * 20  # damaged entropy data, end marker intact
+    paths[4].write_bytes(bytes(data))
+    stack = load_images(paths, "scan.yaml", threads=2)  # libjpeg recovers what it can, as OpenCV did before
+    ref = cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(stack[4], ref)
