@@ -260,8 +260,7 @@ class StreamingDecoder:
     @property
     def missing(self) -> list[int]:
         """Indices of the frames the decoder still needs."""
-        need = self.plan.used + ((self.plan.white, self.plan.black) if self.plan.white >= 0 else ())
-        return sorted(i for i in set(need) if i not in self._pushed)
+        return [i for i in needed_frames(self.plan) if i not in self._pushed]
 
     def finish(self, *, out: DecodedMaps | None = None) -> DecodedMaps:
         """Final per-pixel step; identical to :func:`decode` on the same frames.
@@ -295,3 +294,9 @@ class StreamingDecoder:
         _saturation_and_reasons(out, v_arg, self._clip, self._hi, self._lo, thr, self.dtype, self.params)
         out.ignored = list(self.plan.ignored)
         return out
+
+
+def needed_frames(plan: DecodePlan) -> list[int]:
+    """Indices (in ``plan``'s sequence, ascending) of the frames a decode of ``plan`` reads."""
+    need = plan.used + ((plan.white, plan.black) if plan.white >= 0 else ())
+    return sorted(set(need))

@@ -35,6 +35,7 @@ from appliance.patterns.sequence import Sequence as PatternSequence
 from appliance.reconstruct import _hdr_kernels as _k
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, plan_decode
 from appliance.reconstruct.decode_plan import DecodePlan
+from appliance.reconstruct.decode_stream import needed_frames
 from appliance.reconstruct.types import DecodedMaps, Reason
 
 
@@ -377,11 +378,13 @@ def _pass_plans(
 class HdrStreamingDecoder:
     """Decode a multi-exposure capture as its frames arrive; :meth:`finish` equals :func:`decode_passes`.
 
-    Each exposure pass has its own :class:`~appliance.reconstruct.decode.StreamingDecoder` (per-pixel sums and
-    codes, allocated here, reused after :meth:`reset`); a pushed frame updates its pass's state and is not kept
-    (unless ``borrow_frames``), so the memory is that of one decoder per pass, not of the frames. A pass is
-    finished (its maps written into preallocated per-pass stacks) by the push that completes it, in the pushing
-    thread, while later passes are still being captured; :meth:`finish` then finishes what is left and fuses
+    A pass is decoded by a :class:`~appliance.reconstruct.decode.StreamingDecoder` (per-pixel sums and codes); a
+    pushed frame updates its pass's state and is not kept (unless ``borrow_frames``). A pass is finished (its
+    maps written into preallocated per-pass stacks) by the push that completes it, in the pushing thread, while
+    later passes are still being captured, and its decoder then serves the next pass of the same patterns: with
+    the passes captured one after another the memory is that of one decoder and the per-pass maps, not of one
+    decoder a pass (a frame of a pass that arrives before the one in progress is complete takes another
+    decoder; decoders are kept for the next scan). :meth:`finish` then finishes what is left and fuses
     (:func:`fuse_exposures`' kernels on the stacks, no copies).
 
     Parameters
@@ -414,7 +417,13 @@ class HdrStreamingDecoder:
         self._clean = prm.clean_neighbours
         self.passes, plans = _pass_plans(sequence, exposures)
         self.shape = (int(shape[0]), int(shape[1]))
-        self._decoders = [StreamingDecoder(p, self.shape, dtype, prm, borrow_frames=borrow_frames) for p in plans]
+        self._plans = plans
+        self._dtype, self._params, self._borrow = dtype, prm, borrow_frames
+        # passes of the same patterns share decoders: per distinct plan its free decoders
+        self._plan_key = [tuple(p.sequence.frames) for p in plans]
+        self._free: dict[tuple[object, ...], list[StreamingDecoder]] = {k: [] for k in self._plan_key}
+        self._decoders: list[StreamingDecoder | None] = [None] * len(plans)  # the decoder of each pass in progress
+        self._free[self._plan_key[0]].append(self._new_decoder(0))  # the first pass's, allocated now
         self._route: list[tuple[int, int]] = [(-1, -1)] * len(sequence)
         for k, (_lv, idx) in enumerate(self.passes):
             for j, i in enumerate(idx):
@@ -429,36 +438,74 @@ class HdrStreamingDecoder:
 
     def reset(self) -> None:
         """Forget the frames pushed so far; buffers are kept for the next scan."""
-        for d in self._decoders:
-            d.reset()
+        for k in range(len(self._decoders)):
+            self._release(k)
         self._pushed = [0] * len(self._decoders)
         self._finished = [False] * len(self._decoders)
         self.choice = None
+
+    def _new_decoder(self, k: int) -> StreamingDecoder:
+        return StreamingDecoder(self._plans[k], self.shape, self._dtype, self._params, borrow_frames=self._borrow)
+
+    def _decoder(self, k: int) -> StreamingDecoder:
+        """Pass ``k``'s decoder: the one it has, else a free one of its patterns (reset), else a new one."""
+        d = self._decoders[k]
+        if d is None:
+            free = self._free[self._plan_key[k]]
+            if free:
+                d = free.pop()
+                d.reset()
+            else:
+                d = self._new_decoder(k)
+            self._decoders[k] = d
+        return d
+
+    def _release(self, k: int) -> None:
+        """Give pass ``k``'s decoder back to its patterns' free list (its frames are no longer read)."""
+        d = self._decoders[k]
+        if d is not None:
+            self._decoders[k] = None
+            self._free[self._plan_key[k]].append(d)
 
     def push(self, index: int, frame: npt.NDArray[np.generic]) -> None:
         """Add frame ``index`` of the whole capture (any order); raises like ``StreamingDecoder.push``."""
         if not 0 <= index < len(self._route):
             raise DecodeError(f"HDR streaming decoder: frame index {index}: must be in 0..{len(self._route) - 1}")
         k, j = self._route[index]
-        self._decoders[k].push(j, frame)
+        if self._finished[k]:
+            raise DecodeError(f"HDR streaming decoder: frame {index} pushed twice; call reset() between scans")
+        self._decoder(k).push(j, frame)
         self._pushed[k] += 1
         if self._pushed[k] == len(self.passes[k][1]):  # the pass is complete: finish it now
             self._finish_pass(k)
 
     def _finish_pass(self, k: int) -> None:
-        self._decoders[k].finish(out=self._out[k])
+        self._decoder(k).finish(out=self._out[k])
         self._finished[k] = True
+        self._release(k)
+
+    @property
+    def held_decoders(self) -> int:
+        """How many pass decoders this holds, in use or free (one where the passes arrive one after another)."""
+        return sum(d is not None for d in self._decoders) + sum(map(len, self._free.values()))
 
     @property
     def borrowed(self) -> frozenset[int]:
         """Indices (of the whole capture) of the pushed frames still read from the caller's memory
         (``borrow_frames``); every other pushed frame may be overwritten or released."""
-        return frozenset(self.passes[k][1][j] for k, d in enumerate(self._decoders) for j in d.borrowed)
+        return frozenset(self.passes[k][1][j] for k, d in enumerate(self._decoders) if d is not None
+                         for j in d.borrowed)  # fmt: skip
 
     @property
     def missing(self) -> list[int]:
         """Indices (of the whole capture) of the frames the decoder still needs."""
-        return sorted(self.passes[k][1][j] for k, d in enumerate(self._decoders) for j in d.missing)
+        out: list[int] = []
+        for k, d in enumerate(self._decoders):
+            if self._finished[k]:
+                continue
+            idx = self.passes[k][1]
+            out += [idx[j] for j in (needed_frames(self._plans[k]) if d is None else d.missing)]
+        return sorted(out)
 
     def finish(self) -> DecodedMaps:
         """Finish every pass and fuse them per pixel (:func:`fuse_exposures`); ``choice`` then names the pass

@@ -100,3 +100,27 @@ def test_missing_frames_are_named() -> None:
         dec.finish()
     with pytest.raises(DecodeError, match="frame index"):
         dec.push(len(seq), stack[0])
+
+
+def test_passes_in_capture_order_share_one_decoder() -> None:
+    """Passes that arrive one after another are decoded by one decoder in turn (memory of one pass's state, not
+    three); a pass that starts before the last is complete takes a second; both give the offline maps."""
+    seq, exposures, stack = _capture()
+    offline, choice, _passes = decode_passes(stack, seq, exposures, DecodeParams())
+    dec = HdrStreamingDecoder(seq, exposures, stack.shape[1:], stack.dtype, borrow_frames=True)
+    for scan in range(2):
+        dec.reset()
+        for i in range(len(seq)):
+            dec.push(i, stack[i])
+        assert _bytes(dec.finish()) == _bytes(offline), scan
+        assert dec.choice is not None and np.array_equal(dec.choice, choice)
+        assert dec.held_decoders == 1, scan
+    n = len(seq) // 3
+    dec.reset()
+    order = [*range(n - 1), n, n - 1, *range(n + 1, len(seq))]  # the second pass starts one frame early
+    for i in order:
+        dec.push(i, stack[i])
+    assert _bytes(dec.finish()) == _bytes(offline)
+    assert dec.held_decoders == 2
+    with pytest.raises(DecodeError, match="pushed twice"):  # a frame of a finished pass, again
+        dec.push(0, stack[0])
