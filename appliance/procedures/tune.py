@@ -6,9 +6,12 @@ exposure (from the longest probe exposure that did not clip it). A pixel is *dec
 contrast reaches :data:`DECODABLE_CONTRAST` times ``reconstruction.min_contrast_dn`` and its white level stays
 below :data:`CLIP_MARGIN` of the sensor's full scale. Over a ladder of exposures (:data:`LADDER_FACTORS`, steps
 of sqrt 2) the fewest that bring at least :data:`TARGET_SHARE` of the lit pixels into a decodable range within
-the time budget are chosen; what no exposure recovers is named with its cause (too dark even at the longest,
-clipped even at the shortest). ``--apply`` writes the choice to ``sequence.exposures_us`` of the configuration
-file, validated first and written atomically, as an edit over SSH would be (a running service reloads it).
+the time budget are chosen and, of those that cover within :data:`COVERAGE_TOLERANCE` as much as the most
+covering, the most precise: the one whose passes give the lowest mean code variance by the camera noise model
+(each pixel from its brightest unclipped pass, as the fusion takes it). What no exposure recovers is named with
+its cause (too dark even at the longest, clipped even at the shortest). ``--apply`` writes the choice to
+``sequence.exposures_us`` of the configuration file, validated first and written atomically, as an edit over SSH
+would be (a running service reloads it).
 
 A projector that can dim between passes (lightcrafter4500, sim: see
 :func:`~appliance.hardware.base.intensity_control`) adds one probe pass at the shortest exposure and
@@ -40,6 +43,7 @@ from appliance.hardware.base import ExposureControl, exposure_control, intensity
 from appliance.output.atomic import write_bytes_atomic
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
+from appliance.reconstruct.uncertainty import ROUNDING_VAR_DN2
 
 if TYPE_CHECKING:
     from appliance.hardware.registry import Rig
@@ -63,6 +67,9 @@ DIM_LADDER = tuple(round(2.0 ** (-k / 2), 3) for k in range(1, 9))
 shortest exposure; only with a projector that can dim."""
 PROBE_DIM = 1.0 / 16.0
 """Projector intensity of the probe's dimmed pass (at its shortest exposure)."""
+COVERAGE_TOLERANCE = 0.002
+"""Choices that reach the target and cover within this share of the lit pixels of the most covering one are
+compared by their predicted precision."""
 MAX_EXPOSURES = 4
 """The most exposures (capture passes) a choice may have."""
 FRAME_PERIOD_US = 16_667.0
@@ -300,13 +307,16 @@ def _store_probe(bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray
 
 
 def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_ms: float,
-           base_us: float) -> TuneChoice:
-    """The fewest passes that bring :data:`TARGET_SHARE` of the lit pixels into range.
+           base_us: float, read_noise_dn: float = 2.0, electrons_per_dn: float = 25.0) -> TuneChoice:
+    """The fewest passes that bring :data:`TARGET_SHARE` of the lit pixels into range, the most precise of them.
 
     A pass is an exposure of the ladder at full intensity or, when the probe could dim the projector, the
-    ladder's shortest exposure at an intensity of :data:`DIM_LADDER`. Among the fewest that reach the target (or,
-    when none does within the budget, the most covering that fit) the one covering most, then the quickest, then
-    the one with fewest dimmed passes.
+    ladder's shortest exposure at an intensity of :data:`DIM_LADDER`. Among the fewest that reach the target, those
+    covering within :data:`COVERAGE_TOLERANCE` of the most are compared by the mean code variance they predict for
+    the pixels they cover (each pixel from its brightest decodable pass, the camera noise model of
+    :class:`~appliance.reconstruct.uncertainty.CodeNoise`): the most precise, then the quickest, then the one with
+    fewest dimmed passes. When none reaches the target within the budget: the most covering that fits, then the
+    quickest.
 
     Parameters
     ----------
@@ -320,6 +330,9 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         The longest expected capture time allowed (ms).
     base_us : float
         The configured exposure the ladder is relative to (µs).
+    read_noise_dn, electrons_per_dn : float
+        ``reconstruction.camera_read_noise_dn`` and ``camera_electrons_per_dn``: the noise model that weighs the
+        read noise against the shot noise in the predicted precision.
     """
     ladder = np.asarray(sorted({round(base_us * f) for f in LADDER_FACTORS}), dtype=np.float64)
     # the passes a choice may take: (exposure µs, intensity); the dimmed ones after, so that ties keep full
@@ -331,6 +344,9 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     masks: list[npt.NDArray[np.int64]] = []
     dark_n = clip_n = ambient_n = 0
     rates: list[npt.NDArray[np.float64]] = []
+    pix_c: list[npt.NDArray[np.float64]] = []  # per lit pixel its contrast and ambient rates (DN per µs)
+    pix_a: list[npt.NDArray[np.float64]] = []
+    fusable: list[npt.NDArray[np.int64]] = []  # per lit pixel the settings the fusion could take it from
     e = np.asarray(pr.exposures_us)
     light = e * (np.asarray(pr.intensities) if pr.intensities else 1.0)  # µs at full intensity, ascending
     for name in pr.white:
@@ -355,6 +371,12 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         good &= ~clipped_all[..., None]
         bits = (good[lit] * (1 << np.arange(len(settings)))).sum(axis=1)
         masks.append(bits.astype(np.int64))
+        # the passes the fusion could take the pixel from: its white below full scale (the decoder drops a
+        # pixel only where a pattern sample clips, and the samples peak below the white), contrast enough
+        usable = (c_rate[..., None] * (s_t * s_i) >= need)
+        usable &= a_rate[..., None] * s_t + c_rate[..., None] * (s_t * s_i) < full
+        usable &= ~clipped_all[..., None]
+        fusable.append((usable[lit] * (1 << np.arange(len(settings)))).sum(axis=1).astype(np.int64))
         none = bits == 0
         too_dark = none & (c_rate[lit] * ladder[-1] < need)  # the brightest pass: the longest, full
         # clipped even in the dimmest pass; the rest reach the contrast only where the ambient light clips them
@@ -364,23 +386,36 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         clip_n += int(clipped.sum())
         ambient_n += int((none & ~too_dark & ~clipped).sum())
         rates.append(c_rate[lit & ~clipped_all])
+        pix_c.append(c_rate[lit] / scale)  # in 8-bit DN per µs, the noise model's scale
+        pix_a.append(a_rate[lit] / scale)
     allbits = np.concatenate(masks) if masks else np.zeros(0, np.int64)
     lit_n = int(allbits.size)
     uniq, counts = np.unique(allbits, return_counts=True)
     best: tuple[float, float, int, tuple[int, ...]] | None = None
     within = False
     for n in range(1, MAX_EXPOSURES + 1):
+        # (coverage, -time, -dimmed passes, combo) of every combination of n passes that fits the budget
+        fits: list[tuple[float, float, int, tuple[int, ...]]] = []
         for combo in itertools.combinations(range(len(settings)), n):
             t_ms = scan_time_ms([float(s_t[i]) for i in combo], frames_per_pass)
             if t_ms > time_budget_ms:
                 continue
             m = sum(1 << i for i in combo)
             cov = float(counts[(uniq & m) != 0].sum()) / lit_n if lit_n else 1.0
-            key = (cov, -t_ms, -sum(i >= ladder.size for i in combo), combo)  # the dimmed come after the ladder
+            fits.append((cov, -t_ms, -sum(i >= ladder.size for i in combo), combo))  # the dimmed after the ladder
+        for key in fits:
             if best is None or key[:3] > best[:3]:
                 best = key
         if best is not None and best[0] >= TARGET_SHARE:
             within = True
+            top = best[0]
+            close = [k for k in fits if k[0] >= max(TARGET_SHARE, top - COVERAGE_TOLERANCE)]
+            if len(close) > 1:
+                var = _predicted_variance(
+                    np.concatenate(pix_c) if pix_c else np.zeros(0), np.concatenate(pix_a) if pix_a else np.zeros(0),
+                    allbits, np.concatenate(fusable), s_t, s_i, [k[3] for k in close], read_noise_dn,
+                    electrons_per_dn)  # fmt: skip
+                best = min(zip(var.tolist(), close, strict=True), key=lambda vk: (vk[0], -vk[1][1], -vk[1][2]))[1]
             break
     chosen = sorted(best[3] if best is not None else (), key=lambda i: (s_t[i] * s_i[i], s_t[i]))
     cov = best[0] if best is not None else 0.0
@@ -393,6 +428,54 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
                       dark_n / lit_n if lit_n else 0.0, clip_n / lit_n if lit_n else 0.0, dr, within,
                       tuple(int(x) for x in ladder), levels if any(i < 1.0 for i in levels) else (),
                       float(s_i.min()), ambient_n / lit_n if lit_n else 0.0)
+
+
+def _predicted_variance(c_rate: npt.NDArray[np.float64], a_rate: npt.NDArray[np.float64],
+                        good_bits: npt.NDArray[np.int64], fused_bits: npt.NDArray[np.int64],
+                        s_t: npt.NDArray[np.float64], s_i: npt.NDArray[np.float64], combos: list[tuple[int, ...]],
+                        read_noise_dn: float, electrons_per_dn: float) -> npt.NDArray[np.float64]:
+    """Per combination of passes the mean code variance (relative units) of the lit pixels it covers.
+
+    The pixels a combination covers are those decodable in one of its passes (``good_bits``, one bit per
+    setting); each is decoded from the brightest pass of the combination in which its white does not clip
+    (``fused_bits``), as the fusion takes the brightest unclipped pass; its variance there is ``(read var + A /
+    e-) / q^2`` with the contrast ``q = c_rate t i`` and the mean level ``A = a_rate t + q / 2``
+    (:class:`~appliance.reconstruct.uncertainty.CodeNoise` without the pattern's constant factor). The pixels
+    are pooled in bins of their rates (1/8 octave of contrast, 1/2 octave of ambient): the sums stay small on
+    any camera.
+    """
+    if not combos:
+        return np.zeros(0)
+    ok = (c_rate > 0) & (good_bits != 0)
+    c, a, g, f = c_rate[ok], np.maximum(a_rate[ok], 0.0), good_bits[ok], fused_bits[ok]
+    if c.size == 0:
+        return np.zeros(len(combos))
+    lc = np.floor(np.log2(c) * 8).astype(np.int64)
+    la = np.floor(np.log2(a + 1e-9) * 2).astype(np.int64)
+    keys = np.stack([lc, la, g, f], axis=1)
+    uk, inv, n = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    cm = np.bincount(inv, c) / n  # each bin's mean rates
+    am = np.bincount(inv, a) / n
+    light = s_t * s_i
+    q = cm[:, None] * light[None, :]  # (bins, settings) contrast, DN
+    mean = am[:, None] * s_t[None, :] + 0.5 * q
+    inv_e = 0.0 if math.isinf(electrons_per_dn) else 1.0 / electrons_per_dn
+    var = (read_noise_dn**2 + ROUNDING_VAR_DN2 + mean * inv_e) / (q * q)
+    bit = np.arange(len(s_t))[None, :]
+    good = ((uk[:, 2:3] >> bit) & 1).astype(bool)
+    fused = ((uk[:, 3:4] >> bit) & 1).astype(bool)
+    order = np.argsort(light)  # a pixel's pass: the brightest one of the combination it does not clip in
+    out = np.empty(len(combos))
+    for j, combo in enumerate(combos):
+        ranked = [i for i in order if i in combo][::-1]
+        v = np.full(len(uk), np.nan)
+        for i in ranked:
+            take = np.isnan(v) & fused[:, i]
+            v[take] = var[take, i]
+        has = ~np.isnan(v) & good[:, list(combo)].any(axis=1)
+        out[j] = float(np.sum(v[has] * n[has]) / np.sum(n[has])) if has.any() else math.inf
+    return out
 
 
 def scan_time_ms(exposures_us: list[float], frames_per_pass: int) -> float:
@@ -427,7 +510,9 @@ def check_time_budget(time_budget_ms: float) -> None:
 
 async def _choose_for(cfg: AppConfig, pr: Probe, time_budget_ms: float, base: float) -> TuneChoice:
     seq = build_sequence(cfg.sequence, *pr.projector_size)  # the Gray bits depend on the projector's size
-    return await asyncio.to_thread(choose, pr, cfg.reconstruction.min_contrast_dn, len(seq), time_budget_ms, base)
+    rc = cfg.reconstruction
+    return await asyncio.to_thread(choose, pr, rc.min_contrast_dn, len(seq), time_budget_ms, base,
+                                   rc.camera_read_noise_dn, rc.camera_electrons_per_dn)
 
 
 _SEQ_KEY = re.compile(r"^sequence:[ \t]*(#.*)?$")
