@@ -39,6 +39,7 @@ KERNEL_FILES = (
     "reconstruct/_filter_kernels.py",
     "reconstruct/_geom_kernels.py", "reconstruct/_hdr_kernels.py", "reconstruct/_normal_kernels.py",
     "reconstruct/_procam_kernels.py", "reconstruct/_stereo_kernels.py", "reconstruct/_visibility_kernels.py",
+    "reconstruct/_walled_kernels.py",
     "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py", "geometry/_distortion_kernels.py",
 )  # fmt: skip
 """Every module of ``appliance`` with numba kernels (a test keeps the list complete)."""

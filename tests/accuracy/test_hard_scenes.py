@@ -111,14 +111,14 @@ def test_diffuse_groove_holds(folder: Path) -> None:
     _sigma_is_honest(s)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 25 target not reached yet: measured 2.0 % of the points > 1 mm "
-                   "(0.17 % > 5 mm), 0.31 % beyond 5 sigma, |err|/sigma RMS 1.09, RMS 0.48 mm, 71.7 % complete "
-                   "(without the projector visibility check 3.6 %, 1.8 %, 2.4 %, 25, 53 mm, 73.0 %; without it and "
-                   "the check for two copies of the pattern 17.2 %, 6.7 %, 8.7 %, 53, 92.2 %). Left: 1.9 k of the "
-                   "2.7 k points on the matte face are 1-2 mm off, all within 0.4-7.6 mm of the corner line, where "
-                   "the mirrored copy of the pattern nearly coincides with the direct one: every code reads their "
-                   "light-weighted centroid, and none has a pixel dropped for two copies within 3 px; and 0.6 k on "
-                   "the mirror face (0.2 k > 5 mm: ghosts with no surface in front of them on their projector rays)")
+@pytest.mark.xfail(strict=True, reason="issue 25 target not reached yet: measured 0.158 % of the points > 1 mm "
+                   "(0.003 % > 5 mm), 0.003 % beyond 5 sigma, |err|/sigma RMS 0.95, RMS 0.31 mm, 69.9 % complete "
+                   "(without the check for regions walled in by reflections 2.0 %, 0.17 %, 0.31 %, 1.09, 0.48 mm, "
+                   "71.7 %; without it and the projector visibility check 3.6 %, 1.8 %, 2.4 %, 25, 53 mm, 73.0 %; "
+                   "without all three and the check for two copies of the pattern 17.2 %, 6.7 %, 8.7 %, 53, 92.2 %). "
+                   "Left: 0.19 k points on the mirror face 1-5 mm off, scattered over its outer strip, their sigma "
+                   "honest; and the completeness: almost every matte-face pixel is lit by two copies of the pattern "
+                   "(only 76 % of the lit pixels had a right point before any check)")
 def test_mirror_groove_has_no_ghost_points(folder: Path) -> None:
     # a concave corner whose left face is a mirror (reflectance 0.6): the right face gets a second copy of the
     # pattern from the mirrored projector, and the camera sees the lit right face in the mirror
@@ -179,16 +179,58 @@ def test_mirror_groove_points_hidden_from_the_projector_are_dropped_and_said(fol
     dropped = [e for p, e in e_off.items() if p not in e_on]
     assert set(e_on) <= set(e_off)
     print(f"dropped {len(dropped)}: {np.mean(np.asarray(dropped) > 1.0):.1%} of them > 1 mm off")
-    assert len(dropped) >= 0.01 * len(e_on) and np.mean(np.asarray(dropped) > 1.0) >= 0.95  # measured 98.4 %
+    # the hidden points (98.4 % of them > 1 mm off) and the band walled in by reflections next to the corner
+    # line (73 %: its points nearest the line are within 1 mm): measured 83.2 % (x), 80.4 % (xy)
+    assert len(dropped) >= 0.01 * len(e_on) and np.mean(np.asarray(dropped) > 1.0) >= 0.75
     report, cam = _camera_block(folder, name)
     reasons = cam["reasons"]
-    assert isinstance(reasons, dict)
-    assert reasons["hidden from the projector"] == len(dropped), reasons
-    assert reasons["decoded"] == cam["points"] and sum(reasons.values()) == cam["pixels"]
     _, cam_off = _camera_block(folder, f"{name}_off")
-    assert isinstance(cam_off["reasons"], dict) and "hidden from the projector" not in cam_off["reasons"]
+    reasons_off = cam_off["reasons"]
+    assert isinstance(reasons, dict) and isinstance(reasons_off, dict)
+    walled = reasons["two copies of the pattern"] - reasons_off["two copies of the pattern"]
+    assert walled > 0 and reasons["hidden from the projector"] + walled == len(dropped), (reasons, reasons_off)
+    assert reasons["decoded"] == cam["points"] and sum(reasons.values()) == cam["pixels"]
+    assert "hidden from the projector" not in reasons_off
     health = report["calibration_health"]
     assert isinstance(health, dict) and health["status"] in ("ok", "not measured"), health
+
+
+@pytest.mark.parametrize("axes", ["x", "xy"])
+def test_mirror_groove_band_walled_in_by_reflections_is_dropped(
+    folder: Path, axes: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # next to the corner line the mirrored copy of the pattern nearly coincides with the direct one: a band of
+    # blended codes on the matte face (1-2 mm off) and ghosts on the mirror's side (5-50 mm), that no pixel-local
+    # check sees; farther out both sides were dropped (two copies; hidden), so the band is walled in by them
+    from appliance.reconstruct import walled
+
+    name = f"mgroove_walled_{axes}"
+    rig = capture(scene_config("mirror_groove", axes=axes), folder, name)
+    on, _ = decode(folder, name, rig)
+    monkeypatch.setattr(walled, "WALL_SHARE", 2.0)  # never: the check off, everything else as it is
+    off, _ = decode(folder, name, rig, tag="_off")
+    print("check on: ", on.line())
+    print("check off:", off.line())
+    # measured x: > 1 mm 2.03 -> 0.158 %, > 5 mm 0.169 -> 0.003 %, beyond 5 sigma 0.31 -> 0.003 %, |err|/sigma RMS
+    # 1.09 -> 0.95, 71.7 -> 69.9 % complete; xy: 1.91 -> 0.160 %, 0.170 -> 0.003 %, 0.27 -> 0.003 %, 1.01 -> 0.86
+    assert on.over_1mm <= 0.1 * off.over_1mm and on.over_5mm <= 0.05 * off.over_5mm, (on.line(), off.line())
+    assert on.completeness >= off.completeness - 0.025, (on.line(), off.line())
+    _sigma_is_honest(on)
+    e_on, e_off = _errors(folder, name, rig), _errors(folder, f"{name}_off", rig)
+    assert set(e_on) <= set(e_off)
+    gone = [p for p in e_off if p not in e_on]
+    # one band along the corner line (the image column where the faces meet): every dropped pixel within 16 px
+    gt = rig.ground_truth("cam0")
+    corner = np.flatnonzero(np.any(gt.object_id[:, 1:] != gt.object_id[:, :-1], axis=0)
+                            & np.any((gt.object_id[:, 1:] == 1) & (gt.object_id[:, :-1] == 0), axis=0))  # fmt: skip
+    assert corner.size, "the corner line's column"
+    cols = np.asarray([c for _r, c in gone])
+    assert np.all(np.abs(cols - np.median(corner)) <= 16), (np.median(corner), cols.min(), cols.max())
+    _, cam = _camera_block(folder, name)
+    _, cam_off = _camera_block(folder, f"{name}_off")
+    said, said_off = cam["reasons"], cam_off["reasons"]
+    assert isinstance(said, dict) and isinstance(said_off, dict)
+    assert said["two copies of the pattern"] - said_off["two copies of the pattern"] == len(gone), (said, said_off)
 
 
 def test_a_scene_with_projector_shadows_and_no_mirror_loses_nothing_to_the_visibility_check(folder: Path) -> None:
@@ -252,14 +294,12 @@ def test_mirror_groove_on_both_axes_drops_ghosts_off_the_epipolar_line_and_says_
     assert isinstance(health, dict) and health["status"] == "ok", health
 
 
-@pytest.mark.xfail(strict=True, reason="issue 25 target not reached on both axes either: measured 1.9 % of the "
-                   "points > 1 mm (0.17 % > 5 mm), 0.26 % beyond 5 sigma, |err|/sigma RMS 1.01, 71.6 % complete "
-                   "(without the visibility check 2.9 %, 1.2 %, 1.7 %, 8.2, 72.4 %; without it and the check for two "
-                   "copies of the pattern 11.7 %, 2.4 %, 3.7 %, 20, 85.0 %). Left: 1.7 k blends 1-5 mm off on the "
-                   "matte face the epipolar check cannot see (the blend biases u and v alike, residual across the "
-                   "line p50 0.7 px: within 5 sigma), and 0.6 k points on the mirror face (0.2 k > 5 mm: near the "
-                   "epipolar plane y = 0, which this mirror maps onto itself, with no surface in front of them on "
-                   "their projector rays)")
+@pytest.mark.xfail(strict=True, reason="issue 25 target not reached on both axes either: measured 0.160 % of the "
+                   "points > 1 mm (0.003 % > 5 mm), 0.003 % beyond 5 sigma, |err|/sigma RMS 0.86, 69.9 % complete "
+                   "(without the check for regions walled in by reflections 1.9 %, 0.17 %, 0.27 %, 1.01, 71.6 %; "
+                   "without it and the visibility check 2.9 %, 1.2 %, 1.7 %, 8.2, 72.4 %; without those and the check "
+                   "for two copies of the pattern 11.7 %, 2.4 %, 3.7 %, 20, 85.0 %). Left: as on one axis, scattered "
+                   "points on the mirror's outer strip 1-5 mm off, and the completeness")
 def test_mirror_groove_on_both_axes_has_no_ghost_points(folder: Path) -> None:
     s = measure(scene_config("mirror_groove", axes="xy"), folder, "mgroove_xy2")
     print(s.line())
