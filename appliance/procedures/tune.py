@@ -140,6 +140,13 @@ class TuneChoice:
     ambient_limited : float
         Share of the lit pixels that no pass recovers because the ambient light clips them before their
         projector contrast is enough (dark parts in a bright room).
+    most_covering_passes : tuple of (int, float)
+        Where the most precise choice is not the most covering one: the most covering one's passes (exposure µs,
+        intensity); empty otherwise.
+    most_covering : float
+        ... its share of the lit pixels in a decodable range.
+    noise_ratio : float
+        The chosen passes' predicted code noise (RMS) over the most covering one's (1.0 where they are the same).
     """
 
     exposures_us: tuple[int, ...]
@@ -154,6 +161,9 @@ class TuneChoice:
     intensities: tuple[float, ...] = ()
     dim_floor: float = 1.0
     ambient_limited: float = 0.0
+    most_covering_passes: tuple[tuple[int, float], ...] = ()
+    most_covering: float = 0.0
+    noise_ratio: float = 1.0
 
     def lines(self, time_budget_ms: float) -> list[str]:
         """The plain-words report printed by ``scan3d tune``."""
@@ -168,6 +178,11 @@ class TuneChoice:
             f"choice: sequence.exposures_us = [{ex}] ({what}): expected scan time "
             f"{self.scan_ms:.0f} ms, {100 * self.covered:.1f} % of the lit pixels in a decodable range",
         ]
+        if self.most_covering_passes:
+            alt = ", ".join(f"{e}" if i >= 1.0 else f"{e} at {i:g}" for e, i in self.most_covering_passes)
+            out.append(f"the most precise of the choices covering within {100 * COVERAGE_TOLERANCE:g} % of the most: "
+                       f"predicted code noise {self.noise_ratio:.2f}x that of the most covering one ([{alt}] µs, "
+                       f"{100 * self.most_covering:.1f} %)")
         if not self.within_budget:
             out.append(f"no choice brings {100 * TARGET_SHARE:.0f} % of the lit pixels into range within "
                        f"{time_budget_ms:.0f} ms: this is the best that fits; raise --time-budget-ms")
@@ -393,6 +408,8 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     uniq, counts = np.unique(allbits, return_counts=True)
     best: tuple[float, float, int, tuple[int, ...]] | None = None
     within = False
+    # the most covering choice when the most precise is another: its passes, coverage, and the noise ratio
+    most_covering: tuple[tuple[tuple[int, float], ...], float, float] | None = None
     for n in range(1, MAX_EXPOSURES + 1):
         # (coverage, -time, -dimmed passes, combo) of every combination of n passes that fits the budget
         fits: list[tuple[float, float, int, tuple[int, ...]]] = []
@@ -415,7 +432,12 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
                     np.concatenate(pix_c) if pix_c else np.zeros(0), np.concatenate(pix_a) if pix_a else np.zeros(0),
                     allbits, np.concatenate(fusable), s_t, s_i, [k[3] for k in close], read_noise_dn,
                     electrons_per_dn)  # fmt: skip
-                best = min(zip(var.tolist(), close, strict=True), key=lambda vk: (vk[0], -vk[1][1], -vk[1][2]))[1]
+                v_best, pick = min(zip(var.tolist(), close, strict=True),
+                                   key=lambda vk: (vk[0], -vk[1][1], -vk[1][2]))  # fmt: skip
+                v_first = float(var[close.index(best)])
+                if pick != best and v_first > 0 and math.isfinite(v_first):
+                    most_covering = (_passes(best[3], s_t, s_i), best[0], math.sqrt(v_best / v_first))
+                best = pick
             break
     chosen = sorted(best[3] if best is not None else (), key=lambda i: (s_t[i] * s_i[i], s_t[i]))
     cov = best[0] if best is not None else 0.0
@@ -427,7 +449,16 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     return TuneChoice(ex, scan_time_ms([float(x) for x in ex], frames_per_pass), cov, lit_n,
                       dark_n / lit_n if lit_n else 0.0, clip_n / lit_n if lit_n else 0.0, dr, within,
                       tuple(int(x) for x in ladder), levels if any(i < 1.0 for i in levels) else (),
-                      float(s_i.min()), ambient_n / lit_n if lit_n else 0.0)
+                      float(s_i.min()), ambient_n / lit_n if lit_n else 0.0,
+                      most_covering[0] if most_covering else (), most_covering[1] if most_covering else 0.0,
+                      most_covering[2] if most_covering else 1.0)
+
+
+def _passes(combo: tuple[int, ...], s_t: npt.NDArray[np.float64],
+            s_i: npt.NDArray[np.float64]) -> tuple[tuple[int, float], ...]:
+    """A combination's passes as (exposure µs, intensity), their light ascending."""
+    order = sorted(combo, key=lambda i: (s_t[i] * s_i[i], s_t[i]))
+    return tuple((int(s_t[i]), float(s_i[i])) for i in order)
 
 
 def _predicted_variance(c_rate: npt.NDArray[np.float64], a_rate: npt.NDArray[np.float64],

@@ -138,6 +138,10 @@ def test_the_most_precise_of_the_choices_that_cover() -> None:
             print(budget, c.exposures_us, rms(c.exposures_us), coverage_first.exposures_us,
                   rms(coverage_first.exposures_us))
             assert rms(c.exposures_us) <= 0.95 * rms(coverage_first.exposures_us), (c, coverage_first)
+            # the report names the most covering choice and how much noisier the model expects it
+            assert tuple(e for e, _i in c.most_covering_passes) == coverage_first.exposures_us, c
+            assert c.most_covering == coverage_first.covered and 0.5 < c.noise_ratio < 1.0, c
+            assert any(line.startswith("the most precise of the choices") for line in c.lines(budget)), c.lines(budget)
 
 
 def _coverage_first(pr: Probe, cfg: AppConfig, budget: float, base: float) -> TuneChoice:
