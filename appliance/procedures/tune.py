@@ -70,6 +70,8 @@ PROBE_DIM = 1.0 / 16.0
 COVERAGE_TOLERANCE = 0.002
 """Choices that reach the target and cover within this share of the lit pixels of the most covering one are
 compared by their predicted precision."""
+MODEL_PIXELS = 400_000
+"""The precision model pools at most about this many lit pixels (an even sample of all cameras')."""
 MAX_EXPOSURES = 4
 """The most exposures (capture passes) a choice may have."""
 FRAME_PERIOD_US = 16_667.0
@@ -328,7 +330,7 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     A pass is an exposure of the ladder at full intensity or, when the probe could dim the projector, the
     ladder's shortest exposure at an intensity of :data:`DIM_LADDER`. Among the fewest that reach the target, those
     covering within :data:`COVERAGE_TOLERANCE` of the most are compared by the mean code variance they predict for
-    the pixels they cover (each pixel from its brightest decodable pass, the camera noise model of
+    the pixels they cover (each pixel from its brightest pass whose white does not clip, the camera noise model of
     :class:`~appliance.reconstruct.uncertainty.CodeNoise`): the most precise, then the quickest, then the one with
     fewest dimmed passes. When none reaches the target within the budget: the most covering that fits, then the
     quickest.
@@ -401,8 +403,8 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         clip_n += int(clipped.sum())
         ambient_n += int((none & ~too_dark & ~clipped).sum())
         rates.append(c_rate[lit & ~clipped_all])
-        pix_c.append(c_rate[lit] / scale)  # in 8-bit DN per µs, the noise model's scale
-        pix_a.append(a_rate[lit] / scale)
+        pix_c.append(c_rate[lit])  # DN of the frames per µs, the noise model's scale
+        pix_a.append(a_rate[lit])
     allbits = np.concatenate(masks) if masks else np.zeros(0, np.int64)
     lit_n = int(allbits.size)
     uniq, counts = np.unique(allbits, return_counts=True)
@@ -472,13 +474,15 @@ def _predicted_variance(c_rate: npt.NDArray[np.float64], a_rate: npt.NDArray[np.
     (``fused_bits``), as the fusion takes the brightest unclipped pass; its variance there is ``(read var + A /
     e-) / q^2`` with the contrast ``q = c_rate t i`` and the mean level ``A = a_rate t + q / 2``
     (:class:`~appliance.reconstruct.uncertainty.CodeNoise` without the pattern's constant factor). The pixels
-    are pooled in bins of their rates (1/8 octave of contrast, 1/2 octave of ambient): the sums stay small on
-    any camera.
+    are sampled evenly (at most :data:`MODEL_PIXELS`) and pooled in bins of their rates (1/8 octave of contrast,
+    1/2 octave of ambient).
     """
     if not combos:
         return np.zeros(0)
     ok = (c_rate > 0) & (good_bits != 0)
     c, a, g, f = c_rate[ok], np.maximum(a_rate[ok], 0.0), good_bits[ok], fused_bits[ok]
+    step = max(1, c.size // MODEL_PIXELS)  # an even sample of the lit pixels bounds the cost on large cameras
+    c, a, g, f = c[::step], a[::step], g[::step], f[::step]
     if c.size == 0:
         return np.zeros(len(combos))
     lc = np.floor(np.log2(c) * 8).astype(np.int64)
