@@ -12,7 +12,7 @@ import appliance._numba_cache  # noqa: F401  (the cache folder, before any kerne
 @njit(nogil=True, cache=True)
 def region_edges(lab, wall_lab, big, edges, walled, area):  # type: ignore[no-untyped-def]
     """Per region of points its area, its boundary edges (4-neighbours without a point, the image border
-    included) and those whose outside pixel is a big wall region or touches one (8-neighbourhood)."""
+    included) and those whose outside pixel lies within 2 pixels of a big wall region."""
     h, w = lab.shape
     for r in range(h):
         for c in range(w):
@@ -33,9 +33,9 @@ def region_edges(lab, wall_lab, big, edges, walled, area):  # type: ignore[no-un
 
 @njit(nogil=True, cache=True, inline="always")
 def _near_wall(wall_lab, big, r, c, h, w):  # type: ignore[no-untyped-def]
-    """Whether pixel (r, c) or one of its 8 neighbours belongs to a big wall region."""
-    for y in range(max(r - 1, 0), min(r + 2, h)):
-        for x in range(max(c - 1, 0), min(c + 2, w)):
+    """Whether a pixel within 2 of (r, c) (a 5 x 5 square) belongs to a big wall region."""
+    for y in range(max(r - 2, 0), min(r + 3, h)):
+        for x in range(max(c - 2, 0), min(c + 3, w)):
             if big[wall_lab[y, x]] != 0:
                 return True
     return False

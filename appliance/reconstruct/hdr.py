@@ -347,11 +347,12 @@ def decode_passes(
 
 
 def _owned(m: DecodedMaps) -> DecodedMaps:
-    """A copy of maps that may be views of the decoder's reused output blocks."""
+    """A copy of maps that may be views of the decoder's reused output blocks (the pixels lit by two copies of
+    the pattern too: the reconstruction's reflection checks read them, as the streaming fusion's do)."""
     return DecodedMaps(
         m.u.copy(), m.v.copy(), m.mask.copy(), m.quality.copy(), list(m.ignored),
         None if m.levels is None else m.levels.copy(), None if m.reason is None else m.reason.copy(),
-        fringe=None if m.fringe is None else m.fringe.copy(),
+        None if m.blend_codes is None else m.blend_codes.copy(), fringe=None if m.fringe is None else m.fringe.copy(),
     )  # fmt: skip
 
 
