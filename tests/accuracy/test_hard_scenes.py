@@ -71,6 +71,22 @@ def test_matte_groove_without_interreflection(folder: Path) -> None:
     _sigma_is_honest(s)
 
 
+@pytest.mark.xfail(strict=True, reason="not reached yet: with the camera's and the projector's blur at 1.5 px (the "
+                   "virtual rig's defaults: 0.5 and 0.6 px) the default sequence (period 16, stripe 8) gives "
+                   "0.369 % of the points > 1 mm, 0.223 % beyond 5 sigma, |err|/sigma RMS 1.41, RMS 0.56 mm, 96.9 % "
+                   "complete (at 1.0 px: 0.093 %, 0.056 %, 0.85, 0.15 mm; at 2.0 px: 1.78 %, 0.385 %, 1.75, 0.86 mm, "
+                   "91.0 %): the sigma does not yet know the blur. Period 8 is worse there: 89.3 % complete at 1.0 "
+                   "px, 0.2 % at 1.5 px")
+def test_default_scene_with_stronger_blur_keeps_sigma_honest(folder: Path) -> None:
+    text = scene_text("default").replace("seed: 3,", "seed: 3, camera_blur_px: 1.5, projector_blur_px: 1.5,")
+    from appliance.config import parse_config
+
+    s = measure(parse_config(text, "blur.yaml"), folder, "blur15")
+    print(s.line())
+    assert s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
+
+
 @pytest.mark.parametrize("samples", [8, 64])
 def test_diffuse_groove_sigma_says_how_far_interreflection_shifts_a_point(folder: Path, samples: int) -> None:
     # a matte concave corner (albedo 0.9) whose faces light each other (one bounce, `samples` hemisphere samples a
