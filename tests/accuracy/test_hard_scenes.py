@@ -71,19 +71,35 @@ def test_matte_groove_without_interreflection(folder: Path) -> None:
     _sigma_is_honest(s)
 
 
-@pytest.mark.xfail(strict=True, reason="not reached yet: with the camera's and the projector's blur at 1.5 px (the "
-                   "virtual rig's defaults: 0.5 and 0.6 px) the default sequence (period 16, stripe 8) gives "
-                   "0.369 % of the points > 1 mm, 0.223 % beyond 5 sigma, |err|/sigma RMS 1.41, RMS 0.56 mm, 96.9 % "
-                   "complete (at 1.0 px: 0.093 %, 0.056 %, 0.85, 0.15 mm; at 2.0 px: 1.78 %, 0.385 %, 1.75, 0.86 mm, "
-                   "91.0 %): the sigma does not yet know the blur. Period 8 is worse there: 89.3 % complete at 1.0 "
-                   "px, 0.2 % at 1.5 px")
-def test_default_scene_with_stronger_blur_keeps_sigma_honest(folder: Path) -> None:
-    text = scene_text("default").replace("seed: 3,", "seed: 3, camera_blur_px: 1.5, projector_blur_px: 1.5,")
+def _blurred_default(folder: Path) -> VirtualRig:
+    """The default scene with the camera's and the projector's blur at 1.5 px (the virtual rig's defaults: 0.5 and
+    0.6 px), captured once for the module; its rig (the truth)."""
     from appliance.config import parse_config
 
-    s = measure(parse_config(text, "blur.yaml"), folder, "blur15")
+    text = scene_text("default").replace("seed: 3,", "seed: 3, camera_blur_px: 1.5, projector_blur_px: 1.5,")
+    cfg = parse_config(text, "blur.yaml")
+    if (folder / "blur15.yaml").exists():
+        return VirtualRig(cfg.virtual_rig)
+    return capture(cfg, folder, "blur15")
+
+
+@pytest.mark.xfail(strict=True, reason="not reached yet: at 1.5 px blur with the default edge_blur_px (0.5 px) "
+                   "measured 0.223 % beyond 5 sigma, |err|/sigma RMS 1.41, 0.369 % of the points > 1 mm, RMS 0.56 "
+                   "mm, 96.9 % complete (at 2.0 px: 0.385 %, 1.75, 1.78 %): the albedo-edge correction and its sigma "
+                   "assume the blur they are given, and the calibration does not measure it yet")
+def test_default_scene_with_stronger_blur_keeps_sigma_honest(folder: Path) -> None:
+    s, _ = decode(folder, "blur15", _blurred_default(folder))
     print(s.line())
-    assert s.over_1mm <= 1e-3, s.line()
+    _sigma_is_honest(s)
+
+
+def test_stronger_blur_with_edge_blur_px_set_to_it_keeps_sigma_honest(folder: Path) -> None:
+    # reconstruction.edge_blur_px: 1.5 in a config file, the optics' true blur: measured 0.055 % beyond 5 sigma,
+    # |err|/sigma RMS 1.09 (the points > 1 mm, 0.255 %, have a sigma that says so); 1.0 px: 0.111 %, 1.28
+    rig = _blurred_default(folder)
+    (folder / "edge15.yaml").write_text("reconstruction:\n  edge_blur_px: 1.5\n")
+    s, _ = decode(folder, "blur15", rig, folder / "edge15.yaml", "_edge15")
+    print(s.line())
     _sigma_is_honest(s)
 
 
