@@ -324,7 +324,8 @@ def _store_probe(bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray
 
 
 def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_ms: float,
-           base_us: float, read_noise_dn: float = 2.0, electrons_per_dn: float = 25.0) -> TuneChoice:
+           base_us: float, read_noise_dn: float = 2.0, electrons_per_dn: float = 25.0,
+           coverage_tolerance: float = COVERAGE_TOLERANCE) -> TuneChoice:
     """The fewest passes that bring :data:`TARGET_SHARE` of the lit pixels into range, the most precise of them.
 
     A pass is an exposure of the ladder at full intensity or, when the probe could dim the projector, the
@@ -350,6 +351,9 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     read_noise_dn, electrons_per_dn : float
         ``reconstruction.camera_read_noise_dn`` and ``camera_electrons_per_dn``: the noise model that weighs the
         read noise against the shot noise in the predicted precision.
+    coverage_tolerance : float
+        Share of the lit pixels by which a choice may cover less than the most covering one and still be
+        compared by precision (0: the most covering, then the quickest).
     """
     ladder = np.asarray(sorted({round(base_us * f) for f in LADDER_FACTORS}), dtype=np.float64)
     # the passes a choice may take: (exposure µs, intensity); the dimmed ones after, so that ties keep full
@@ -381,19 +385,17 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         # lit: clipped at some probe pass, or with contrast at the brightest
         lit = (idx < len(e) - 1) | (w[-1] - b[-1] >= LIT_CONTRAST * min_contrast_dn * scale)
         need = DECODABLE_CONTRAST * min_contrast_dn * scale
-        # decodable in pass (t, i): contrast reaches need and white stays below the margin (a pixel that clipped
-        # in every probe pass has no measured rate: it counts as clipped)
-        good = (c_rate[..., None] * (s_t * s_i) >= need)
-        good &= a_rate[..., None] * s_t + c_rate[..., None] * (s_t * s_i) < CLIP_MARGIN * full
-        good &= ~clipped_all[..., None]
-        bits = (good[lit] * (1 << np.arange(len(settings)))).sum(axis=1)
-        masks.append(bits.astype(np.int64))
+        # per lit pixel and pass (t, i): its contrast and white level (a pixel that clipped in every probe pass
+        # has no measured rate: it counts as clipped)
+        contrast = c_rate[lit, None] * (s_t * s_i)
+        white = a_rate[lit, None] * s_t + contrast
+        enough = (contrast >= need) & ~clipped_all[lit, None]
+        # decodable: contrast reaches need and white stays below the margin
+        bits = _setting_bits(enough & (white < CLIP_MARGIN * full))
+        masks.append(bits)
         # the passes the fusion could take the pixel from: its white below full scale (the decoder drops a
         # pixel only where a pattern sample clips, and the samples peak below the white), contrast enough
-        usable = (c_rate[..., None] * (s_t * s_i) >= need)
-        usable &= a_rate[..., None] * s_t + c_rate[..., None] * (s_t * s_i) < full
-        usable &= ~clipped_all[..., None]
-        fusable.append((usable[lit] * (1 << np.arange(len(settings)))).sum(axis=1).astype(np.int64))
+        fusable.append(_setting_bits(enough & (white < full)))
         none = bits == 0
         too_dark = none & (c_rate[lit] * ladder[-1] < need)  # the brightest pass: the longest, full
         # clipped even in the dimmest pass; the rest reach the contrast only where the ambient light clips them
@@ -428,7 +430,7 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
         if best is not None and best[0] >= TARGET_SHARE:
             within = True
             top = best[0]
-            close = [k for k in fits if k[0] >= max(TARGET_SHARE, top - COVERAGE_TOLERANCE)]
+            close = [k for k in fits if k[0] >= max(TARGET_SHARE, top - coverage_tolerance)]
             if len(close) > 1:
                 var = _predicted_variance(
                     np.concatenate(pix_c) if pix_c else np.zeros(0), np.concatenate(pix_a) if pix_a else np.zeros(0),
@@ -451,9 +453,13 @@ def choose(pr: Probe, min_contrast_dn: float, frames_per_pass: int, time_budget_
     return TuneChoice(ex, scan_time_ms([float(x) for x in ex], frames_per_pass), cov, lit_n,
                       dark_n / lit_n if lit_n else 0.0, clip_n / lit_n if lit_n else 0.0, dr, within,
                       tuple(int(x) for x in ladder), levels if any(i < 1.0 for i in levels) else (),
-                      float(s_i.min()), ambient_n / lit_n if lit_n else 0.0,
-                      most_covering[0] if most_covering else (), most_covering[1] if most_covering else 0.0,
-                      most_covering[2] if most_covering else 1.0)
+                      float(s_i.min()), ambient_n / lit_n if lit_n else 0.0, *(most_covering or ((), 0.0, 1.0)))
+
+
+def _setting_bits(per_setting: npt.NDArray[np.bool_]) -> npt.NDArray[np.int64]:
+    """Per pixel its (pixels, settings) flags as one integer, bit ``s`` for setting ``s``."""
+    weights = 1 << np.arange(per_setting.shape[1], dtype=np.int64)
+    return np.asarray((per_setting * weights).sum(axis=1), np.int64)
 
 
 def _passes(combo: tuple[int, ...], s_t: npt.NDArray[np.float64],

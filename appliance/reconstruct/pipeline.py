@@ -379,8 +379,6 @@ class Reconstructor:
             self._visibility = ProjectorVisibility(calibration.projector, self._proj_tri)
         self.hidden: dict[str, int] = {}
         """Points the projector visibility check dropped in the last scan, per camera."""
-        self.walled: dict[str, int] = {}
-        """Points dropped in the last scan as regions walled in by reflections (:mod:`.walled`), per camera."""
         if self._depth_path and axes != "xy":  # a scan reads the row tables only (xy: the residual reads all)
             for tri in self._proj_tri.values():
                 tri.rays.row_table()
@@ -626,22 +624,18 @@ class Reconstructor:
                 # points (as one axis would) so that the calibration health judges them all, and say so
                 unchecked[n] = (tri_n - cons_n, tri_n)
         self.hidden = {}
-        self.walled = {}
         # not where most pixels lie off their epipolar lines: the calibration no longer fits (said below), and the
         # check's geometry is the calibration's
         if self._visibility is not None and not unchecked and (
             cfg.hidden_check == "always" or self._shows_reflections(maps)
         ):
-            self.hidden = self._visibility.apply(
-                self._depth, self._sigma, self._counts, self._stats, {n: _reason_map(maps[n]) for n in self._proj_tri},
-                {n: maps[n].blend_codes for n in self._proj_tri},
-            )  # fmt: skip
+            reasons = {n: _reason_map(maps[n]) for n in self._proj_tri}
+            self.hidden = self._visibility.apply(self._depth, self._sigma, self._counts, self._stats, reasons,
+                                                 {n: maps[n].blend_codes for n in self._proj_tri})  # fmt: skip
             # the band next to a mirror's corner line where the two copies coincide: walled in by what was dropped
-            for n in self._proj_tri:
-                r_map = _reason_map(maps[n])
+            for n, r_map in reasons.items():
                 if r_map is not None:
-                    self.walled[n] = drop_walled(self._depth[n], self._sigma[n], r_map, self._counts[n],
-                                                 self._stats[n])  # fmt: skip
+                    drop_walled(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n])
         self.fringe_median = {}
         if cfg.indirect_sigma or self.edge_corrected:
             self._indirect_bias(maps, white, max_sigma)

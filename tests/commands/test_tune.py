@@ -145,15 +145,10 @@ def test_the_most_precise_of_the_choices_that_cover() -> None:
 
 
 def _coverage_first(pr: Probe, cfg: AppConfig, budget: float, base: float) -> TuneChoice:
-    """The choice with no room for precision (COVERAGE_TOLERANCE 0: the most covering, then the quickest)."""
+    """The choice with no room for precision (coverage tolerance 0: the most covering, then the quickest)."""
     from appliance.procedures import tune as t
 
-    keep = t.COVERAGE_TOLERANCE
-    t.COVERAGE_TOLERANCE = 0.0
-    try:
-        return t.choose(pr, cfg.reconstruction.min_contrast_dn, 22, budget, base)
-    finally:
-        t.COVERAGE_TOLERANCE = keep
+    return t.choose(pr, cfg.reconstruction.min_contrast_dn, 22, budget, base, coverage_tolerance=0.0)
 
 
 def test_without_the_albedo_edge_correction_pixels_beside_clipped_ones_are_left_out(
