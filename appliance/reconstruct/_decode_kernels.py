@@ -40,7 +40,7 @@ EDGE_RATIO = 0.75
 BLUR_RATIO = 0.5
 #: ... and only when the coarser period is at least this many times longer: close periods (66.7 / 100 px)
 #: are attenuated almost alike by blur, so a weak finer one means a bad pixel, not blur.
-FALLBACK_PERIOD_RATIO = 4.0
+FALLBACK_PERIOD_RATIO = 2.0
 #: Gray against phase: a pixel's unwrapped phase coordinate lies inside its Gray stripe (half a stripe from the
 #: stripe centre), with this margin for blur and noise, in stripes; farther means the Gray code and the phase
 #: saw different light (a second copy of the pattern by interreflection, a mixed pixel): the pixel is dropped.
@@ -404,18 +404,26 @@ def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _phase_fallback(mod, mprev, relv, prev, cc, ok, qa):  # type: ignore[no-untyped-def]
+def _phase_fallback(mod, mprev, relv, prev, cc, ok, qa, scale):  # type: ignore[no-untyped-def]
     """A finer phase set counts where it has modulation. Where it has none because the optics blur it away
     (its modulation under :data:`BLUR_RATIO` of the coarser set's ``mprev``), the coarser result ``prev``
-    stays; a finer set that is merely weak (noise, shadow edge) still rejects the pixel."""
+    stays; a finer set that is merely weak (noise, shadow edge) still rejects the pixel.
+
+    The code noise a sigma is computed from assumes the finest period (``uncertainty.CodeNoise``: the phase
+    noise in projector px grows with the period over the modulation), so a pixel left on the coarser set has
+    its quality ``qa`` scaled by ``scale`` = this period / the coarser one: its sigma is then that of the
+    coarser period (scaled again at each set it falls back through)."""
     ratio = np.float32(BLUR_RATIO)
+    sc = np.float32(scale)
     for x in range(mod.shape[0]):
         good = mod[x] >= relv[x]
         blurred = mod[x] < ratio * mprev[x]
-        cc[x] = cc[x] if good else prev[x]
-        ok[x] = ok[x] & (good | blurred)
-        qa[x] = np.fmin(qa[x], mod[x] if good else _FINF)
-        mprev[x] = mod[x] if good else mprev[x]
+        better = mod[x] >= sc * mprev[x]
+        fine = good & better
+        cc[x] = cc[x] if fine else prev[x]
+        ok[x] = ok[x] & (fine | ~better | blurred)
+        qa[x] = np.fmin(qa[x], mod[x]) if fine else qa[x] * sc
+        mprev[x] = mod[x] if fine else mprev[x]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -640,7 +648,7 @@ def _finish_row(  # type: ignore[no-untyped-def]
                 res = cc
                 if finest and pprev >= FALLBACK_PERIOD_RATIO * period:
                     # a finer period the optics blur away leaves the pixel on the coarser one
-                    _phase_fallback(mod, mprev, relv, cb, cc, ok, qa)
+                    _phase_fallback(mod, mprev, relv, cb, cc, ok, qa, period / pprev)
                     pprev = period
                     continue
             else:
