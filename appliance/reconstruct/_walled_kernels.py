@@ -54,3 +54,28 @@ def drop_regions(lab, drop, depth, sigma, reason, value, per_row):  # type: igno
                 reason[r, c] = value
                 n += 1
         per_row[r] = n
+
+
+@njit(nogil=True, cache=True)
+def drop_isolated(depth, sigma, reason, has_reason, value, per_row):  # type: ignore[no-untyped-def]
+    """NaN depth and sigma (and ``value`` as reason where ``has_reason``) for every point none of whose 8
+    neighbours has a point; counted per row. Dropping one such point leaves no other alone (it had no
+    neighbour), so one pass is final."""
+    h, w = depth.shape
+    for r in range(h):
+        n = 0
+        for c in range(w):
+            if not np.isfinite(depth[r, c]):
+                continue
+            alone = True
+            for y in range(max(r - 1, 0), min(r + 2, h)):
+                for x in range(max(c - 1, 0), min(c + 2, w)):
+                    if (y != r or x != c) and np.isfinite(depth[y, x]):
+                        alone = False
+            if alone:
+                depth[r, c] = np.nan
+                sigma[r, c] = np.nan
+                if has_reason:
+                    reason[r, c] = value
+                n += 1
+        per_row[r] = n

@@ -35,7 +35,7 @@ from appliance.reconstruct.triangulate import EPIPOLAR_SIGMAS, ProjectorTriangul
 from appliance.reconstruct.types import DecodedMaps, PointCloud, Reason, StageCounts
 from appliance.reconstruct.uncertainty import CodeNoise, code_noise_for_sequence
 from appliance.reconstruct.visibility import ProjectorVisibility
-from appliance.reconstruct.walled import drop_walled
+from appliance.reconstruct.walled import drop_isolated, drop_walled
 
 F32 = npt.NDArray[np.float32]
 
@@ -636,6 +636,10 @@ class Reconstructor:
             for n, r_map in reasons.items():
                 if r_map is not None:
                     drop_walled(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n])
+        if cfg.min_neighbours > 0:
+            # a point the one-pass neighbour filter and the checks after it left without any neighbour
+            for n in self._proj_tri:
+                drop_isolated(self._depth[n], self._sigma[n], _reason_map(maps[n]), self._counts[n], self._stats[n])
         self.fringe_median = {}
         if cfg.indirect_sigma or self.edge_corrected:
             self._indirect_bias(maps, white, max_sigma)

@@ -197,6 +197,18 @@ def test_a_finer_second_period_on_the_default_scene(folder: Path) -> None:
     _sigma_is_honest(s)
 
 
+def test_a_finer_second_period_on_the_mirror_groove_has_no_ghost_points(folder: Path) -> None:
+    # at the scene's 10 ms: measured 0.017 % of the points > 1 mm, none > 5 mm, none beyond 5 sigma, |err|/sigma
+    # RMS 0.91, 69.9 % complete (period 16 alone, the xfail below: 0.155 %). Before points without any neighbour
+    # were dropped one point 583 mm behind the back wall survived here (sigma 1.1 mm; |err|/sigma RMS 1.75)
+    from appliance.config import parse_config
+
+    s = measure(parse_config(_two_periods(scene_text("mirror_groove")), "mg.yaml"), folder, "mg_fine")
+    print(s.line())
+    assert s.over_1mm <= 1e-3 and s.over_5mm == 0.0, s.line()
+    _sigma_is_honest(s)
+
+
 @pytest.mark.xfail(strict=True, reason="issue 25 target not reached yet at the scene's 10 ms: measured 0.155 % of "
                    "the points > 1 mm (0 > 5 mm), 0 beyond 5 sigma, |err|/sigma RMS 0.87, RMS 0.21 mm, 69.9 % "
                    "complete (without the check for regions walled in by reflections 2.0 %, 0.17 %, 0.31 %, 1.09, "
@@ -341,7 +353,11 @@ def test_mirror_groove_points_hidden_from_the_projector_are_dropped_and_said(fol
     reasons_off = cam_off["reasons"]
     assert isinstance(reasons, dict) and isinstance(reasons_off, dict)
     walled = reasons["two copies of the pattern"] - reasons_off["two copies of the pattern"]
-    assert walled > 0 and reasons["hidden from the projector"] + walled == len(dropped), (reasons, reasons_off)
+    # points left without neighbours are dropped in both runs, but not the same ones (measured x: 24 fewer with
+    # the check, whose drops took them first)
+    alone = reasons.get("filtered", 0) - reasons_off.get("filtered", 0)
+    assert abs(alone) <= 0.01 * len(dropped), (reasons, reasons_off)
+    assert walled > 0 and reasons["hidden from the projector"] + walled + alone == len(dropped), (reasons, reasons_off)
     assert reasons["decoded"] == cam["points"] and sum(reasons.values()) == cam["pixels"]
     assert "hidden from the projector" not in reasons_off
     health = report["calibration_health"]
@@ -383,7 +399,10 @@ def test_mirror_groove_band_walled_in_by_reflections_is_dropped(
     _, cam_off = _camera_block(folder, f"{name}_off")
     said, said_off = cam["reasons"], cam_off["reasons"]
     assert isinstance(said, dict) and isinstance(said_off, dict)
-    assert said["two copies of the pattern"] - said_off["two copies of the pattern"] == len(gone), (said, said_off)
+    alone = said.get("filtered", 0) - said_off.get("filtered", 0)  # points left without neighbours, in both runs
+    assert abs(alone) <= 0.01 * len(gone), (said, said_off)
+    walled = said["two copies of the pattern"] - said_off["two copies of the pattern"]
+    assert walled + alone == len(gone), (said, said_off)
 
 
 def test_a_scene_with_projector_shadows_and_no_mirror_loses_nothing_to_the_visibility_check(folder: Path) -> None:

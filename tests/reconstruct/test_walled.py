@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from appliance.reconstruct.types import Reason
-from appliance.reconstruct.walled import drop_walled
+from appliance.reconstruct.walled import drop_isolated, drop_walled
 
 H, W = 120, 200
 
@@ -66,3 +66,27 @@ def test_a_narrow_region_walled_by_stray_marks_only_keeps_its_points() -> None:
     reason[::7, 105] = Reason.INTERREFLECTION
     n, _, _ = _run(reason, depth, sigma)
     assert n == 0 and np.all(reason[:, 95:105] == Reason.DECODED)
+
+
+def test_a_point_left_without_neighbours_is_dropped_as_filtered() -> None:
+    # what the one-pass neighbour filter can leave: a point whose neighbours it dropped after they counted for it
+    reason, depth, sigma = _scene()
+    reason[40:60, 40:60] = Reason.FILTERED
+    reason[50, 50] = 0  # alone in the filtered patch
+    reason[40:60, 100:120] = Reason.FILTERED
+    reason[50, 110] = reason[51, 111] = 0  # two diagonal neighbours: a surface, kept
+    reason[0, 0] = 0
+    reason[0, 1] = reason[1, 0] = reason[1, 1] = Reason.SHADOW  # alone in the image's corner
+    depth[reason != 0] = np.nan
+    sigma[reason != 0] = np.nan
+    counts = np.concatenate([[0], (reason == 0).sum(axis=1)]).astype(np.int64)
+    stats = np.zeros((H, 6), np.int64)
+    stats[:, 4] = stats[:, 5] = counts[1:]
+    kept = int(counts.sum())
+    assert drop_isolated(depth, sigma, reason, counts, stats) == 2
+    assert reason[50, 50] == Reason.FILTERED and reason[0, 0] == Reason.FILTERED
+    assert np.isnan(depth[50, 50]) and np.isnan(sigma[0, 0])
+    assert reason[50, 110] == 0 and reason[51, 111] == 0 and np.isfinite(depth[50, 110])
+    assert int(counts.sum()) == kept - 2 and np.array_equal(counts[1:], (reason == 0).sum(axis=1))
+    assert np.array_equal(stats[:, 4], counts[1:]) and np.array_equal(stats[:, 5], counts[1:])
+    assert drop_isolated(depth, sigma, None, counts, stats) == 0  # one pass is final; no reason map is fine
