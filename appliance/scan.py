@@ -472,7 +472,7 @@ class Scanner:
     ) -> tuple[Reconstruction, dict[str, object]]:
         """Reconstruct (in a worker thread), then judge the scan's residuals and record their trend."""
         if self._trend is None:
-            self._trend = trend_for(self.cfg.service.state_directory)
+            self._trend = trend_for(self.cfg.service.state_directory, self.sequence.describe())
         return replay.reconstruct(self.reconstructor, maps, white, self._trend,
                                   self.cfg.calibration.health_tolerance_px)  # fmt: skip
 

@@ -122,11 +122,15 @@ class TrendStore:
         Scans kept per kind.
     """
 
-    def __init__(self, path: Path, length: int = TREND_LENGTH) -> None:
+    def __init__(self, path: Path, length: int = TREND_LENGTH, context: str | None = None) -> None:
         if length < MIN_HISTORY + 1:
             raise CalibrationError(f"calibration health trend length {length}: must be >= {MIN_HISTORY + 1}")
         self.path = Path(path)
         self.length = length
+        self.context = context
+        """What the residuals depend on besides the calibration (the scanner's sequence): only the stored scans of
+        the same context are the history, so a changed sequence (say period 8 added: the three-view residual falls
+        from 0.157 to 0.089 px) starts a new history instead of reading as drift."""
         self._data: dict[str, list[dict[str, Any]]] = self._load()
 
     def _load(self) -> dict[str, list[dict[str, Any]]]:
@@ -155,14 +159,17 @@ class TrendStore:
             return {}
 
     def history(self, kind: str) -> list[float]:
-        """Residual RMS (px) of the stored scans of ``kind``, oldest first."""
-        return [float(e["residual_px"]) for e in self._data.get(kind, [])]
+        """Residual RMS (px) of the stored scans of ``kind`` in this store's context, oldest first."""
+        return [float(e["residual_px"]) for e in self._data.get(kind, []) if e.get("context") == self.context]
 
     def append(self, kind: str, residual_px: float, status: str) -> None:
-        """Record one scan's value and write the file."""
+        """Record one scan's value (in this store's context) and write the file."""
         entries = self._data.setdefault(kind, [])
-        entries.append({"time": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                        "residual_px": float(residual_px), "status": status})  # fmt: skip
+        entry: dict[str, Any] = {"time": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                                 "residual_px": float(residual_px), "status": status}  # fmt: skip
+        if self.context is not None:
+            entry["context"] = self.context
+        entries.append(entry)
         del entries[: max(len(entries) - self.length, 0)]
         self._write()
 

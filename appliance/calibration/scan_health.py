@@ -52,9 +52,10 @@ def reference_px(residual: Residual, calibration: Calibration) -> float:
     return max(math.sqrt(total), REFERENCE_FLOOR_PX)
 
 
-def trend_for(state_directory: Path) -> TrendStore:
-    """The trend store of an appliance (``<state directory>/calibration_health.json``)."""
-    return TrendStore(Path(state_directory) / TREND_FILE)
+def trend_for(state_directory: Path, context: str | None = None) -> TrendStore:
+    """The trend store of an appliance (``<state directory>/calibration_health.json``); ``context``: what its
+    residuals depend on besides the calibration (the sequence's description), see ``TrendStore.context``."""
+    return TrendStore(Path(state_directory) / TREND_FILE, context=context)
 
 
 def assess_scan(

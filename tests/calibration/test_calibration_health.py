@@ -64,6 +64,27 @@ def test_a_step_beyond_three_sigma_of_the_history_is_drifting(tmp_path: Path) ->
     assert assess_health(scan(rng, 0.13), 0.1, kind="epipolar", trend=store).status == "ok"
 
 
+def test_a_changed_sequence_starts_a_new_history_instead_of_drifting(tmp_path: Path) -> None:
+    # the residuals depend on the code as well as the calibration: period 8 added to period 16 takes the default
+    # rig's three-view residual from 0.157 to 0.089 px, which against the old history read as drifting (-19.8 sigma)
+    rng = np.random.default_rng(5)
+    path = tmp_path / "health.json"
+    old = TrendStore(path, context="P16")
+    for _ in range(8):
+        assert assess_health(scan(rng, 0.16), 0.1, kind="three_view", trend=old).status == "ok"
+    new = TrendStore(path, context="P16 P8")
+    h = assess_health(scan(rng, 0.09), 0.1, kind="three_view", trend=new)
+    assert h.status == "ok" and "sigma from" not in h.reason, h.reason
+    assert len(new.history("three_view")) == 1 and len(TrendStore(path, context="P16").history("three_view")) == 8
+    # the file keeps both (the window is per kind); entries written before contexts existed are no one's history
+    doc = json.loads(path.read_text())
+    assert [e["context"] for e in doc["kinds"]["three_view"]] == ["P16"] * 8 + ["P16 P8"]
+    assert TrendStore(path).history("three_view") == []
+    # back on the old sequence its history holds: the same step is drifting there
+    assert assess_health(scan(rng, 0.09), 0.1, kind="three_view", trend=TrendStore(path, context="P16")).status == (
+        "drifting")
+
+
 def test_too_few_samples_are_not_judged_or_recorded(tmp_path: Path) -> None:
     store = TrendStore(tmp_path / "health.json")
     h = assess_health(np.full(10, 5.0), 0.1, kind="epipolar", trend=store)
