@@ -38,8 +38,8 @@ EDGE_RATIO = 0.75
 #: A finer phase period whose modulation is below this fraction of the coarser period's is blurred away by
 #: the optics (attenuation grows with 1/period**2), not merely noisy: the pixel keeps the coarser result.
 BLUR_RATIO = 0.5
-#: ... and only when the coarser period is at least this many times longer: close periods (66.7 / 100 px)
-#: are attenuated almost alike by blur, so a weak finer one means a bad pixel, not blur.
+#: ... and only when the coarser period is at least this many times longer (periods [16, 8] qualify): close
+#: periods (66.7 / 100 px) are attenuated almost alike by blur, so a weak finer one means a bad pixel, not blur.
 FALLBACK_PERIOD_RATIO = 2.0
 #: Gray against phase: a pixel's unwrapped phase coordinate lies inside its Gray stripe (half a stripe from the
 #: stripe centre), with this margin for blur and noise, in stripes; farther means the Gray code and the phase
@@ -405,9 +405,11 @@ def _phase_gate(mod, relv, ok, qa):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def _phase_fallback(mod, mprev, relv, prev, cc, ok, qa, scale):  # type: ignore[no-untyped-def]
-    """A finer phase set counts where it has modulation. Where it has none because the optics blur it away
-    (its modulation under :data:`BLUR_RATIO` of the coarser set's ``mprev``), the coarser result ``prev``
-    stays; a finer set that is merely weak (noise, shadow edge) still rejects the pixel.
+    """A finer phase set counts where it has modulation and is the more precise of the two: its modulation at
+    least ``scale`` (this period / the coarser one) times the coarser set's ``mprev``, where the two phase noises
+    are equal. Elsewhere the coarser result ``prev`` stays: where the finer set is less precise, or has no
+    modulation because the optics blur it away (under :data:`BLUR_RATIO` of ``mprev``); a finer set that is
+    merely weak (noise, shadow edge) still rejects the pixel.
 
     The code noise a sigma is computed from assumes the finest period (``uncertainty.CodeNoise``: the phase
     noise in projector px grows with the period over the modulation), so a pixel left on the coarser set has

@@ -626,10 +626,10 @@ class Reconstructor:
         self.hidden = {}
         # not where most pixels lie off their epipolar lines: the calibration no longer fits (said below), and the
         # check's geometry is the calibration's
+        reasons = {n: _reason_map(maps[n]) for n in self._proj_tri}
         if self._visibility is not None and not unchecked and (
             cfg.hidden_check == "always" or self._shows_reflections(maps)
         ):
-            reasons = {n: _reason_map(maps[n]) for n in self._proj_tri}
             self.hidden = self._visibility.apply(self._depth, self._sigma, self._counts, self._stats, reasons,
                                                  {n: maps[n].blend_codes for n in self._proj_tri})  # fmt: skip
             # the band next to a mirror's corner line where the two copies coincide: walled in by what was dropped
@@ -638,8 +638,8 @@ class Reconstructor:
                     drop_walled(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n])
         if cfg.min_neighbours > 0:
             # a point the one-pass neighbour filter and the checks after it left without any neighbour
-            for n in self._proj_tri:
-                drop_isolated(self._depth[n], self._sigma[n], _reason_map(maps[n]), self._counts[n], self._stats[n])
+            for n, r_map in reasons.items():
+                drop_isolated(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n])
         self.fringe_median = {}
         if cfg.indirect_sigma or self.edge_corrected:
             self._indirect_bias(maps, white, max_sigma)
