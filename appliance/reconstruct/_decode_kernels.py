@@ -52,6 +52,12 @@ CONSISTENCY_MARGIN = 0.25
 #: second copy of the pattern (interreflection), which shifts the two frequencies' phases by unrelated amounts,
 #: lands anywhere in it.
 FREQUENCY_MARGIN = 0.35
+#: An occlusion or shadow edge: a decoded pixel whose lit range (white - black) is below this share of the
+#: brightest decoded 8-neighbour's, beside a neighbour with no projector light (shadow, too dark), takes its
+#: light from the small part of its footprint that is lit: its centre most likely sees the unlit surface (a
+#: pixel half covered reaches about half), so its code is a neighbouring surface's. At an occluding edge that is
+#: another depth: the point lies on the lit surface behind, up to tens of mm from what the pixel's centre sees.
+COVER_RATIO = 0.4
 #: XOR codes: at an edge of the base bit every XOR bit has an edge too, so all of them are weak at once. Such a
 #: pixel keeps its code (counted as one weak bit, the base's) where the base and every XOR bit still reach this
 #: fraction of the Gray contrast floor: their signs then agree on the side of the edge, and bit b = its XOR
@@ -1226,6 +1232,48 @@ def decode_reasons(hi, lo, thr, dark, clip, mask, reason, fringe, r_ok, r_shadow
                     reason[y, x] = r_blend
                 else:
                     reason[y, x] = r_weak
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def drop_partial(  # type: ignore[no-untyped-def]
+    hi, lo, choice, top, fused, ratio, u, v, has_v, mask, quality, lev, fringe, reason, r_ok, r_shadow, r_dark, r_weak
+):  # fmt: skip
+    """Undecode the pixels lit over a small part of their footprint (see :data:`COVER_RATIO`): a decoded pixel
+    (``reason == r_ok``) whose ``hi - lo`` is below ``ratio`` times the largest of its decoded 8-neighbours',
+    with an 8-neighbour of reason ``r_shadow`` or ``r_dark``. Two passes (mark with 255, then clear), so every
+    pixel is judged by the decode it had. ``fused``: the maps of several exposure passes, the level ``hi`` alone
+    (``lo`` unread), and a neighbour counts as unlit only where its result came from the brightest pass
+    (``choice == top``): one from a darker pass (the brighter clipped it) says nothing of its light. Returns
+    the number undecoded (reason ``r_weak``)."""
+    h, w = mask.shape
+    mark = np.uint8(255)
+    per_row = np.zeros(h, np.int64)
+    for y in prange(h):
+        y0, y1 = max(y - 1, 0), min(y + 2, h)
+        for x in range(w):
+            if reason[y, x] != r_ok:
+                continue
+            dark = False
+            best = 0.0
+            for yy in range(y0, y1):
+                for xx in range(max(x - 1, 0), min(x + 2, w)):
+                    q = reason[yy, xx]
+                    if (q == r_shadow or q == r_dark) and (not fused or choice[yy, xx] == top):
+                        dark = True
+                    elif q == r_ok or q == mark:
+                        best = max(best, float(hi[yy, xx]) - (0.0 if fused else float(lo[yy, xx])))
+            if dark and float(hi[y, x]) - (0.0 if fused else float(lo[y, x])) < ratio * best:
+                reason[y, x] = mark
+                per_row[y] += 1
+    for y in prange(h):
+        if per_row[y] == 0:
+            continue
+        for x in range(w):
+            if reason[y, x] == mark:
+                reason[y, x] = r_weak
+                fringe[y, x] = np.uint8(0)
+                _undecode(u, v, has_v, mask, quality, lev, y, x)
+    return per_row.sum()
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -142,6 +142,45 @@ def _saturation_and_reasons(
         int(Reason.SHADOW), int(Reason.TOO_DARK), int(Reason.SATURATED), int(Reason.WEAK_CODE),
         int(Reason.INTERREFLECTION),
     )  # fmt: skip
+    if params.partial_cover:
+        _k.drop_partial(hi, lo, out.reason, 0, False, _k.COVER_RATIO, out.u, v_arg, v_arg.shape[0] > 0, out.mask,
+                        out.quality, out.levels, out.fringe, out.reason, int(Reason.DECODED), int(Reason.SHADOW),
+                        int(Reason.TOO_DARK), int(Reason.WEAK_CODE))  # fmt: skip
+
+
+def drop_partial_cover(
+    maps: DecodedMaps, level: npt.NDArray[np.float32], choice: npt.NDArray[np.uint8], passes: int
+) -> int:
+    """The fused maps of several exposure passes: undecode the pixels lit over a small part of their footprint
+    beside an unlit one (``_decode_kernels.COVER_RATIO``; reason ``WEAK_CODE``), judged on the fused reasons
+    and the white level in one scale (each pass's decode leaves this to the fusion: a pixel too dark in one pass
+    may decode in a brighter one).
+
+    Parameters
+    ----------
+    maps : DecodedMaps
+        The fused decode, with ``reason``, ``levels`` and ``fringe``; changed in place.
+    level : ndarray, shape (H, W), float32
+        White-light level per pixel in one scale across the passes (``DecodedMaps.radiance``).
+    choice : ndarray, shape (H, W), uint8
+        The pass each pixel's result came from (:func:`appliance.reconstruct.hdr.fuse_exposures`): an undecoded
+        neighbour is unlit only where the brightest pass gave its verdict (a darker one means the brighter
+        clipped it: beside a bright patch, not in a shadow).
+    passes : int
+        How many passes.
+
+    Returns
+    -------
+    int
+        The pixels undecoded.
+    """
+    if maps.reason is None or maps.levels is None:
+        return 0
+    fringe = maps.fringe if maps.fringe is not None else np.zeros(maps.shape, np.uint8)
+    # v is NaN where its axis is not coded: clearing it there changes nothing
+    return int(_k.drop_partial(level, level, choice, passes - 1, True, _k.COVER_RATIO, maps.u, maps.v, True, maps.mask,
+                               maps.quality, maps.levels, fringe, maps.reason, int(Reason.DECODED),
+                               int(Reason.SHADOW), int(Reason.TOO_DARK), int(Reason.WEAK_CODE)))  # fmt: skip
 
 
 def reason_counts(maps: DecodedMaps) -> dict[str, int]:

@@ -76,6 +76,11 @@ class DecodeParams:
         neighbour's light, of unknown level, blurs into it). False where the reconstruction corrects albedo
         edges from the fused white level (``reconstruction.edge_blur_px`` > 0): the neighbour's level is then
         known from a darker pass, and the pixel takes the brightest pass that did not clip it.
+    partial_cover : bool
+        Undecode (reason ``WEAK_CODE``) a pixel lit over a small part of its footprint beside an unlit one (an
+        occlusion or shadow edge: ``_decode_kernels.COVER_RATIO``). The decode of one exposure pass of several
+        leaves it to the fused maps (:func:`appliance.reconstruct.decode_batch.drop_partial_cover`), whose
+        neighbours may come from other passes.
     """
 
     min_contrast_dn: float = 6.0
@@ -85,6 +90,7 @@ class DecodeParams:
     finest_bit: bool = True
     blend_ratio: float = 0.4
     clean_neighbours: bool = True
+    partial_cover: bool = True
 
     @staticmethod
     def from_settings(settings: ReconstructionSettings, max_value: float | None = None) -> DecodeParams:

@@ -25,6 +25,7 @@ clipped is ``saturated``.
 from __future__ import annotations
 
 from collections.abc import Hashable, Mapping, Sequence
+from dataclasses import replace
 from typing import cast
 
 import numpy as np
@@ -337,10 +338,11 @@ def decode_passes(
         A pass whose frames cannot be decoded on their own (names the pass).
     """
     passes, plans = _pass_plans(sequence, exposures)
+    one_pass = replace(params, partial_cover=False)  # judged on the fused maps (drop_partial_cover)
     decoded = []
     for (_lv, idx), plan in zip(passes, plans, strict=True):
         sub_frames = cast("npt.NDArray[np.uint8] | npt.NDArray[np.uint16]", np.ascontiguousarray(frames[idx]))
-        m = decode(sub_frames, plan, params)
+        m = decode(sub_frames, plan, one_pass)
         decoded.append(_owned(m))
     fused, choice = fuse_exposures(decoded, params.clean_neighbours)
     return fused, choice, passes
@@ -419,7 +421,8 @@ class HdrStreamingDecoder:
         self.passes, plans = _pass_plans(sequence, exposures)
         self.shape = (int(shape[0]), int(shape[1]))
         self._plans = plans
-        self._dtype, self._params, self._borrow = dtype, prm, borrow_frames
+        # partial cover is judged on the fused maps (drop_partial_cover)
+        self._dtype, self._params, self._borrow = dtype, replace(prm, partial_cover=False), borrow_frames
         # passes of the same patterns share decoders: per distinct plan its free decoders
         self._plan_key = [tuple(p.sequence.frames) for p in plans]
         self._free: dict[tuple[object, ...], list[StreamingDecoder]] = {k: [] for k in self._plan_key}
