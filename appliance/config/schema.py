@@ -39,7 +39,7 @@ class SequenceConfig(_Strict):
     )
     axes: Literal["x", "y", "xy"] = Field("x", description="Coded projector axes; 'xy' allows ray-ray triangulation.")
     periods_px: tuple[int, ...] = Field(
-        (16,),
+        (16, 8),
         min_length=1,
         max_length=4,
         description="Fringe periods (projector px, 4..8192), coarsest first; Gray stripe = half the coarsest.",

@@ -1,7 +1,7 @@
 """The virtual rig's hard scenes (issue 25), small renders with exact truth, and their error statistics.
 
-Each scene is a YAML config text (camera 480x384, the default projector and sequence); a test renders it
-(one pass per exposure) into a manifest and reconstructs it with ``scan3d decode``, the service's
+Each scene is a YAML config text (camera 480x384, the default projector and sequence: periods [16, 8]); a
+test renders it (one pass per exposure) into a manifest and reconstructs it with ``scan3d decode``, the service's
 reconstruction, then compares each point with the truth of its pixel.
 """
 
@@ -35,7 +35,7 @@ _BASE = """
 sequence:
   kind: gray_phase
   axes: %(axes)s
-  periods_px: [16]
+  periods_px: %(periods)s
 virtual_rig:
   cameras:
     %(camera)s
@@ -78,18 +78,19 @@ SCENES: dict[str, str] = {
 
 
 def scene_text(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0, gain_dn: float = WHITE_DN,
-               bounce: int = 0, axes: str = "x") -> str:
+               bounce: int = 0, axes: str = "x", periods: str = "[16, 8]") -> str:
     """The config text of one hard scene at an exposure (µs; the reference is 10 000), ambient light, white
-    level (DN at albedo 1), diffuse interreflection samples (0: off) and coded axes ('x', or 'xy': both,
-    ray-ray triangulation with its per-pixel epipolar check)."""
+    level (DN at albedo 1), diffuse interreflection samples (0: off), coded axes ('x', or 'xy': both,
+    ray-ray triangulation with its per-pixel epipolar check) and fringe periods (the default sequence's; "[16]":
+    period 16 alone, the default before periods [16, 8])."""
     return _BASE % {"camera": CAMERA, "scene": SCENES[scene], "ambient": ambient_dn, "exposure": exposure_us,
-                    "gain": gain_dn, "bounce": bounce, "axes": axes}
+                    "gain": gain_dn, "bounce": bounce, "axes": axes, "periods": periods}
 
 
 def scene_config(scene: str, exposure_us: float = 10_000.0, ambient_dn: float = 10.0,
-                 gain_dn: float = WHITE_DN, bounce: int = 0, axes: str = "x") -> AppConfig:
+                 gain_dn: float = WHITE_DN, bounce: int = 0, axes: str = "x", periods: str = "[16, 8]") -> AppConfig:
     """The parsed config of :func:`scene_text`."""
-    return parse_config(scene_text(scene, exposure_us, ambient_dn, gain_dn, bounce, axes), f"{scene}.yaml")
+    return parse_config(scene_text(scene, exposure_us, ambient_dn, gain_dn, bounce, axes, periods), f"{scene}.yaml")
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,7 @@ def test_scan3d_scan_streams_xor_codes_on_the_virtual_rig(tmp_path: Path) -> Non
     assert rc == 0, out.getvalue()
     (sidecar,) = (tmp_path / "o").glob("*/*.json")
     meta = json.loads(sidecar.read_text())
-    assert "xor bit 0" in meta["sequence"]["description"] and meta["sequence"]["frames"] == 22
+    assert "xor bit 0" in meta["sequence"]["description"] and meta["sequence"]["frames"] == 26
     truth = meta["extra"]["ground_truth"]
     assert truth["rms_mm"] <= 0.15 and truth["share_over_1mm"] <= 1e-4, truth
     assert truth["completeness"] >= 0.89, truth  # measured 91.2 %

@@ -49,7 +49,8 @@ def test_xor_base_must_leave_a_coarser_bit() -> None:
 def test_configuration_selects_xor_codes() -> None:
     text = "sequence: {kind: gray_phase, axes: xy, periods_px: [16], code: xor, xor_base_bit: 1}\n"
     seq = build_sequence(parse_config(text, "a.yaml").sequence, 1280, 800)
-    plain = build_sequence(parse_config("sequence: {kind: gray_phase}\n", "b.yaml").sequence, 1280, 800)
+    plain_cfg = parse_config("sequence: {kind: gray_phase, periods_px: [16]}\n", "b.yaml")
+    plain = build_sequence(plain_cfg.sequence, 1280, 800)
     grays = [f for f in seq.frames if isinstance(f, GrayFrame)]
     assert {f.xor_with for f in grays if f.bit > 1} == {1}
     assert all(f.xor_with is None for f in grays if f.bit <= 1)
