@@ -37,6 +37,7 @@ REASON_STYLE: dict[int, tuple[str, tuple[int, int, int]]] = {
     Reason.MIXED: ("next to clipped", (200, 200, 200)),
     Reason.INTERREFLECTION: ("two patterns", (0, 200, 0)),
     Reason.HIDDEN: ("hidden from projector", (255, 0, 0)),
+    Reason.EDGE: ("shadow/silhouette edge", (30, 105, 160)),
 }
 """Per reason a pixel has no point: its legend label and stripe colour (BGR). Shadow is the plain no-point grey
 (nothing to fix); a reason missing here is drawn in :data:`OTHER_REASON_BGR`."""

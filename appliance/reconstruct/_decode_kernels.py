@@ -1236,7 +1236,7 @@ def decode_reasons(hi, lo, thr, dark, clip, mask, reason, fringe, r_ok, r_shadow
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def drop_partial(  # type: ignore[no-untyped-def]
-    hi, lo, choice, top, fused, ratio, u, v, has_v, mask, quality, lev, fringe, reason, r_ok, r_shadow, r_dark, r_weak
+    hi, lo, choice, top, fused, ratio, u, v, has_v, mask, quality, lev, fringe, reason, r_ok, r_shadow, r_dark, r_edge
 ):  # fmt: skip
     """Undecode the pixels lit over a small part of their footprint (see :data:`COVER_RATIO`): a decoded pixel
     (``reason == r_ok``) whose ``hi - lo`` is below ``ratio`` times the largest of its decoded 8-neighbours',
@@ -1244,7 +1244,7 @@ def drop_partial(  # type: ignore[no-untyped-def]
     pixel is judged by the decode it had. ``fused``: the maps of several exposure passes, the level ``hi`` alone
     (``lo`` unread), and a neighbour counts as unlit only where its result came from the brightest pass
     (``choice == top``): one from a darker pass (the brighter clipped it) says nothing of its light. Returns
-    the number undecoded (reason ``r_weak``)."""
+    the number undecoded (reason ``r_edge``)."""
     h, w = mask.shape
     mark = np.uint8(255)
     per_row = np.zeros(h, np.int64)
@@ -1270,7 +1270,7 @@ def drop_partial(  # type: ignore[no-untyped-def]
             continue
         for x in range(w):
             if reason[y, x] == mark:
-                reason[y, x] = r_weak
+                reason[y, x] = r_edge
                 fringe[y, x] = np.uint8(0)
                 _undecode(u, v, has_v, mask, quality, lev, y, x)
     return per_row.sum()

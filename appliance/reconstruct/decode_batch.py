@@ -145,14 +145,14 @@ def _saturation_and_reasons(
     if params.partial_cover:
         _k.drop_partial(hi, lo, out.reason, 0, False, _k.COVER_RATIO, out.u, v_arg, v_arg.shape[0] > 0, out.mask,
                         out.quality, out.levels, out.fringe, out.reason, int(Reason.DECODED), int(Reason.SHADOW),
-                        int(Reason.TOO_DARK), int(Reason.WEAK_CODE))  # fmt: skip
+                        int(Reason.TOO_DARK), int(Reason.EDGE))  # fmt: skip
 
 
 def drop_partial_cover(
     maps: DecodedMaps, level: npt.NDArray[np.float32], choice: npt.NDArray[np.uint8], passes: int
 ) -> int:
     """The fused maps of several exposure passes: undecode the pixels lit over a small part of their footprint
-    beside an unlit one (``_decode_kernels.COVER_RATIO``; reason ``WEAK_CODE``), judged on the fused reasons
+    beside an unlit one (``_decode_kernels.COVER_RATIO``; reason ``EDGE``), judged on the fused reasons
     and the white level in one scale (each pass's decode leaves this to the fusion: a pixel too dark in one pass
     may decode in a brighter one).
 
@@ -180,7 +180,7 @@ def drop_partial_cover(
     # v is NaN where its axis is not coded: clearing it there changes nothing
     return int(_k.drop_partial(level, level, choice, passes - 1, True, _k.COVER_RATIO, maps.u, maps.v, True, maps.mask,
                                maps.quality, maps.levels, fringe, maps.reason, int(Reason.DECODED),
-                               int(Reason.SHADOW), int(Reason.TOO_DARK), int(Reason.WEAK_CODE)))  # fmt: skip
+                               int(Reason.SHADOW), int(Reason.TOO_DARK), int(Reason.EDGE)))  # fmt: skip
 
 
 def reason_counts(maps: DecodedMaps) -> dict[str, int]:

@@ -77,7 +77,7 @@ class DecodeParams:
         edges from the fused white level (``reconstruction.edge_blur_px`` > 0): the neighbour's level is then
         known from a darker pass, and the pixel takes the brightest pass that did not clip it.
     partial_cover : bool
-        Undecode (reason ``WEAK_CODE``) a pixel lit over a small part of its footprint beside an unlit one (an
+        Undecode (reason ``EDGE``) a pixel lit over a small part of its footprint beside an unlit one (an
         occlusion or shadow edge: ``_decode_kernels.COVER_RATIO``). The decode of one exposure pass of several
         leaves it to the fused maps (:func:`appliance.reconstruct.decode_batch.drop_partial_cover`), whose
         neighbours may come from other passes.

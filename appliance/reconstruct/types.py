@@ -12,9 +12,10 @@ import numpy.typing as npt
 class Reason(IntEnum):
     """Why a camera pixel has no point (``DecodedMaps.reason``); 0 where it has one.
 
-    The decoder sets ``SHADOW`` .. ``WEAK_CODE`` (0 there: decoded); the reconstruction then sets its own on
-    the decoded pixels that gave no point (``NOT_MATCHED``, ``OUT_OF_RANGE``, ``FILTERED``, ``EPIPOLAR``,
-    ``HIDDEN``), so that after it 0 means "has a point" and every other pixel has exactly one reason.
+    The decoder sets ``SHADOW`` .. ``WEAK_CODE``, ``MIXED``, ``INTERREFLECTION`` and ``EDGE`` (0 there: decoded);
+    the reconstruction then sets its own on the decoded pixels that gave no point (``NOT_MATCHED``,
+    ``OUT_OF_RANGE``, ``FILTERED``, ``EPIPOLAR``, ``HIDDEN``), so that after it 0 means "has a point" and every
+    other pixel has exactly one reason.
     """
 
     DECODED = 0
@@ -48,6 +49,10 @@ class Reason(IntEnum):
     #: lit surface in a mirror-like face, or a mirror lights a face the projector's shadow hides); its code belongs
     #: to another surface (a ghost)
     HIDDEN = 11
+    #: lit over a small part of its footprint, beside a pixel with no projector light: its centre most likely sees
+    #: the unlit surface (a self-shadowed silhouette, a shadow's edge), and its light, so its code, comes from the
+    #: lit surface beside it, at another depth where that is an occluding edge (``_decode_kernels.COVER_RATIO``)
+    EDGE = 12
 
 
 #: Plain-words name of each reason (sidecar keys, reports).
@@ -64,6 +69,7 @@ REASON_NAMES: dict[int, str] = {
     Reason.MIXED: "next to a clipped pixel",
     Reason.INTERREFLECTION: "two copies of the pattern",
     Reason.HIDDEN: "hidden from the projector",
+    Reason.EDGE: "edge of a shadow or silhouette",
 }
 
 

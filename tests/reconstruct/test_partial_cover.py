@@ -1,4 +1,5 @@
-"""A pixel lit over a small part of its footprint beside an unlit one has no point (reason "weak code").
+"""A pixel lit over a small part of its footprint beside an unlit one has no point (reason "edge of a shadow or
+silhouette").
 
 At an occluding edge whose near side the projector does not light, the pixel on the edge takes its light from
 the part of its footprint that sees the lit surface behind: its code is that surface's, and its point lies on
@@ -53,7 +54,7 @@ def test_a_dim_pixel_beside_an_unlit_one_loses_its_code() -> None:
     maps, choice = _fused(Reason.TOO_DARK, 1)
     assert maps.reason is not None and maps.fringe is not None
     assert drop_partial_cover(maps, _level(20.0), choice, 2) == 5
-    assert (maps.reason[:, 3] == Reason.WEAK_CODE).all() and not maps.mask[:, 3].any()
+    assert (maps.reason[:, 3] == Reason.EDGE).all() and not maps.mask[:, 3].any()
     assert np.isnan(maps.u[:, 3]).all() and (maps.quality[:, 3] == 0).all() and (maps.fringe[:, 3] == 0).all()
     # judged on the decode it had: the pixels beside the dropped column keep their codes
     assert maps.mask[:, :3].all() and (maps.reason[:, :3] == Reason.DECODED).all()
@@ -94,4 +95,4 @@ def test_the_two_camera_rig_puts_no_point_off_an_occluding_edge() -> None:
         has[cl.row[m], cl.col[m]] = True
         assert has[gt.lit].mean() > 0.97, (name, has[gt.lit].mean())
         reason = res.maps[name].reason
-        assert reason is not None and int((reason == Reason.WEAK_CODE).sum()) > 0
+        assert reason is not None and int((reason == Reason.EDGE).sum()) > 0
