@@ -1234,6 +1234,22 @@ def decode_reasons(hi, lo, thr, dark, clip, mask, reason, fringe, r_ok, r_shadow
                     reason[y, x] = r_weak
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _unlit_column(reason, choice, top, fused, y0, y1, x, r_shadow, r_dark):  # type: ignore[no-untyped-def]
+    """Whether column ``x`` of rows ``y0 .. y1 - 1`` holds a pixel of reason ``r_shadow`` or ``r_dark`` (with
+    ``fused``: whose verdict came from pass ``top``, the brightest)."""
+    found = False
+    for yy in range(y0, y1):
+        q = reason[yy, x]
+        found |= (q == r_shadow) | (q == r_dark)
+    if found and fused:  # rare: only beside an unlit pixel, and only in the maps of several passes
+        found = False
+        for yy in range(y0, y1):
+            q = reason[yy, x]
+            found |= ((q == r_shadow) | (q == r_dark)) & (choice[yy, x] == top)
+    return found
+
+
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def drop_partial(  # type: ignore[no-untyped-def]
     hi, lo, choice, top, fused, ratio, u, v, has_v, mask, quality, lev, fringe, reason, r_ok, r_shadow, r_dark, r_edge
@@ -1250,21 +1266,23 @@ def drop_partial(  # type: ignore[no-untyped-def]
     per_row = np.zeros(h, np.int64)
     for y in prange(h):
         y0, y1 = max(y - 1, 0), min(y + 2, h)
+        # whether columns x - 1, x, x + 1 of rows y0..y1 hold an unlit pixel, rolled along the row: three reads a
+        # pixel, and the level comparison only beside an unlit one (most decoded pixels have none)
+        prev = False
+        cur = _unlit_column(reason, choice, top, fused, y0, y1, 0, r_shadow, r_dark)
         for x in range(w):
-            if reason[y, x] != r_ok:
-                continue
-            dark = False
-            best = 0.0
-            for yy in range(y0, y1):
-                for xx in range(max(x - 1, 0), min(x + 2, w)):
-                    q = reason[yy, xx]
-                    if (q == r_shadow or q == r_dark) and (not fused or choice[yy, xx] == top):
-                        dark = True
-                    elif q == r_ok or q == mark:
-                        best = max(best, float(hi[yy, xx]) - (0.0 if fused else float(lo[yy, xx])))
-            if dark and float(hi[y, x]) - (0.0 if fused else float(lo[y, x])) < ratio * best:
-                reason[y, x] = mark
-                per_row[y] += 1
+            nxt = _unlit_column(reason, choice, top, fused, y0, y1, min(x + 1, w - 1), r_shadow, r_dark) & (x + 1 < w)
+            if (prev | cur | nxt) & (reason[y, x] == r_ok):
+                best = 0.0
+                for yy in range(y0, y1):
+                    for xx in range(max(x - 1, 0), min(x + 2, w)):
+                        q = reason[yy, xx]
+                        if q == r_ok or q == mark:
+                            best = max(best, float(hi[yy, xx]) - (0.0 if fused else float(lo[yy, xx])))
+                if float(hi[y, x]) - (0.0 if fused else float(lo[y, x])) < ratio * best:
+                    reason[y, x] = mark
+                    per_row[y] += 1
+            prev, cur = cur, nxt
     for y in prange(h):
         if per_row[y] == 0:
             continue

@@ -1,7 +1,7 @@
 """Resident memory of ``scan3d run`` on the virtual rig: the reference configuration (one 1280x1024 camera)
 and a two-camera rig, each through 10 scans triggered one after the other.
 
-The budget of the service (400 / 600 MB) is held against its peak resident memory (``VmHWM``), file-backed
+The budget of the service (410 / 620 MB) is held against its peak resident memory (``VmHWM``), file-backed
 code pages included. How many clean code pages of llvmlite's LLVM (a 170 MB library) the kernel maps into
 the process depends on the page cache, not on the process: 95 MB in a checkout whose libraries have sat in
 the cache for a while, 140 MB right after ``pip`` wrote them (a fresh clone, as in CI), for the same
@@ -111,7 +111,9 @@ def _run(config: Path, scans: int) -> dict[str, float]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("cameras", "budget_mb"), [(1, 400.0), (2, 600.0)])
+# 400 / 600 MB until the default sequence took a second phase period ([16, 8]): its sums add 10.5 MB a
+# 1280x1024 camera (int32 sine and cosine sums per set), measured on a fresh clone 382 -> 395 and 574 -> 596 MB
+@pytest.mark.parametrize(("cameras", "budget_mb"), [(1, 410.0), (2, 620.0)])
 def test_scan3d_run_peak_memory_within_budget(
     tmp_path: Path, cameras: int, budget_mb: float, capsys: pytest.CaptureFixture[str]
 ) -> None:
