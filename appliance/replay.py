@@ -37,7 +37,6 @@ from appliance.reconstruct.decode import (
     reason_block,
     stripe_widths,
 )
-from appliance.reconstruct.decode_batch import drop_partial_cover
 from appliance.reconstruct.geometry_defaults import depth_range_from_geometry
 from appliance.reconstruct.hdr import capture_record, capture_summary, decode_passes, fused_white
 from appliance.reconstruct.types import DecodedMaps, PointCloud
@@ -466,9 +465,7 @@ def replay_capture(batch: ReplayBatch, manifest_path: Path, *, cloud_wanted: boo
         for _light, idx in passes:
             sub = Sequence(man.sequence.width, man.sequence.height, tuple(man.sequence.frames[i] for i in idx))
             greys.append(grey_of_stack(st[idx], batch.plan(sub), bits[cam]))
-        grey[cam], level = fused_white(greys, passes, choice)  # as the service's scan
-        maps[cam].radiance = level
-        drop_partial_cover(maps[cam], level, choice, len(passes))
+        grey[cam] = fused_white(maps[cam], greys, passes, choice)  # as the service's scan
         per_pass = np.bincount(choice[maps[cam].mask], minlength=len(passes)) / max(int(maps[cam].mask.sum()), 1)
         shares[cam] = [float(s) for s in per_pass]
         hdr[cam] = capture_summary(man.exposures, passes, choice, maps[cam].mask)

@@ -44,7 +44,6 @@ from appliance.patterns.from_config import build_capture
 from appliance.patterns.from_config import build_sequence as build_sequence  # re-exported for callers
 from appliance.patterns.sequence import WhiteFrame
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder
-from appliance.reconstruct.decode_batch import drop_partial_cover
 from appliance.reconstruct.hdr import HdrStreamingDecoder, capture_record, capture_summary, fused_white
 from appliance.reconstruct.pipeline import Reconstruction, Reconstructor, white_to_uint8
 from appliance.reconstruct.types import DecodedMaps
@@ -448,9 +447,7 @@ class Scanner:
         assert dec.choice is not None
         greys = [self._white_u8(None if self._white_index is None else buf[idx[self._white_index]], name)
                  for _light, idx in dec.passes]  # fmt: skip
-        white, level = fused_white(greys, dec.passes, dec.choice)
-        maps.radiance = level
-        drop_partial_cover(maps, level, dec.choice, len(dec.passes))
+        white = fused_white(maps, greys, dec.passes, dec.choice)
         assert self.exposures is not None
         return maps, white, capture_summary(self.exposures, dec.passes, dec.choice, maps.mask)
 

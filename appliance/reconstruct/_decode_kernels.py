@@ -1235,6 +1235,12 @@ def decode_reasons(hi, lo, thr, dark, clip, mask, reason, fringe, r_ok, r_shadow
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _lit_range(hi, lo, fused, y, x):  # type: ignore[no-untyped-def]
+    """A pixel's lit range: ``hi - lo``, or with ``fused`` the level ``hi`` alone."""
+    return float(hi[y, x]) - (0.0 if fused else float(lo[y, x]))
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _unlit_column(reason, choice, top, fused, y0, y1, x, r_shadow, r_dark):  # type: ignore[no-untyped-def]
     """Whether column ``x`` of rows ``y0 .. y1 - 1`` holds a pixel of reason ``r_shadow`` or ``r_dark`` (with
     ``fused``: whose verdict came from pass ``top``, the brightest)."""
@@ -1278,8 +1284,8 @@ def drop_partial(  # type: ignore[no-untyped-def]
                     for xx in range(max(x - 1, 0), min(x + 2, w)):
                         q = reason[yy, xx]
                         if q == r_ok or q == mark:
-                            best = max(best, float(hi[yy, xx]) - (0.0 if fused else float(lo[yy, xx])))
-                if float(hi[y, x]) - (0.0 if fused else float(lo[y, x])) < ratio * best:
+                            best = max(best, _lit_range(hi, lo, fused, yy, xx))
+                if _lit_range(hi, lo, fused, y, x) < ratio * best:
                     reason[y, x] = mark
                     per_row[y] += 1
             prev, cur = cur, nxt

@@ -157,12 +157,9 @@ def edge_shift(  # type: ignore[no-untyped-def]
             if not ok:
                 continue
             cols[k] = c
-            lv = np.float64(rad[r, c])
-            pu, pv, _e = _correct_pixel(u, v, mask, r, c, np.float64(gx), np.float64(gy), lv, s2, max_shift, kappa,
-                                        has_u, has_v)  # fmt: skip
-            # the variance from the central slope: where the limit cut it, the pull lies between the two
-            _u, _v, e = _correct_pixel(u, v, mask, r, c, np.float64(cx), np.float64(cy), lv, s2, max_shift, kappa,
-                                       has_u, has_v)  # fmt: skip
+            pu, pv, e = _correct_pixel(u, v, mask, r, c, np.float64(gx), np.float64(gy), np.float64(cx),
+                                       np.float64(cy), np.float64(rad[r, c]), s2, max_shift, kappa, has_u,
+                                       has_v)  # fmt: skip
             du[k] = np.float32(pu)
             dv[k] = np.float32(pv)
             evar[k] = np.float32(e)
@@ -191,16 +188,11 @@ def put_codes(code, offsets, cols, values):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _correct_pixel(u, v, mask, r, c, gx, gy, level, s2, max_shift, kappa, has_u, has_v):  # type: ignore[no-untyped-def]
-    """The code shifts (u, v; projector px) and variance (px^2) of one pixel with level slope (``gx``, ``gy``)
-    (see :func:`edge_shift`); (0, 0, 0) where a slope it needs is unknown."""
+def _correct_pixel(u, v, mask, r, c, gx, gy, cx, cy, level, s2, max_shift, kappa, has_u, has_v):  # type: ignore[no-untyped-def]
+    """The code shifts (u, v; projector px) of one pixel with level slope (``gx``, ``gy``) and their variance
+    (px^2) from the central slope (``cx``, ``cy``: where the limit cut the slope, the pull lies between the
+    two); see :func:`edge_shift`. The code's slopes are read once for both."""
     h, w = u.shape
-    dx = s2 * gx / level
-    dy = s2 * gy / level
-    n = math.sqrt(dx * dx + dy * dy)
-    if n > max_shift:
-        dx *= max_shift / n
-        dy *= max_shift / n
     # neighbours off the image count as undecoded (their index clamped to the pixel's own)
     cl, cr, ru, rd = max(c - 1, 0), min(c + 1, w - 1), max(r - 1, 0), min(r + 1, h - 1)
     c2l, c2r, r2u, r2d = max(c - 2, 0), min(c + 2, w - 1), max(r - 2, 0), min(r + 2, h - 1)
@@ -208,16 +200,36 @@ def _correct_pixel(u, v, mask, r, c, gx, gy, level, s2, max_shift, kappa, has_u,
         c + 2 < w and mask[r, c2r])
     mu2, mu, md, md2 = r >= 2 and mask[r2u, c], r >= 1 and mask[ru, c], r + 1 < h and mask[rd, c], (
         r + 2 < h and mask[r2d, c])
+    sux = suy = svx = svy = 0.0
+    if has_u:
+        sux = _slope_at(u[r, c2l], u[r, cl], u[r, c], u[r, cr], u[r, c2r], ml2, ml, mr, mr2)
+        suy = _slope_at(u[r2u, c], u[ru, c], u[r, c], u[rd, c], u[r2d, c], mu2, mu, md, md2)
+    if has_v:
+        svx = _slope_at(v[r, c2l], v[r, cl], v[r, c], v[r, cr], v[r, c2r], ml2, ml, mr, mr2)
+        svy = _slope_at(v[r2u, c], v[ru, c], v[r, c], v[rd, c], v[r2d, c], mu2, mu, md, md2)
+    pu, pv, _e = _pulls(gx, gy, level, s2, max_shift, kappa, sux, suy, svx, svy, has_u, has_v)
+    _u, _v, e = _pulls(cx, cy, level, s2, max_shift, kappa, sux, suy, svx, svy, has_u, has_v)
+    return pu, pv, e
+
+
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _pulls(gx, gy, level, s2, max_shift, kappa, sux, suy, svx, svy, has_u, has_v):  # type: ignore[no-untyped-def]
+    """The code shifts and their variance for level slope (``gx``, ``gy``) and code slopes ``s..`` (u, v along
+    x, y); (0, 0, 0) where a slope the shift needs is unknown."""
+    dx = s2 * gx / level
+    dy = s2 * gy / level
+    n = math.sqrt(dx * dx + dy * dy)
+    if n > max_shift:
+        dx *= max_shift / n
+        dy *= max_shift / n
     pu = 0.0
     pv = 0.0
     if has_u:
-        pu = _pull(dx, _slope_at(u[r, c2l], u[r, cl], u[r, c], u[r, cr], u[r, c2r], ml2, ml, mr, mr2))
-        pu += _pull(dy, _slope_at(u[r2u, c], u[ru, c], u[r, c], u[rd, c], u[r2d, c], mu2, mu, md, md2))
+        pu = _pull(dx, sux) + _pull(dy, suy)
         if not pu == pu:  # no slope where the shift matters: the formula cannot be applied
             return 0.0, 0.0, 0.0
     if has_v:
-        pv = _pull(dx, _slope_at(v[r, c2l], v[r, cl], v[r, c], v[r, cr], v[r, c2r], ml2, ml, mr, mr2))
-        pv += _pull(dy, _slope_at(v[r2u, c], v[ru, c], v[r, c], v[rd, c], v[r2d, c], mu2, mu, md, md2))
+        pv = _pull(dx, svx) + _pull(dy, svy)
         if not pv == pv:
             return 0.0, 0.0, 0.0
     k = kappa + min(n, max_shift)  # first order fails as more of the light comes from aside

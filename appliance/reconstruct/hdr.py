@@ -35,6 +35,7 @@ from appliance.errors import DecodeError, PatternError
 from appliance.patterns.sequence import Sequence as PatternSequence
 from appliance.reconstruct import _hdr_kernels as _k
 from appliance.reconstruct.decode import DecodeParams, StreamingDecoder, decode, plan_decode
+from appliance.reconstruct.decode_batch import drop_partial_cover
 from appliance.reconstruct.decode_plan import DecodePlan
 from appliance.reconstruct.decode_stream import needed_frames
 from appliance.reconstruct.types import DecodedMaps, Reason
@@ -217,12 +218,19 @@ def radiance(
 
 
 def fused_white(
-    greys: Sequence[npt.NDArray[np.uint8]], passes: Sequence[tuple[float, list[int]]], choice: npt.NDArray[np.uint8]
-) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
-    """A fused capture's grey image and white level, as the scan and the replay both take them.
+    maps: DecodedMaps,
+    greys: Sequence[npt.NDArray[np.uint8]],
+    passes: Sequence[tuple[float, list[int]]],
+    choice: npt.NDArray[np.uint8],
+) -> npt.NDArray[np.uint8]:
+    """A fused capture's grey image; its white level in one scale goes into ``maps.radiance``, and by it the
+    edge pixels leave ``maps`` (:func:`appliance.reconstruct.decode_batch.drop_partial_cover`): as the scan and
+    the replay both take them.
 
     Parameters
     ----------
+    maps : DecodedMaps
+        The fused decode (:func:`fuse_exposures`); ``radiance`` set and edge pixels undecoded in place.
     greys : sequence of ndarray, shape (H, W), uint8
         Each pass's grey image under white light, in the order of ``passes`` (darkest first).
     passes : sequence of (float, list of int)
@@ -232,13 +240,13 @@ def fused_white(
 
     Returns
     -------
-    white : ndarray, shape (H, W), uint8
+    ndarray, shape (H, W), uint8
         Per pixel the chosen pass's grey (intensity and noise model of its point).
-    level : ndarray, shape (H, W), float32
-        :func:`radiance`: the white level in one scale (``DecodedMaps.radiance``, the albedo-edge correction's).
     """
-    return (np.asarray(pick_per_pixel(greys, choice), np.uint8),
-            radiance(greys, [light for light, _idx in passes]))  # fmt: skip
+    level = radiance(greys, [light for light, _idx in passes])  # the albedo-edge correction's level too
+    maps.radiance = level
+    drop_partial_cover(maps, level, choice, len(passes))
+    return np.asarray(pick_per_pixel(greys, choice), np.uint8)
 
 
 def capture_summary(
