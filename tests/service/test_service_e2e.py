@@ -1,5 +1,5 @@
 """The service end to end on a small virtual rig (320x256 camera): the serial controller's firmware on a pty,
-mDNS seen from another process, sd_notify, live reload, the share going away, SIGTERM mid-scan, 200 scans.
+mDNS seen from another process, sd_notify, live reload, the share going away, SIGTERM mid-scan, 100 scans.
 
 In-process runs use :class:`appliance.service.daemon.Service`; subprocess runs use
 ``python -m appliance run --config TMP.yaml --control-socket TMP/sock`` (what ``scan3d run`` does).
@@ -252,7 +252,7 @@ def test_share_away_spools_and_delivers_everything_in_order(
     assert svc.writer.spool_entries() == []
 
 
-# --- 200 scans: memory, threads, file descriptors ----------------------------------------------------------
+# --- 100 scans: memory, threads, file descriptors ----------------------------------------------------------
 
 
 def _rss_kb() -> int:
@@ -263,7 +263,7 @@ def _rss_kb() -> int:
 
 
 @pytest.mark.slow
-def test_200_scans_memory_threads_and_fds_stay_flat(
+def test_100_scans_memory_threads_and_fds_stay_flat(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     config = write_config(
@@ -278,12 +278,12 @@ def test_200_scans_memory_threads_and_fds_stay_flat(
     samples: dict[int, tuple[int, int, int]] = {}
 
     async def body(svc: D.Service) -> None:
-        for i in range(1, 201):
+        for i in range(1, 101):
             outcome, job = svc.request_scan(D.TriggerEvent("bench", time.monotonic_ns()))
             assert job is not None, outcome
             rec = await job.done
             assert rec.ok, rec.error
-            if i in (20, 200):  # measured in a thread: a full collection is not for the event loop
+            if i in (20, 100):  # measured in a thread: a full collection is not for the event loop
 
                 def sample() -> tuple[int, int, int]:
                     gc.collect()
@@ -300,17 +300,19 @@ def test_200_scans_memory_threads_and_fds_stay_flat(
 
     threads_before = threading.active_count()
     rc, svc = run_in_process(config, body)
-    assert rc == 0 and svc.board.counters["scans_done"] == 200
-    (rss20, thr20, fd20), (rss200, thr200, fd200) = samples[20], samples[200]
-    growth_mb = (rss200 - rss20) / 1024
+    assert rc == 0 and svc.board.counters["scans_done"] == 100
+    (rss20, thr20, fd20), (rss100, thr100, fd100) = samples[20], samples[100]
+    growth_mb = (rss100 - rss20) / 1024
     with capsys.disabled():
         print(
-            f"\n200 scans: RSS {rss20 / 1024:.1f} MB after 20, {rss200 / 1024:.1f} MB after 200 "
-            f"(growth {growth_mb:+.1f} MB); threads {thr20} -> {thr200}; fds {fd20} -> {fd200}"
+            f"\n100 scans: RSS {rss20 / 1024:.1f} MB after 20, {rss100 / 1024:.1f} MB after 100 "
+            f"(growth {growth_mb:+.1f} MB); threads {thr20} -> {thr100}; fds {fd20} -> {fd100}"
         )
-    assert growth_mb < 16, f"resident memory grew {growth_mb:.1f} MB over 180 scans"
-    assert thr200 == thr20 and fd200 == fd20  # (the sampling thread counts in both)
-    assert len(list((tmp_path / "share").glob("*/*.json"))) == 200  # a run across midnight fills two days
+    # 80 scans (the long soak is scripts/soak): a leak of 0.1 MB a scan shows as 8 MB; measured -0.6 to +0.0 MB
+    # over 180 scans when this test ran 200
+    assert growth_mb < 8, f"resident memory grew {growth_mb:.1f} MB over 80 scans"
+    assert thr100 == thr20 and fd100 == fd20  # (the sampling thread counts in both)
+    assert len(list((tmp_path / "share").glob("*/*.json"))) == 100  # a run across midnight fills two days
     time.sleep(0.2)
     assert threading.active_count() <= threads_before + 1, [t.name for t in threading.enumerate()]
 
