@@ -343,7 +343,11 @@ def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
         stderr=subprocess.STDOUT,
         text=True,
     )
-    assert proc.stdin is not None
+    assert proc.stdin is not None and proc.stdout is not None
+    # the log is read as it comes: a pipe nobody reads blocks the service once it holds 64 kB
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
+    reader.start()
     try:
         wait_for(
             lambda: (
@@ -359,17 +363,17 @@ def test_stdin_button_scans_then_exits_after_n(tmp_path: Path) -> None:
             proc.stdin.flush()
             wait_for(
                 lambda n=n: len(list((tmp_path / "share").rglob("*.json"))) == n or proc.poll() is not None,
-                60,
+                120,  # a loaded two-core machine (the suite beside it) takes several times the usual
                 f"scan {n}",
             )
-        assert proc.wait(60) == 0
+        assert proc.wait(120) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
+        reader.join(10)
     clouds = sorted((tmp_path / "share").rglob("*.ply"))
     assert len(clouds) == 2 and len(list((tmp_path / "share").rglob("*.json"))) == 2
-    assert proc.stdout is not None
-    log = proc.stdout.read()
+    log = "".join(lines)
     for cloud in clouds:  # each scan says where its cloud went and how far it is from the truth
         assert f"share: {cloud}" in log or f"share: {cloud.relative_to(REPO)}" in log, log[-2000:]
     errors = re.findall(r"error against ground truth: (\d+) points: RMS ([0-9.]+) mm", log)
