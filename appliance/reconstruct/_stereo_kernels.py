@@ -943,6 +943,82 @@ def seen_by_both(u, v, mask, grid, table, reach_u, reach_v, least, seen):  # typ
     return per.sum()
 
 
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
+def _row_entry(yr, a, origin, inv_step, hr, nl):  # type: ignore[no-untyped-def]
+    """The (row, level) entry of the tables of :func:`mark_rows` for code ``a`` on rectified row ``yr``
+    (rounded); (-1, -1) outside them."""
+    iy = math.floor(yr + 0.5)
+    il = math.floor((a - origin) * inv_step)
+    if 0 <= iy < hr and 0 <= il < nl:
+        return iy, il
+    return -1, -1
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def mark_rows(u1, mask1, rect1, knot1, origin, inv_step, table, near):  # type: ignore[no-untyped-def]
+    """One coded axis: ``table`` (rows, levels) uint8 = 1 where cam1 decodes a code on a rectified row (its
+    pixel's rectified row rounded; ``rect1`` / ``knot1`` a map of :func:`_map_row`), level
+    ``floor((u - origin) * inv_step)``, else 0; then ``near`` (same shape) = 1 within one row and one level of a
+    mark. (Two threads may store 1 in one entry: the same value, so no mark is lost.)"""
+    h, w = u1.shape[0], u1.shape[1]
+    hr, nl = table.shape[0], table.shape[1]
+    for r in prange(hr):
+        for j in range(nl):
+            table[r, j] = 0
+    nch = min(h, ROW_CHUNKS)
+    for ch in prange(nch):
+        row = np.empty((w, 2))
+        for r in range(ch * h // nch, (ch + 1) * h // nch):
+            _map_row(rect1, knot1, r, row)
+            for c in range(w):
+                a = np.float64(u1[r, c])
+                yr = row[c, 1]
+                if mask1[r, c] and a == a and yr == yr:
+                    iy, il = _row_entry(yr, a, origin, inv_step, hr, nl)
+                    if iy >= 0:
+                        table[iy, il] = 1
+    for r in prange(hr):  # near = the marks grown by one level, then by one row (table keeps the first step)
+        for j in range(nl):
+            near[r, j] = table[r, j] | (table[r, j - 1] if j > 0 else 0) | (table[r, j + 1] if j + 1 < nl else 0)
+    for r in prange(hr):
+        for j in range(nl):
+            table[r, j] = near[r, j]
+    for r in prange(hr):
+        for j in range(nl):
+            near[r, j] = table[r, j] | (table[r - 1, j] if r > 0 else 0) | (table[r + 1, j] if r + 1 < hr else 0)
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def seen_on_rows(u0, mask0, rect0, knot0, origin, inv_step, near, xyz, seen):  # type: ignore[no-untyped-def]
+    """One coded axis: ``seen`` = a decoded cam0 pixel whose code cam1 decodes on the same rectified row, within
+    one row and one level (``near`` of :func:`mark_rows`); returns (how many pixels, how many of them hold a
+    point in ``xyz``). A projector column meets an epipolar plane in one ray from the projector, whose first
+    surface point is what both cameras see there."""
+    h, w = u0.shape[0], u0.shape[1]
+    hr, nl = near.shape[0], near.shape[1]
+    per = np.zeros((h, 2), np.int64)
+    nch = min(h, ROW_CHUNKS)
+    for ch in prange(nch):
+        row = np.empty((w, 2))
+        for r in range(ch * h // nch, (ch + 1) * h // nch):
+            _map_row(rect0, knot0, r, row)
+            n = np.int64(0)
+            k = np.int64(0)
+            for col in range(w):
+                a = np.float64(u0[r, col])
+                yr = row[col, 1]
+                hit = False
+                if mask0[r, col] and a == a and yr == yr:
+                    iy, il = _row_entry(yr, a, origin, inv_step, hr, nl)
+                    hit = iy >= 0 and near[iy, il] != 0
+                seen[r, col] = hit
+                n += np.int64(hit)
+                k += np.int64(hit and xyz[r, col, 2] == xyz[r, col, 2])
+            per[r, 0] = n
+            per[r, 1] = k
+    return per[:, 0].sum(), per[:, 1].sum()
+
+
 @njit(nogil=True, cache=True, parallel=True)
 def count_points_in(xyz, seen):  # type: ignore[no-untyped-def]
     """How many pixels where ``seen`` holds a point (finite z)."""

@@ -116,8 +116,9 @@ def _pct(v: Any) -> str:
 
 
 def scan_findings_lines(rec: dict[str, Any]) -> list[str]:
-    """Why the pixels of a scan have no point (per camera the reasons' shares of the image, largest first), its
-    exposures and what each pass gave, and its plain-words warnings: lines for ``scan3d status``."""
+    """Why the pixels of a scan have no point (per camera the reasons' shares of the image, largest first), the
+    share of the pixels both cameras see that got a point (camera-camera), its exposures and what each pass
+    gave, and its plain-words warnings: lines for ``scan3d status``."""
     out: list[str] = []
     reasons = rec.get("reasons") or {}
     if isinstance(reasons, dict) and reasons:
@@ -129,6 +130,10 @@ def scan_findings_lines(rec: dict[str, Any]) -> list[str]:
                          key=lambda kv: -kv[1])
             head = f"  {cam:<8} {_pct(shares.get('decoded', 0.0))} with a point"  # a zero share is left out
             out.append((head + ("; " if top else "") + ", ".join(f"{k} {_pct(v)}" for k, v in top))[:200])
+    seen = rec.get("both_seen") or {}
+    if isinstance(seen, dict) and isinstance(seen.get("share"), (int, float)):
+        out.append(f"camera-camera: {_pct(seen['share'])} of the {int(seen.get('pixels', 0))} pixels both cameras "
+                   f"see got a point ({int(seen.get('reconstructed', 0))})")
     hdr = rec.get("hdr") or {}
     if isinstance(hdr, dict) and hdr.get("exposures_us"):
         ex = ", ".join(f"{float(e):g}" for e in hdr["exposures_us"])

@@ -26,6 +26,21 @@ def _scan(cfg: AppConfig) -> tuple[ScanResult, AccuracyReport, Any]:
     return result, compare_to_ground_truth(result.cloud, rig.virtual, list(cfg.cameras)), rig
 
 
+def _both_see_lit(virtual: Any) -> int:
+    """cam0's pixels on a lit surface point that cam1 sees too (projected into cam1: the same point, within
+    2 mm, is what cam1's nearest pixel sees, and it is lit)."""
+    t0, t1 = virtual.ground_truth("cam0"), virtual.ground_truth("cam1")
+    cam1 = virtual.cameras["cam1"]
+    px, _ = cam1.project(np.nan_to_num(t0.xyz.reshape(-1, 3)))
+    px = px.reshape(*t0.xyz.shape[:2], 2)
+    r = np.clip(np.round(px[..., 1]), 0, cam1.height - 1).astype(int)
+    c = np.clip(np.round(px[..., 0]), 0, cam1.width - 1).astype(int)
+    inside = (px[..., 0] > 0) & (px[..., 0] < cam1.width - 1) & (px[..., 1] > 0) & (px[..., 1] < cam1.height - 1)
+    with np.errstate(invalid="ignore"):
+        same = np.linalg.norm(t1.xyz[r, c] - t0.xyz, axis=2) < 2.0
+    return int((t0.lit & inside & same & t1.lit[r, c]).sum())
+
+
 def one_camera(cfg: AppConfig) -> AppConfig:
     """The configuration's one-camera rig, as its comments say: cam0 alone, camera-projector, x coded."""
     rig = cfg.virtual_rig.model_copy(update={"cameras": {"cam0": cfg.virtual_rig.cameras["cam0"]}})
@@ -47,8 +62,16 @@ def test_default_rig_two_cameras_fused() -> None:
     (one coded axis: the three-view check; the ray-ray and epipolar checks need both axes, twice the frames)."""
     cfg = load_config(REPO / "config" / "appliance.yaml")
     assert list(cfg.cameras) == ["cam0", "cam1"] and cfg.reconstruction.mode == "both"
-    result, rep, _ = _scan(cfg)
+    result, rep, rig = _scan(cfg)
     print(rep.line(), result.calibration_health.get("status"))
+    # what the scan tells a user: the share of the pixels both cameras see that got a camera-camera point (one
+    # coded axis: cam1 decodes the code on the same rectified row), against the pixels the truth says both see
+    # lit. Measured: 1179978 pixels said against 1179288 (1.001x); share 97.9 %
+    said = (result.stereo or {}).get("both_seen")
+    assert isinstance(said, dict), result.stereo
+    truth = _both_see_lit(rig.virtual)
+    print(f"both seen: said {said}, truth {truth} pixels")
+    assert 0.95 <= said["pixels"] / truth <= 1.02 and said["share"] >= 0.95, (said, truth)
     assert rep.rms_mm <= 0.104  # the one-camera rig's figure (README): the second camera must not make it worse
     assert rep.share_over_1mm < 1e-4 and rep.completeness >= 0.98
     assert set(np.unique(result.cloud.camera)) == {0, 1}

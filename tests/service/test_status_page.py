@@ -16,6 +16,8 @@ import aiohttp
 import pytest
 from faces_helpers import TOKEN, Chromium, appliance_copy, free_port, running_service, token_file
 
+from appliance.service.client import format_status
+
 SHOT = os.environ.get("SCAN3D_STATUS_PAGE_SCREENSHOT")  # set to write the README's screenshot
 
 
@@ -212,6 +214,9 @@ def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None
                 row = await browser.evaluate(f"[...{el}('scans').rows[0].cells].map(c => c.textContent)")
                 assert row[0] == scan["scan_id"] and row[7] == f"{100 * seen['share']:.1f} %", row
                 assert svc.board.last_scans[-1].both_seen == seen
+                # scan3d status says it too
+                screen = format_status(svc.board.snapshot())
+                assert f"camera-camera: {100 * seen['share']:.1f} % of the {seen['pixels']} pixels both" in screen
                 errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
                 assert not errors, errors
             finally:
