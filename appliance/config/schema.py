@@ -160,9 +160,10 @@ class ReconstructionConfig(_Strict):
         description="Camera-projector with a phase code: the cameras' lens blur (Gaussian sigma, camera px) by which "
         "a bright neighbour pulls a dark pixel's code at an albedo edge (print on a part, a label, dark rubber beside "
         "white); each code is corrected by blur^2 grad(white) / white along its code's slope, and its sigma gains "
-        "(0.5 + that pull in camera px) times the shift. With several exposures a pixel may then come from a pass "
-        "where a neighbour clipped. 0 turns it off (and the HDR fusion takes a pixel only from a pass where none of "
-        "its 8 neighbours clipped). Too large a value is worse than too small.",
+        "(0.5 + that pull in camera px) times the shift. With several exposures and up to 0.75 px a pixel may then "
+        "come from a pass where a neighbour clipped; blurrier optics (and 0, which turns the correction off) take a "
+        "pixel only from a pass where nothing within 3 x this (at least its 8 neighbours) clipped. scan3d tune "
+        "measures it (fringes at two periods) and --apply writes it. Too large a value is worse than too small.",
     )
     min_depth_mm: float = Field(100.0, ge=0, description="Points nearer than this are dropped (mm).")
     max_depth_mm: float = Field(3000.0, gt=0, description="Points farther than this are dropped (mm).")

@@ -13,6 +13,11 @@ its cause (too dark even at the longest, clipped even at the shortest). ``--appl
 ``sequence.exposures_us`` of the configuration file, validated first and written atomically, as an edit over SSH
 would be (a running service reloads it).
 
+The probe also projects fringes at two periods at the configured exposure and measures the optics' blur from
+their contrast (:mod:`appliance.procedures.optics_blur`); the cameras' blur is chosen for
+``reconstruction.edge_blur_px`` (the albedo-edge correction and its sigma assume it) and written with the
+exposures, unless the scene's surfaces cannot tell it from the projector's.
+
 A projector that can dim between passes (lightcrafter4500, sim: see
 :func:`~appliance.hardware.base.intensity_control`) adds one probe pass at the shortest exposure and
 :data:`PROBE_DIM` of its intensity, which measures the pixels that clip at every full-intensity probe exposure
@@ -25,6 +30,7 @@ contrast_rate * t * i``.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import math
 import re
@@ -43,6 +49,7 @@ from appliance.hardware.base import ExposureControl, exposure_control, intensity
 from appliance.output.atomic import write_bytes_atomic
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
+from appliance.procedures.optics_blur import BlurEstimate, estimate, fringe_frames
 from appliance.reconstruct.uncertainty import ROUNDING_VAR_DN2
 
 if TYPE_CHECKING:
@@ -96,6 +103,9 @@ class Probe:
     intensities : tuple of float
         Projector intensity (0-1] of each probe pass; empty: every pass at full intensity (a projector that
         cannot dim, whose passes the choice then cannot dim either).
+    blur : tuple of BlurEstimate
+        Per camera the optics' blur measured by the probe's fringes (:mod:`appliance.procedures.optics_blur`);
+        a camera whose scene gave too few usable pixels is left out.
     """
 
     exposures_us: tuple[float, ...]
@@ -104,6 +114,7 @@ class Probe:
     full_scale: dict[str, float]
     projector_size: tuple[int, int] = (1280, 800)
     intensities: tuple[float, ...] = ()
+    blur: tuple[BlurEstimate, ...] = ()
 
     @property
     def can_dim(self) -> bool:
@@ -149,6 +160,13 @@ class TuneChoice:
         ... its share of the lit pixels in a decodable range.
     noise_ratio : float
         The chosen passes' predicted code noise (RMS) over the most covering one's (1.0 where they are the same).
+    blur : tuple of BlurEstimate
+        The optics' blur per camera, measured by the probe.
+    edge_blur_px : float or None
+        The cameras' blur (camera px, their mean) for ``reconstruction.edge_blur_px``; None when the probe could
+        not tell the cameras' blur from the projector's (then the setting is left as it is).
+    edge_blur_now : float or None
+        ``reconstruction.edge_blur_px`` as configured.
     """
 
     exposures_us: tuple[int, ...]
@@ -166,6 +184,9 @@ class TuneChoice:
     most_covering_passes: tuple[tuple[int, float], ...] = ()
     most_covering: float = 0.0
     noise_ratio: float = 1.0
+    blur: tuple[BlurEstimate, ...] = ()
+    edge_blur_px: float | None = None
+    edge_blur_now: float | None = None
 
     def lines(self, time_budget_ms: float) -> list[str]:
         """The plain-words report printed by ``scan3d tune``."""
@@ -203,6 +224,14 @@ class TuneChoice:
             lost.append(f"{100 * self.ambient_limited:.1f} % too dark for the ambient light (it clips them before "
                         "the projector's contrast is enough: shade the part from room light)")
         out.append("cannot recover: " + "; ".join(lost) if lost else "cannot recover: nothing")
+        out.extend(f"optics: {b.line()}" for b in self.blur)
+        now = "" if self.edge_blur_now is None else f" (now {self.edge_blur_now:g})"
+        if self.edge_blur_px is not None:
+            out.append(f"choice: reconstruction.edge_blur_px = {self.edge_blur_px:g}{now}: the cameras' blur, which "
+                       "the albedo-edge correction and its sigma assume")
+        else:
+            out.append(f"reconstruction.edge_blur_px stays as it is{now}: the probe could not measure the cameras' "
+                       "blur on this scene")
         out.append("not measured by the probe: interreflections (a mirror-like face lighting another); the "
                    "decoder's consistency checks drop those pixels")
         return out
@@ -301,11 +330,44 @@ async def probe_rig(rig: Rig, projector_size: tuple[int, int], exposures_us: tup
             await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
             # the copies into float64 take ~10 ms a megapixel: off the event loop
             await asyncio.to_thread(_store_probe, bufs, white, black, k)
+        if dim is not None:
+            await dim.set_intensity(1.0)
+        blur = await _probe_blur(rig, projector_size, controls, bufs, white, black, full, passes)
     finally:
         if dim is not None:
             await dim.set_intensity(1.0)  # a scan without sequence.intensities does not set it
     return Probe(tuple(e for e, _ in passes), white, black, full, (int(projector_size[0]), int(projector_size[1])),
-                 tuple(i for _, i in passes) if dim is not None else ())
+                 tuple(i for _, i in passes) if dim is not None else (), blur)
+
+
+async def _probe_blur(rig: Rig, projector_size: tuple[int, int], controls: dict[str, ExposureControl],
+                      bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray[np.float64]],
+                      black: dict[str, npt.NDArray[np.float64]], full: dict[str, float],
+                      passes: list[tuple[float, float]]) -> tuple[BlurEstimate, ...]:
+    """The optics' blur per camera: :func:`~appliance.procedures.optics_blur.fringe_frames` at the probe's middle
+    full-intensity exposure (the configured one), measured against that pass's white and black."""
+    full_passes = [k for k, (_, i) in enumerate(passes) if i >= 1.0]
+    if not full_passes:
+        return ()
+    k = full_passes[len(full_passes) // 2]
+    seq = Sequence(projector_size[0], projector_size[1], fringe_frames())
+    n = len(seq)
+    frames = {name: await asyncio.to_thread(np.zeros, (n, *buf.shape[1:]), buf.dtype) for name, buf in bufs.items()}
+    await rig.projector.load(seq)
+    for name, cam in rig.cameras.items():
+        await controls[name].set_exposure(passes[k][0])
+        await cam.arm(n, frames[name])
+    await rig.projector.start()
+    software = [c for c in rig.cameras.values() if c.needs_software_trigger]
+    for i in range(n if software else 0):
+        await asyncio.gather(*(c.trigger(i) for c in software))
+    await asyncio.gather(*(c.wait_frames(PROBE_TIMEOUT_S) for c in rig.cameras.values()))
+
+    def measure() -> tuple[BlurEstimate, ...]:
+        got = (estimate(name, frames[name], white[name][k], black[name][k], full[name]) for name in frames)
+        return tuple(e for e in got if e is not None)
+
+    return await asyncio.to_thread(measure)
 
 
 def _probe_buffers(n: int, height: int, width: int, bits: int) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64],
@@ -552,8 +614,24 @@ def check_time_budget(time_budget_ms: float) -> None:
 async def _choose_for(cfg: AppConfig, pr: Probe, time_budget_ms: float, base: float) -> TuneChoice:
     seq = build_sequence(cfg.sequence, *pr.projector_size)  # the Gray bits depend on the projector's size
     rc = cfg.reconstruction
-    return await asyncio.to_thread(choose, pr, rc.min_contrast_dn, len(seq), time_budget_ms, base,
-                                   rc.camera_read_noise_dn, rc.camera_electrons_per_dn)
+    choice = await asyncio.to_thread(choose, pr, rc.min_contrast_dn, len(seq), time_budget_ms, base,
+                                     rc.camera_read_noise_dn, rc.camera_electrons_per_dn)
+    return dataclasses.replace(choice, blur=pr.blur, edge_blur_px=edge_blur_choice(pr.blur, len(pr.white)),
+                               edge_blur_now=float(rc.edge_blur_px))
+
+
+EDGE_BLUR_FLOOR_PX = 0.05
+"""The smallest ``reconstruction.edge_blur_px`` tune writes (0 would turn the albedo-edge correction off, and with
+it the HDR fusion's use of pixels beside a clipped one)."""
+
+
+def edge_blur_choice(blur: tuple[BlurEstimate, ...], cameras: int) -> float | None:
+    """``reconstruction.edge_blur_px`` from the probe's blur estimates (camera px, the cameras' mean, two
+    decimals); None unless every one of the ``cameras`` told its blur from the projector's."""
+    known = [b.camera_px for b in blur if b.camera_px is not None]
+    if not known or len(known) < cameras:
+        return None
+    return max(EDGE_BLUR_FLOOR_PX, round(float(np.mean(known)), 2))
 
 
 _SEQ_KEY = re.compile(r"^sequence:[ \t]*(#.*)?$")
@@ -594,19 +672,37 @@ def with_exposures(text: str, exposures_us: tuple[int, ...], intensities: tuple[
         body = "".join(f"  {k}: {_flow(v)}\n" for k, v in keys.items() if v is not None)
         return f"{text}{sep}sequence:\n{body}"
     for key, values in keys.items():
-        lines = _set_in_block(lines, start, key, values)
+        lines = _set_in_block(lines, start, key, None if values is None else _flow(values))
     return "".join(lines)
 
 
-def _set_in_block(lines: list[str], start: int, key: str, values: tuple[float, ...] | None) -> list[str]:
-    """Set (or, ``values`` None, remove) ``key`` in the block-style section whose header is ``lines[start]``."""
+def with_setting(text: str, section: str, key: str, value: float) -> str:
+    """The configuration text with ``section.key`` set to the number ``value``; comments and layout kept where
+    the section is a block (a flow-style section is rewritten, its comments lost; a missing one is added)."""
+    rendered = str(int(value)) if float(value).is_integer() else repr(float(value))
+    header = re.compile(r"^" + re.escape(section) + r":[ \t]*(#.*)?$")
+    lines = text.splitlines(keepends=True)
+    start = next((i for i, ln in enumerate(lines) if header.match(ln.rstrip("\r\n"))), None)
+    if start is None:
+        doc = yaml.safe_load(text) or {}
+        if section in doc:
+            doc[section] = {**dict(doc[section] or {}), key: value}
+            return str(yaml.safe_dump(doc, sort_keys=False))
+        sep = "" if not text or text.endswith("\n") else "\n"
+        return f"{text}{sep}{section}:\n  {key}: {rendered}  # chosen by scan3d tune\n"
+    return "".join(_set_in_block(lines, start, key, rendered))
+
+
+def _set_in_block(lines: list[str], start: int, key: str, rendered: str | None) -> list[str]:
+    """Set ``key`` to the YAML text ``rendered`` (None: remove it) in the block-style section whose header is
+    ``lines[start]``."""
     end = start + 1
     indent = "  "
     while end < len(lines) and (lines[end].startswith((" ", "\t")) or not lines[end].strip()):
         if lines[end].strip() and not lines[end].lstrip().startswith("#"):
             indent = lines[end][: len(lines[end]) - len(lines[end].lstrip())]
         end += 1
-    new = [] if values is None else [f"{indent}{key}: {_flow(values)}  # chosen by scan3d tune\n"]
+    new = [] if rendered is None else [f"{indent}{key}: {rendered}  # chosen by scan3d tune\n"]
     pattern = _key_line(key)
     for i in range(start + 1, end):
         m = pattern.match(lines[i].rstrip("\r\n"))
@@ -626,12 +722,15 @@ def _set_in_block(lines: list[str], start: int, key: str, values: tuple[float, .
     return lines[: start + 1] + new + lines[start + 1 :]
 
 
-def apply_choice(path: Path, exposures_us: tuple[int, ...], intensities: tuple[float, ...] = ()) -> None:
+def apply_choice(path: Path, exposures_us: tuple[int, ...], intensities: tuple[float, ...] = (),
+                 edge_blur_px: float | None = None) -> None:
     """Write ``sequence.exposures_us`` and ``sequence.intensities`` into the configuration file (``intensities``
-    empty: every pass at full intensity, and the key is taken out): validated first, then written atomically (a
-    running service reloads it as it would an edit over SSH)."""
+    empty: every pass at full intensity, and the key is taken out) and, when given, ``reconstruction.edge_blur_px``:
+    validated first, then written atomically (a running service reloads it as it would an edit over SSH)."""
     text = path.read_text()
     new = with_exposures(text, exposures_us, tuple(intensities) or None)
+    if edge_blur_px is not None:
+        new = with_setting(new, "reconstruction", "edge_blur_px", edge_blur_px)
     parse_config(new, str(path), path.parent)  # raises ConfigError with the file, line and rule
     write_bytes_atomic(path, new.encode())
 
@@ -644,9 +743,11 @@ async def tune_command(cfg: AppConfig, config_path: Path | None, time_budget_ms:
     if apply:
         if config_path is None:
             raise ConfigError("scan3d tune --apply: no configuration file to write; pass --config FILE")
-        apply_choice(config_path, choice.exposures_us, choice.intensities)
+        apply_choice(config_path, choice.exposures_us, choice.intensities, choice.edge_blur_px)
         said = f"sequence.exposures_us = {list(choice.exposures_us)}"
         if choice.intensities:
             said += f", sequence.intensities = {list(choice.intensities)}"
+        if choice.edge_blur_px is not None:
+            said += f", reconstruction.edge_blur_px = {choice.edge_blur_px:g}"
         print(f"written: {config_path}: {said}")
     return 0

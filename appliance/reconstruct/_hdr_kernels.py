@@ -9,14 +9,40 @@ import appliance._numba_cache  # noqa: F401  (the cache folder, before any kerne
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
-def choose_pass(mask, reason, r_sat, r_ok, r_mixed, clean_rule, choice, out_reason):  # type: ignore[no-untyped-def]
+def clipped_near(reason, r_sat, radius, scratch, near):  # type: ignore[no-untyped-def]
+    """``near[k]`` = 1 where pass ``k`` clipped a pixel within ``radius`` px (a square) of this one, else 0;
+    ``scratch`` (n, H, W) uint8 holds the row pass of the separable running maximum."""
+    n, h, w = reason.shape
+    for ky in prange(n * h):
+        k, y = ky // h, ky % h
+        for x in range(w):
+            hit = 0
+            for xx in range(max(x - radius, 0), min(x + radius + 1, w)):
+                if reason[k, y, xx] == r_sat:
+                    hit = 1
+                    break
+            scratch[k, y, x] = hit
+    for ky in prange(n * h):
+        k, y = ky // h, ky % h
+        for x in range(w):
+            near[k, y, x] = 0
+        for yy in range(max(y - radius, 0), min(y + radius + 1, h)):
+            for x in range(w):
+                near[k, y, x] |= scratch[k, yy, x]
+
+
+@njit(nogil=True, cache=True, parallel=True, error_model="numpy")
+def choose_pass(mask, reason, r_sat, r_ok, r_mixed, clean_rule, near, choice, out_reason):  # type: ignore[no-untyped-def]
     """Per pixel the brightest pass (highest index) in which neither the pixel nor any of its 8 neighbours
     clipped: its result, decoded or not (a darker pass has less signal, so no darker one is trusted over its
     verdict). A pixel that decoded only in passes where a neighbour clipped is ``r_mixed`` (the clipped
     neighbour's light, of unknown level, reaches it through the lens blur: its code is the neighbour's as much
     as its own); the darkest pass ("saturated") where every pass clipped the pixel itself. Without
-    ``clean_rule`` the neighbours are not looked at: the brightest pass that did not clip the pixel itself."""
+    ``clean_rule`` the neighbours are not looked at: the brightest pass that did not clip the pixel itself.
+    ``near`` (n, H, W) uint8 of :func:`clipped_near`, for optics that blur farther than a pixel, replaces the 8
+    neighbours by a wider square; an empty one (0, 0, 0): the 8 neighbours."""
     n, h, w = mask.shape
+    wide = near.shape[0] == n
     for y in prange(h):
         for x in range(w):
             best = -1
@@ -30,10 +56,13 @@ def choose_pass(mask, reason, r_sat, r_ok, r_mixed, clean_rule, choice, out_reas
                 if not clean_rule:
                     best = k
                     break
-                for yy in range(max(y - 1, 0), min(y + 2, h)):
-                    for xx in range(max(x - 1, 0), min(x + 2, w)):
-                        if reason[k, yy, xx] == r_sat:
-                            clean = False
+                if wide:
+                    clean = near[k, y, x] == 0
+                else:
+                    for yy in range(max(y - 1, 0), min(y + 2, h)):
+                        for xx in range(max(x - 1, 0), min(x + 2, w)):
+                            if reason[k, yy, xx] == r_sat:
+                                clean = False
                 if clean:
                     best = k
                     break

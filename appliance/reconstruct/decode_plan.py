@@ -41,6 +41,16 @@ MAX_PERIOD_RATIO = 16.0
 COEFFICIENT_QUANTUM = 2.0**-16
 _AXES: tuple[Axis, Axis] = ("x", "y")
 
+CORRECTABLE_BLUR_PX = 0.75
+"""Several exposures: with ``reconstruction.edge_blur_px`` above 0 and up to this (px) a pixel may take a pass where
+a neighbour clipped, the albedo-edge correction taking that neighbour's light out (its first-order formula holds
+for such blur: the dark-and-shiny scene at 0.5 px, 0 beyond 5 sigma). Blurrier optics take the clean rule
+(``DecodeParams.clean_neighbours``) instead: at 1.5 px a pass of 40 ms that clipped half the default scene put
+0.1 % of the points beyond 5 sigma, corrected or not."""
+CLEAN_SIGMAS = 3.0
+"""The clean rule's radius in blur sigmas (``reconstruction.edge_blur_px``): a clipped region's light beyond it
+is under 0.2 % of its level."""
+
 
 @dataclass(frozen=True)
 class DecodeParams:
@@ -76,6 +86,10 @@ class DecodeParams:
         neighbour's light, of unknown level, blurs into it). False where the reconstruction corrects albedo
         edges from the fused white level (``reconstruction.edge_blur_px`` > 0): the neighbour's level is then
         known from a darker pass, and the pixel takes the brightest pass that did not clip it.
+    clean_radius : int
+        ... the neighbourhood of that rule: a square of this radius (px; 1: the 8 neighbours). Optics that blur
+        farther than a pixel carry a clipped pixel's light farther: :meth:`from_settings` takes
+        :data:`CLEAN_SIGMAS` times ``reconstruction.edge_blur_px``.
     partial_cover : bool
         Undecode (reason ``EDGE``) a pixel lit over a small part of its footprint beside an unlit one (an
         occlusion or shadow edge: ``_decode_kernels.COVER_RATIO``). The decode of one exposure pass of several
@@ -90,15 +104,18 @@ class DecodeParams:
     finest_bit: bool = True
     blend_ratio: float = 0.4
     clean_neighbours: bool = True
+    clean_radius: int = 1
     partial_cover: bool = True
 
     @staticmethod
     def from_settings(settings: ReconstructionSettings, max_value: float | None = None) -> DecodeParams:
         """The decoder's thresholds from the reconstruction settings (``reconstruction`` of the configuration),
         as the scan and the replay path both take them; ``max_value`` as the attribute."""
+        blur = float(settings.edge_blur_px)
         return DecodeParams(min_contrast_dn=settings.min_contrast_dn, relative_contrast=settings.relative_contrast,
                             max_value=max_value, blend_ratio=settings.blend_ratio,
-                            clean_neighbours=not settings.edge_blur_px > 0)  # fmt: skip
+                            clean_neighbours=not 0 < blur <= CORRECTABLE_BLUR_PX,
+                            clean_radius=max(1, math.ceil(CLEAN_SIGMAS * blur)))  # fmt: skip
 
     @staticmethod
     def for_bits(bits: int, **kwargs: Any) -> DecodeParams:

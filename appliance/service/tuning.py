@@ -125,8 +125,8 @@ class Tuner:
         Returns
         -------
         dict
-            ``path``, ``exposures_us``, ``intensities`` (empty: every pass at full intensity) and the reload's
-            ``reloaded`` (bool) and ``error``.
+            ``path``, ``exposures_us``, ``intensities`` (empty: every pass at full intensity), ``edge_blur_px``
+            (the cameras' blur written, None: left as it was) and the reload's ``reloaded`` (bool) and ``error``.
 
         Raises
         ------
@@ -144,11 +144,15 @@ class Tuner:
             raise TuneRefused(f"scan3d tune: {list(exposures_us)} is not the last tune's choice ({chosen}); "
                               "look at its result again and apply that")
         levels = [float(i) for i in self.last["choice"].get("intensities", [])]
+        blur = self.last["choice"].get("edge_blur_px")
+        edge = float(blur) if isinstance(blur, (int, float)) else None
         path = self.host.config_path
         # validated, then written atomically
-        await asyncio.to_thread(apply_choice, path, tuple(chosen), tuple(levels))
-        log.info("scan3d tune: sequence.exposures_us = %s%s written to %s", chosen,
-                 f", sequence.intensities = {levels}" if levels else "", path)
+        await asyncio.to_thread(apply_choice, path, tuple(chosen), tuple(levels), edge)
+        log.info("scan3d tune: sequence.exposures_us = %s%s%s written to %s", chosen,
+                 f", sequence.intensities = {levels}" if levels else "",
+                 f", reconstruction.edge_blur_px = {edge:g}" if edge is not None else "", path)
         ok, error = await self.host.reload("scan3d tune --apply")
-        return {"path": str(path), "exposures_us": chosen, "intensities": levels, "reloaded": ok, "error": error}
+        return {"path": str(path), "exposures_us": chosen, "intensities": levels, "edge_blur_px": edge,
+                "reloaded": ok, "error": error}
 

@@ -87,7 +87,9 @@ def _blurred_default(folder: Path) -> VirtualRig:
 @pytest.mark.xfail(strict=True, reason="not reached yet: at 1.5 px blur with the default edge_blur_px (0.5 px) "
                    "measured 0.141 % beyond 5 sigma, |err|/sigma RMS 1.07, 0.251 % of the points > 1 mm, RMS 0.423 "
                    "mm, 96.7 % complete (period 16 alone: 0.223 %, 1.41, 0.369 %, 0.56 mm): the albedo-edge correction "
-                   "and its sigma assume the blur they are given, and the calibration does not measure it yet")
+                   "and its sigma assume the blur they are given; scan3d tune measures it and --apply writes it "
+                   "(test_tune.py::test_tune_measures_the_optics_blur_and_its_choice_keeps_sigma_honest), the scan "
+                   "does not measure it itself")
 def test_default_scene_with_stronger_blur_keeps_sigma_honest(folder: Path) -> None:
     s, _ = decode(folder, "blur15", _blurred_default(folder))
     print(s.line())

@@ -19,7 +19,7 @@ from appliance.patterns.render import frame_intensity
 from appliance.patterns.sequence import gray_phase_sequence
 from appliance.reconstruct import _edge_kernels as _k
 from appliance.reconstruct import albedo_edges
-from appliance.reconstruct._hdr_kernels import choose_pass
+from appliance.reconstruct._hdr_kernels import choose_pass, clipped_near
 from appliance.reconstruct.albedo_edges import AlbedoEdges
 from appliance.reconstruct.decode import decode
 from appliance.reconstruct.hdr import radiance
@@ -173,8 +173,33 @@ def test_without_the_clean_neighbour_rule_a_pixel_takes_the_brightest_pass_that_
     mask[1, 1, 2] = False
     choice = np.zeros((3, 3), np.uint8)
     out = np.zeros((3, 3), np.uint8)
-    choose_pass(mask, reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED), clean, choice, out)
+    choose_pass(mask, reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED), clean,
+                np.empty((0, 0, 0), np.uint8), choice, out)  # fmt: skip
     # with the rule the centre comes from the darker pass (its bright pass had a clipped neighbour)
     assert choice[1, 1] == (0 if clean else 1)
     assert out[1, 1] == Reason.DECODED
     assert choice[1, 2] == 0  # the clipped pixel itself: the pass that did not clip it
+
+
+@pytest.mark.parametrize("radius", [1, 2, 3, 4])
+def test_blurrier_optics_widen_the_clean_rule(radius: int) -> None:
+    # a 9x9 patch whose bright pass clipped one pixel 3 px right of the centre: the rule over a square of radius
+    # 3 or more (optics that blur that far, decode_plan.CLEAN_SIGMAS x edge_blur_px) takes the centre from the
+    # darker pass; the 8 neighbours (radius 1) and radius 2 do not see that pixel
+    mask = np.ones((2, 9, 9), np.bool_)
+    reason = np.zeros((2, 9, 9), np.uint8)
+    reason[1, 4, 7] = Reason.SATURATED
+    mask[1, 4, 7] = False
+    near = np.empty((2, 9, 9), np.uint8)
+    clipped_near(reason, int(Reason.SATURATED), radius, np.empty_like(near), near)
+    rows = slice(4 - radius, 4 + radius + 1)
+    cols = slice(7 - radius, min(7 + radius + 1, 9))
+    expected = np.zeros((9, 9), np.uint8)
+    expected[rows, cols] = 1
+    np.testing.assert_array_equal(near[1], expected)
+    assert not near[0].any()
+    choice = np.zeros((9, 9), np.uint8)
+    out = np.zeros((9, 9), np.uint8)
+    choose_pass(mask, reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED), True, near, choice,
+                out)  # fmt: skip
+    assert choice[4, 4] == (0 if radius >= 3 else 1) and out[4, 4] == Reason.DECODED
