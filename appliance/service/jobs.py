@@ -296,6 +296,10 @@ class ScanJobs:
                                 f"{timings.get(f'decode_finish_{n}_ms', 0):.0f} ms" for n in cfg.cameras)
             log.info("scan %s: %s; reconstruct %.0f ms (mode %s)", scan_id, per_cam, timings.get("reconstruct_ms", 0),
                      cfg.reconstruction.mode)
+        seen = rec.both_seen
+        if isinstance(seen.get("share"), (int, float)):  # camera-camera: what both cameras see that got a point
+            log.info("scan %s: camera-camera: %.1f %% of the %d pixels both cameras see got a point", scan_id,
+                     100.0 * float(seen["share"]), int(seen.get("pixels", 0)))
         health = rec.calibration_health  # what the scan's redundant views say of the calibration
         if health:
             checks = ", ".join(f"{c['kind']} {c['status']}" for c in health.get("checks", []))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import json
+import logging
 import os
 import time
 from pathlib import Path
@@ -178,9 +179,10 @@ def two_camera_kernels(tmp_path_factory: pytest.TempPathFactory) -> None:
 
 
 @pytest.mark.usefixtures("two_camera_kernels")
-def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None:
+def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A two-camera rig in mode ``both``: each scan's record carries the camera-camera matcher's both-seen figure
     (the sidecar's extra.stereo.both_seen), and the page shows it under the last scan and in the scans table."""
+    caplog.set_level(logging.INFO, logger="appliance")
     port = free_port()
     cfg = _two_camera_config(tmp_path, http={"listen": f"127.0.0.1:{port}",
                                              "token_file": str(token_file(tmp_path))})
@@ -217,6 +219,9 @@ def test_page_shows_the_share_of_pixels_both_cameras_see(tmp_path: Path) -> None
                 # scan3d status says it too
                 screen = format_status(svc.board.snapshot())
                 assert f"camera-camera: {100 * seen['share']:.1f} % of the {seen['pixels']} pixels both" in screen
+                # ... and the service's log
+                said = f"camera-camera: {100 * seen['share']:.1f} % of the {seen['pixels']} pixels both cameras see"
+                assert any(said in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
                 errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
                 assert not errors, errors
             finally:
