@@ -47,9 +47,11 @@ def _bytes(m: object) -> list[bytes]:
     return [np.ascontiguousarray(getattr(m, k)).tobytes() for k in ("u", "v", "mask", "quality", "levels", "reason")]
 
 
-def test_streamed_hdr_equals_the_offline_decode() -> None:
+@pytest.mark.parametrize("radius", [1, 4])
+def test_streamed_hdr_equals_the_offline_decode(radius: int) -> None:
+    # radius 4: the clean rule over a wider square (optics blurrier than the albedo correction handles)
     seq, exposures, stack = _capture()
-    params = DecodeParams()
+    params = DecodeParams(clean_radius=radius)
     offline, choice, passes = decode_passes(stack, seq, exposures, params)
     assert [round(lv) for lv, _ in passes] == [2500, 10000, 40000]
     dec = HdrStreamingDecoder(seq, exposures, stack.shape[1:], stack.dtype, params)
@@ -72,6 +74,12 @@ def test_streamed_hdr_equals_the_offline_decode() -> None:
     dark = singles[0].reason
     assert dark is not None and ((dark != Reason.DECODED) & (dark != Reason.SATURATED)).mean() > 0.05
     assert streamed.mask.mean() > max(s.mask.mean() for s in singles) + 0.05
+    if radius > 1:  # the wider square leaves more pixels beside the clipped plane "next to a clipped pixel"
+        narrow, _c, _p = decode_passes(stack, seq, exposures, DecodeParams())
+        assert narrow.reason is not None and streamed.reason is not None
+        mixed = (streamed.reason == Reason.MIXED).sum()
+        assert mixed >= (narrow.reason == Reason.MIXED).sum() and streamed.mask.sum() <= narrow.mask.sum()
+        assert not np.array_equal(dec.choice, _c), "the wider square chose no other pass anywhere"
 
 
 def test_borrowed_frames_are_named_in_capture_indices() -> None:
