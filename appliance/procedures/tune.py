@@ -344,12 +344,21 @@ async def _probe_blur(rig: Rig, projector_size: tuple[int, int], controls: dict[
                       bufs: dict[str, npt.NDArray[Any]], white: dict[str, npt.NDArray[np.float64]],
                       black: dict[str, npt.NDArray[np.float64]], full: dict[str, float],
                       passes: list[tuple[float, float]]) -> tuple[BlurEstimate, ...]:
-    """The optics' blur per camera: :func:`~appliance.procedures.optics_blur.fringe_frames` at the probe's middle
-    full-intensity exposure (the configured one), measured against that pass's white and black."""
+    """The optics' blur per camera: :func:`~appliance.procedures.optics_blur.fringe_frames` at the full-intensity
+    probe exposure that has the most pixels in range (lit well, not clipped: a bright part clips at the configured
+    one), measured against that pass's white and black."""
+    from appliance.procedures.optics_blur import CLIP_SHARE, MIN_RANGE_DN
+
     full_passes = [k for k, (_, i) in enumerate(passes) if i >= 1.0]
     if not full_passes:
         return ()
-    k = full_passes[len(full_passes) // 2]
+
+    def in_range(k: int) -> int:
+        return sum(int(np.count_nonzero((white[n][k] - black[n][k] >= MIN_RANGE_DN)
+                                        & (white[n][k] < CLIP_SHARE * full[n]))) for n in white)  # fmt: skip
+
+    counts = await asyncio.to_thread(lambda: [in_range(k) for k in full_passes])
+    k = full_passes[int(np.argmax(counts))]
     seq = Sequence(projector_size[0], projector_size[1], fringe_frames())
     n = len(seq)
     frames = {name: await asyncio.to_thread(np.zeros, (n, *buf.shape[1:]), buf.dtype) for name, buf in bufs.items()}

@@ -173,6 +173,10 @@ def test_status_says_why_pixels_have_no_point_and_tune_apply_fixes_it(tmp_path: 
         assert f"sequence.exposures_us = [{', '.join(map(str, chosen))}]" in text
         assert "chosen by scan3d tune" in await asyncio.to_thread(cfg.read_text)
         assert tuple(svc.cfg.sequence.exposures_us) == chosen  # reloaded as an edit over SSH is
+        # the optics' blur the probe measured goes in with the exposures (a plane and a box: two code slopes),
+        # measured at the probe's exposure with the most pixels in range (the plane clips at the configured one)
+        blur = load_config(cfg).reconstruction.edge_blur_px
+        assert f"reconstruction.edge_blur_px = {blur:g}" in text and svc.cfg.reconstruction.edge_blur_px == blur
         assert svc.board.counters["reloads"] >= 1 and not svc.board.config_error
         await _ready(svc)
         after = await e2e.scan_once(svc)
