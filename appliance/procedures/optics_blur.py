@@ -99,6 +99,14 @@ class BlurEstimate:
                 f"{self.slopes[0]:.2f}-{self.slopes[1]:.2f}, {self.pixels} pixels)")
 
 
+def in_range(white: npt.NDArray[np.generic], black: npt.NDArray[np.generic],
+             full_scale: float) -> npt.NDArray[np.bool_]:
+    """Pixels lit well enough (white - black at least :data:`MIN_RANGE_DN`) and not clipped (white under
+    :data:`CLIP_SHARE` of ``full_scale``) to measure a fringe's contrast; shape of ``white``."""
+    wh = np.asarray(white, np.float32)
+    return (wh - np.asarray(black, np.float32) >= MIN_RANGE_DN) & (wh < CLIP_SHARE * full_scale)
+
+
 def fringe_frames() -> tuple[PhaseFrame, ...]:
     """The probe's frames: :data:`STEPS`-step fringes along x at each of :data:`PERIODS`."""
     return tuple(PhaseFrame("x", p, s, STEPS) for p in PERIODS for s in range(STEPS))
@@ -135,12 +143,11 @@ def estimate(camera: str, frames: npt.NDArray[np.generic], white: npt.NDArray[np
             z1 += term
         else:
             z2 += term
-    wh = np.asarray(white, np.float32)
-    rng = wh - np.asarray(black, np.float32)
+    rng = np.asarray(white, np.float32) - np.asarray(black, np.float32)
     a1, a2 = np.abs(z1), np.abs(z2)
     # 4 steps: |Z| = 2 x the fringe's amplitude = its contrast x (white - black)
     top = np.asarray(frames).max(axis=0)
-    good = (rng >= MIN_RANGE_DN) & (top < CLIP_SHARE * full_scale) & (wh < CLIP_SHARE * full_scale)
+    good = in_range(white, black, full_scale) & (top < CLIP_SHARE * full_scale)
     good &= a2 >= MIN_CONTRAST * rng
     side = 2 * INSIDE_PX + 1
     good = cv2.erode(good.astype(np.uint8), np.ones((side, side), np.uint8), borderValue=0).astype(bool)

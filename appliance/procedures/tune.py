@@ -49,7 +49,7 @@ from appliance.hardware.base import ExposureControl, exposure_control, intensity
 from appliance.output.atomic import write_bytes_atomic
 from appliance.patterns.from_config import build_sequence
 from appliance.patterns.sequence import BlackFrame, Sequence, WhiteFrame
-from appliance.procedures.optics_blur import BlurEstimate, estimate, fringe_frames
+from appliance.procedures.optics_blur import BlurEstimate, estimate, fringe_frames, in_range
 from appliance.reconstruct.uncertainty import ROUNDING_VAR_DN2
 
 if TYPE_CHECKING:
@@ -347,17 +347,14 @@ async def _probe_blur(rig: Rig, projector_size: tuple[int, int], controls: dict[
     """The optics' blur per camera: :func:`~appliance.procedures.optics_blur.fringe_frames` at the full-intensity
     probe exposure that has the most pixels in range (lit well, not clipped: a bright part clips at the configured
     one), measured against that pass's white and black."""
-    from appliance.procedures.optics_blur import CLIP_SHARE, MIN_RANGE_DN
-
     full_passes = [k for k, (_, i) in enumerate(passes) if i >= 1.0]
     if not full_passes:
         return ()
 
-    def in_range(k: int) -> int:
-        return sum(int(np.count_nonzero((white[n][k] - black[n][k] >= MIN_RANGE_DN)
-                                        & (white[n][k] < CLIP_SHARE * full[n]))) for n in white)  # fmt: skip
+    def usable(k: int) -> int:
+        return sum(int(np.count_nonzero(in_range(white[n][k], black[n][k], full[n]))) for n in white)
 
-    counts = await asyncio.to_thread(lambda: [in_range(k) for k in full_passes])
+    counts = await asyncio.to_thread(lambda: [usable(k) for k in full_passes])
     k = full_passes[int(np.argmax(counts))]
     seq = Sequence(projector_size[0], projector_size[1], fringe_frames())
     n = len(seq)

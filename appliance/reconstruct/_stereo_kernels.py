@@ -958,8 +958,9 @@ def _row_entry(yr, a, origin, inv_step, hr, nl):  # type: ignore[no-untyped-def]
 def mark_rows(u1, mask1, rect1, knot1, origin, inv_step, table, near):  # type: ignore[no-untyped-def]
     """One coded axis: ``table`` (rows, levels) uint8 = 1 where cam1 decodes a code on a rectified row (its
     pixel's rectified row rounded; ``rect1`` / ``knot1`` a map of :func:`_map_row`), level
-    ``floor((u - origin) * inv_step)``, else 0; then ``near`` (same shape) = 1 within one row and one level of a
-    mark. (Two threads may store 1 in one entry: the same value, so no mark is lost.)"""
+    ``floor((u - origin) * inv_step)``, else 0; then the marks grown by one level (into ``near``, same shape) and
+    one row (back into ``table``): ``table`` = 1 within one row and one level of a mark. (Two threads may store 1
+    in one entry: the same value, so no mark is lost.)"""
     h, w = u1.shape[0], u1.shape[1]
     hr, nl = table.shape[0], table.shape[1]
     for r in prange(hr):
@@ -977,23 +978,20 @@ def mark_rows(u1, mask1, rect1, knot1, origin, inv_step, table, near):  # type: 
                     iy, il = _row_entry(yr, a, origin, inv_step, hr, nl)
                     if iy >= 0:
                         table[iy, il] = 1
-    for r in prange(hr):  # near = the marks grown by one level, then by one row (table keeps the first step)
+    for r in prange(hr):
         for j in range(nl):
             near[r, j] = table[r, j] | (table[r, j - 1] if j > 0 else 0) | (table[r, j + 1] if j + 1 < nl else 0)
     for r in prange(hr):
         for j in range(nl):
-            table[r, j] = near[r, j]
-    for r in prange(hr):
-        for j in range(nl):
-            near[r, j] = table[r, j] | (table[r - 1, j] if r > 0 else 0) | (table[r + 1, j] if r + 1 < hr else 0)
+            table[r, j] = near[r, j] | (near[r - 1, j] if r > 0 else 0) | (near[r + 1, j] if r + 1 < hr else 0)
 
 
 @njit(nogil=True, cache=True, parallel=True, error_model="numpy")
 def seen_on_rows(u0, mask0, rect0, knot0, origin, inv_step, near, xyz, seen):  # type: ignore[no-untyped-def]
     """One coded axis: ``seen`` = a decoded cam0 pixel whose code cam1 decodes on the same rectified row, within
-    one row and one level (``near`` of :func:`mark_rows`); returns (how many pixels, how many of them hold a
-    point in ``xyz``). A projector column meets an epipolar plane in one ray from the projector, whose first
-    surface point is what both cameras see there."""
+    one row and one level (``near``: the ``table`` :func:`mark_rows` leaves); returns (how many pixels, how many
+    of them hold a point in ``xyz``). A projector column meets an epipolar plane in one ray from the projector,
+    whose first surface point is what both cameras see there."""
     h, w = u0.shape[0], u0.shape[1]
     hr, nl = near.shape[0], near.shape[1]
     per = np.zeros((h, 2), np.int64)

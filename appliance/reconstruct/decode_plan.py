@@ -107,6 +107,12 @@ class DecodeParams:
     clean_radius: int = 1
     partial_cover: bool = True
 
+    @property
+    def fusion_radius(self) -> int:
+        """The exposure fusion's clean-rule square (px): :attr:`clean_radius`, or 0 without
+        :attr:`clean_neighbours` (the brightest pass that did not clip the pixel itself)."""
+        return self.clean_radius if self.clean_neighbours else 0
+
     @staticmethod
     def from_settings(settings: ReconstructionSettings, max_value: float | None = None) -> DecodeParams:
         """The decoder's thresholds from the reconstruction settings (``reconstruction`` of the configuration),

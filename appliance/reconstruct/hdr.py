@@ -71,7 +71,7 @@ def exposure_passes(keys: Sequence[Hashable], light: Sequence[float]) -> list[tu
 
 
 def fuse_exposures(
-    passes: Sequence[DecodedMaps], clean_neighbours: bool = True, clean_radius: int = 1
+    passes: Sequence[DecodedMaps], clean_radius: int = 1
 ) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
     """Fuse the decodes of one scene's exposure passes, given darkest first.
 
@@ -79,17 +79,16 @@ def fuse_exposures(
     ----------
     passes : sequence of DecodedMaps
         One decode per pass, same shape, ordered by increasing light, each with ``reason``.
-    clean_neighbours : bool
-        See ``DecodeParams.clean_neighbours`` (False: the brightest pass that did not clip the pixel itself).
     clean_radius : int
-        See ``DecodeParams.clean_radius`` (px; 1: the 8 neighbours).
+        ``DecodeParams.fusion_radius``: the clean rule's square (px; 1: the 8 neighbours; 0: no rule, the
+        brightest pass that did not clip the pixel itself).
 
     Returns
     -------
     maps : DecodedMaps
-        Per pixel the brightest pass that clipped neither it nor its 8 neighbours (``u``, ``v``, ``mask``,
-        ``quality`` in that pass's DN, ``levels``; with ``clean_neighbours`` False the brightest that did not clip
-        it), and the fused ``reason`` (``MIXED`` where the pixel decoded only in passes with a clipped neighbour:
+        Per pixel the brightest pass that clipped neither it nor any pixel of its square (``u``, ``v``, ``mask``,
+        ``quality`` in that pass's DN, ``levels``; with ``clean_radius`` 0 the brightest that did not clip it),
+        and the fused ``reason`` (``MIXED`` where the pixel decoded only in passes with a clipped neighbour:
         undecoded here).
     choice : ndarray, shape (H, W), uint8
         Index of the pass each pixel's result came from (the pass its reason came from where undecoded).
@@ -110,8 +109,7 @@ def fuse_exposures(
         np.stack([m.fringe for m in passes if m.fringe is not None]) if all(m.fringe is not None for m in passes)
         else None,
     )  # fmt: skip
-    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes), clean_neighbours,
-                       clean_radius)
+    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes), clean_radius)
 
 
 def _blend_codes(passes: Sequence[DecodedMaps]) -> npt.NDArray[np.float32] | None:
@@ -152,8 +150,7 @@ class _PassStacks:
                            reason=self.reason[k], fringe=None if self.fringe is None else self.fringe[k])  # fmt: skip
 
     def fuse(
-        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None, clean_neighbours: bool = True,
-        clean_radius: int = 1,
+        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None, clean_radius: int = 1
     ) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
         shape = (int(self.u.shape[1]), int(self.u.shape[2]))
         choice = np.empty(shape, np.uint8)
@@ -164,11 +161,11 @@ class _PassStacks:
         )  # fmt: skip
         assert out.levels is not None and out.reason is not None
         near = np.empty((0, 0, 0), np.uint8)
-        if clean_neighbours and clean_radius > 1:  # optics that blur farther than a pixel: a wider square
+        if clean_radius > 1:  # optics that blur farther than a pixel: a wider square
             near = np.empty(self.reason.shape, np.uint8)
             _k.clipped_near(self.reason, int(Reason.SATURATED), int(clean_radius), np.empty_like(near), near)
         _k.choose_pass(self.mask, self.reason, int(Reason.SATURATED), int(Reason.DECODED), int(Reason.MIXED),
-                       bool(clean_neighbours), near, choice, out.reason)  # fmt: skip
+                       clean_radius > 0, near, choice, out.reason)  # fmt: skip
         _k.gather_pass(choice, out.reason, int(Reason.DECODED), self.mask, self.u, self.v, self.quality,
                        self.levels, out.u, out.v, out.mask, out.quality, out.levels)  # fmt: skip
         if self.fringe is not None:  # the chosen pass's share (0 where the fused pixel is undecoded)
@@ -364,7 +361,7 @@ def decode_passes(
         sub_frames = cast("npt.NDArray[np.uint8] | npt.NDArray[np.uint16]", np.ascontiguousarray(frames[idx]))
         m = decode(sub_frames, plan, one_pass)
         decoded.append(_owned(m))
-    fused, choice = fuse_exposures(decoded, params.clean_neighbours, params.clean_radius)
+    fused, choice = fuse_exposures(decoded, params.fusion_radius)
     return fused, choice, passes
 
 
@@ -437,8 +434,7 @@ class HdrStreamingDecoder:
         borrow_frames: bool = False,
     ) -> None:
         prm = DecodeParams() if params is None else params
-        self._clean = prm.clean_neighbours
-        self._clean_radius = prm.clean_radius
+        self._clean_radius = prm.fusion_radius
         self.passes, plans = _pass_plans(sequence, exposures)
         self.shape = (int(shape[0]), int(shape[1]))
         self._plans = plans
@@ -551,6 +547,6 @@ class HdrStreamingDecoder:
             if not done:
                 self._finish_pass(k)
         fused, self.choice = self._stacks.fuse(sorted({s for o in self._out for s in o.ignored}),
-                                               _blend_codes(self._out), self._clean, self._clean_radius)
+                                               _blend_codes(self._out), self._clean_radius)
         return fused
 

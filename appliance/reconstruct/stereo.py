@@ -690,10 +690,10 @@ class StereoTriangulator:
         flat = self._row_marks
         if flat is None or flat.size < 2 * hr * nk:
             flat = self._row_marks = np.empty(2 * hr * nk, np.uint8)
-        table, near = flat[: hr * nk].reshape(hr, nk), flat[hr * nk : 2 * hr * nk].reshape(hr, nk)
+        table, scratch = flat[: hr * nk].reshape(hr, nk), flat[hr * nk : 2 * hr * nk].reshape(hr, nk)
         rect1, knot1 = self._rect_knots1()
-        C.mark_rows(u1, mask1, rect1, knot1, origin, 1.0 / step, table, near)
-        seen, points = C.seen_on_rows(u0, mask0, self._rect0, self._knot_r0, origin, 1.0 / step, near, xyz,
+        C.mark_rows(u1, mask1, rect1, knot1, origin, 1.0 / step, table, scratch)
+        seen, points = C.seen_on_rows(u0, mask0, self._rect0, self._knot_r0, origin, 1.0 / step, table, xyz,
                                       self._seen)  # fmt: skip
         rep.both_seen, rep.both_seen_points = int(seen), int(points)
 
