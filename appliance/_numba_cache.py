@@ -36,8 +36,8 @@ _KEY_DIR = re.compile(r"src-[0-9a-f]{12}")
 
 KERNEL_FILES = (
     "reconstruct/_cell_kernels.py", "reconstruct/_decode_kernels.py", "reconstruct/_edge_kernels.py",
-    "reconstruct/_filter_kernels.py",
-    "reconstruct/_geom_kernels.py", "reconstruct/_hdr_kernels.py", "reconstruct/_normal_kernels.py",
+    "reconstruct/_filter_kernels.py", "reconstruct/_geom_kernels.py", "reconstruct/_ghost_kernels.py",
+    "reconstruct/_hdr_kernels.py", "reconstruct/_normal_kernels.py",
     "reconstruct/_procam_kernels.py", "reconstruct/_stereo_kernels.py", "reconstruct/_visibility_kernels.py",
     "reconstruct/_walled_kernels.py",
     "reconstruct/fuse.py", "sim/_sim_kernels.py", "calibration/_kernels.py", "geometry/_distortion_kernels.py",

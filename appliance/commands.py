@@ -197,6 +197,9 @@ def _decode_one(
             if len(shares_w) > 1:  # some pixels could not resolve the finest stripes
                 line += f"; stripe widths {axis}: " + ", ".join(
                     f"{w} px {100 * v:.1f} %" for w, v in shares_w.items())  # fmt: skip
+        if m.separated is not None and len(m.separated):
+            line += (f"; {len(m.separated)} of them lit by two copies of the pattern (a mirror), the direct one "
+                     "taken apart")
         print(line)
         advice = reason_advice(m, cam)
         if advice:

@@ -140,6 +140,13 @@ class ReconstructionConfig(_Strict):
         description="Two copies of the pattern (a mirror-like face): a pixel is dropped where two of its fine Gray "
         "bits (period up to 512 projector px) have less than this share of its white-black contrast. 0: no check.",
     )
+    separate_copies: bool = Field(
+        True,
+        description="Where the check for two copies of the pattern finds them (a mirror lights a surface a second "
+        "time), take the direct copy apart from the mirrored one and keep its point: needs two or more phase periods "
+        "per coded axis, each dividing the coarsest (the default [16, 8]); a pixel whose copies do not come apart "
+        "stays dropped. false: drop every such pixel.",
+    )
     hidden_check: Literal["auto", "always", "off"] = Field(
         "auto",
         description="Camera-projector: drop a point when another lies nearer the projector on its projector ray (by "

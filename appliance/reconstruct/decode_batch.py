@@ -14,6 +14,7 @@ import numpy.typing as npt
 from appliance.errors import DecodeError
 from appliance.patterns.sequence import Sequence
 from appliance.reconstruct import _decode_kernels as _k
+from appliance.reconstruct import _ghost_kernels as _gk
 from appliance.reconstruct._pool import BufferPool
 from appliance.reconstruct.decode_plan import (
     _AXES,
@@ -30,6 +31,7 @@ from appliance.reconstruct.decode_plan import (
     _max_value,
     lit_threshold,
 )
+from appliance.reconstruct.ghosts import Sums, separate
 from appliance.reconstruct.types import DecodedMaps, Reason
 
 #: Output blocks of decode() / StreamingDecoder.finish() without ``out`` (a few cameras' maps at once).
@@ -122,8 +124,12 @@ def _saturation_and_reasons(
     thr: float,
     dtype: np.dtype[Any],
     params: DecodeParams,
+    plan: DecodePlan,
+    sums: Sums,
 ) -> None:
-    """Drop the pixels whose needed samples are clipped, then write every pixel's :class:`Reason`."""
+    """Drop the pixels whose needed samples are clipped, give the blend check's pixels whose two copies of the
+    pattern come apart their direct code back (:func:`appliance.reconstruct.ghosts.separate`, with the phase
+    sums ``sums``), then write every pixel's :class:`Reason`."""
     assert out.levels is not None and out.reason is not None and out.fringe is not None
     # the blend check's regions first (it reads every mark before any is cleared); reason = 1 there until below
     h = out.mask.shape[0]
@@ -136,6 +142,10 @@ def _saturation_and_reasons(
                       starts, codes)  # fmt: skip
     out.blend_codes = codes
     _k.drop_clipped(clip, _DROP, out.u, v_arg, v_arg.shape[0] > 0, out.mask, out.quality, out.levels)
+    if params.separate_copies:
+        separate(out, v_arg, codes, plan, sums, hi, lo, clip)
+    else:
+        out.separated = None
     dark = params.min_contrast_dn * _max_value(dtype, params) / 255.0
     _k.decode_reasons(
         hi, lo, float(thr), float(dark), clip, out.mask, out.reason, out.fringe, int(Reason.DECODED),
@@ -204,7 +214,7 @@ def reason_counts(maps: DecodedMaps) -> dict[str, int]:
     return {REASON_NAMES[i]: int(c) for i, c in enumerate(counts.tolist()) if c and i in REASON_NAMES}
 
 
-def reason_block(maps: DecodedMaps) -> dict[str, dict[str, Any]]:
+def reason_block(maps: DecodedMaps) -> dict[str, Any]:
     """The sidecar's per-camera reason block: pixels and share of the image per :class:`Reason`.
 
     Parameters
@@ -216,13 +226,18 @@ def reason_block(maps: DecodedMaps) -> dict[str, dict[str, Any]]:
     -------
     dict
         ``{"reasons": {name: pixels}, "reason_shares": {name: share of the image's pixels, 0..1}}`` (zero
-        counts left out); empty when ``maps.reason`` is None.
+        counts left out), and ``"separated"``: the decoded pixels lit by two copies of the pattern whose direct
+        code was taken apart (:mod:`appliance.reconstruct.ghosts`; absent: none); empty when ``maps.reason`` is
+        None.
     """
     counts = reason_counts(maps)
     if not counts:
         return {}
     total = max(int(maps.mask.size), 1)
-    return {"reasons": counts, "reason_shares": {k: round(n / total, 6) for k, n in counts.items()}}
+    block: dict[str, Any] = {"reasons": counts, "reason_shares": {k: round(n / total, 6) for k, n in counts.items()}}
+    if maps.separated is not None and len(maps.separated):
+        block["separated"] = len(maps.separated)
+    return block
 
 
 #: A reason is said in plain words when it holds at least this share of the lit (not shadowed) pixels.
@@ -346,9 +361,30 @@ def decode(
     else:
         hi, lo = np.empty(shape, stack.dtype), np.empty(shape, stack.dtype)
         _k.stack_range(stack, t.used, hi, lo)
-    _saturation_and_reasons(out, v_arg, clip, hi, lo, thr, stack.dtype, params)
+    _saturation_and_reasons(out, v_arg, clip, hi, lo, thr, stack.dtype, params, plan,
+                            stack_sums(stack, plan, ints))  # fmt: skip
     out.ignored = list(plan.ignored)
     return out
+
+
+def stack_sums(stack: npt.NDArray[Any], plan: DecodePlan, ints: bool) -> Sums:
+    """The phase sums of a stack at given pixels, formed as the decoders form them (exact integers in units of
+    the coefficient quantum where ``ints``, else float64 with the quantised coefficients), in real units."""
+    t = plan.tables
+
+    def sums(s: int, ys: npt.NDArray[np.int64], xs: npt.NDArray[np.int64]) -> tuple[
+            npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        first, steps = int(t.ph_tab[s, 3]), int(t.ph_tab[s, 1])
+        if ints:
+            so, co = np.empty(len(ys), np.int64), np.empty(len(ys), np.int64)
+            _gk.gather_stack_sums(stack, ys, xs, t.ph_idx, t.ph_sin_q.astype(np.int64), t.ph_cos_q.astype(np.int64),
+                                  first, steps, so, co)  # fmt: skip
+            return so.astype(np.float64) * COEFFICIENT_QUANTUM, co.astype(np.float64) * COEFFICIENT_QUANTUM
+        sf, cf = np.empty(len(ys), np.float64), np.empty(len(ys), np.float64)
+        _gk.gather_stack_sums(stack, ys, xs, t.ph_idx, t.ph_sin, t.ph_cos, first, steps, sf, cf)
+        return sf, cf
+
+    return sums
 
 
 def stripe_widths(maps: DecodedMaps, sequence: Sequence | DecodePlan) -> dict[str, dict[float, float]]:

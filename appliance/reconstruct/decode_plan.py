@@ -95,6 +95,10 @@ class DecodeParams:
         occlusion or shadow edge: ``_decode_kernels.COVER_RATIO``). The decode of one exposure pass of several
         leaves it to the fused maps (:func:`appliance.reconstruct.decode_batch.drop_partial_cover`), whose
         neighbours may come from other passes.
+    separate_copies : bool
+        Give the pixels the blend check drops their direct code back where the two copies of the pattern come
+        apart (two or more phase sets per coded axis, each period dividing the coarsest; see
+        :mod:`appliance.reconstruct.ghosts`).
     """
 
     min_contrast_dn: float = 6.0
@@ -106,6 +110,7 @@ class DecodeParams:
     clean_neighbours: bool = True
     clean_radius: int = 1
     partial_cover: bool = True
+    separate_copies: bool = True
 
     @property
     def fusion_radius(self) -> int:
@@ -120,6 +125,7 @@ class DecodeParams:
         blur = float(settings.edge_blur_px)
         return DecodeParams(min_contrast_dn=settings.min_contrast_dn, relative_contrast=settings.relative_contrast,
                             max_value=max_value, blend_ratio=settings.blend_ratio,
+                            separate_copies=settings.separate_copies,
                             clean_neighbours=not 0 < blur <= CORRECTABLE_BLUR_PX,
                             clean_radius=max(1, math.ceil(CLEAN_SIGMAS * blur)))  # fmt: skip
 

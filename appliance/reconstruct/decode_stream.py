@@ -257,6 +257,12 @@ class StreamingDecoder:
         else:
             _k.stream_single_mean(img, sign, self._msum, len(self._mean), bit, self._code[a], self._cst[g])
 
+    def _sums(self, s: int, ys: npt.NDArray[np.int64], xs: npt.NDArray[np.int64]) -> tuple[
+            npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Phase set ``s``'s accumulated sums at pixels (ys, xs), in real units (see ``ghosts.Sums``)."""
+        q = float(self._quantum)
+        return self._ssum[s][ys, xs].astype(np.float64) * q, self._csum[s][ys, xs].astype(np.float64) * q
+
     @property
     def missing(self) -> list[int]:
         """Indices of the frames the decoder still needs."""
@@ -291,7 +297,8 @@ class StreamingDecoder:
             bool(self.params.finest_bit), numba.get_num_threads(), out.u, v_arg, out.mask, out.quality,
             out.levels, out.fringe,
         )  # fmt: skip
-        _saturation_and_reasons(out, v_arg, self._clip, self._hi, self._lo, thr, self.dtype, self.params)
+        _saturation_and_reasons(out, v_arg, self._clip, self._hi, self._lo, thr, self.dtype, self.params, self.plan,
+                                self._sums)  # fmt: skip
         out.ignored = list(self.plan.ignored)
         return out
 

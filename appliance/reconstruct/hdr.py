@@ -109,7 +109,8 @@ def fuse_exposures(
         np.stack([m.fringe for m in passes if m.fringe is not None]) if all(m.fringe is not None for m in passes)
         else None,
     )  # fmt: skip
-    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes), clean_radius)
+    return stacks.fuse(sorted({s for m in passes for s in m.ignored}), _blend_codes(passes), clean_radius,
+                       [m.separated for m in passes])  # fmt: skip
 
 
 def _blend_codes(passes: Sequence[DecodedMaps]) -> npt.NDArray[np.float32] | None:
@@ -150,7 +151,8 @@ class _PassStacks:
                            reason=self.reason[k], fringe=None if self.fringe is None else self.fringe[k])  # fmt: skip
 
     def fuse(
-        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None, clean_radius: int = 1
+        self, ignored: list[str], blend_codes: npt.NDArray[np.float32] | None = None, clean_radius: int = 1,
+        separated: Sequence[npt.NDArray[np.float32] | None] = (),
     ) -> tuple[DecodedMaps, npt.NDArray[np.uint8]]:
         shape = (int(self.u.shape[1]), int(self.u.shape[2]))
         choice = np.empty(shape, np.uint8)
@@ -172,7 +174,27 @@ class _PassStacks:
             fringe = np.take_along_axis(self.fringe, choice[None], 0)[0]
             fringe[~out.mask] = 0
             out.fringe = fringe
+        out.separated = _fused_separated(separated, choice, out.mask)
         return out, choice
+
+
+def _fused_separated(
+    separated: Sequence[npt.NDArray[np.float32] | None], choice: npt.NDArray[np.uint8], mask: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.float32] | None:
+    """The fused maps' separated pixels (``DecodedMaps.separated``): each pass's where the fusion took the pixel
+    from that pass, row-major."""
+    parts = []
+    for k, sep in enumerate(separated):
+        if sep is None or len(sep) == 0:
+            continue
+        r, c = sep[:, 0].astype(np.int64), sep[:, 1].astype(np.int64)
+        parts.append(sep[(choice[r, c] == k) & mask[r, c]])
+    if not parts or sum(len(p) for p in parts) == 0:
+        return None
+    allsep = np.concatenate(parts)
+    w = mask.shape[1]
+    order = np.argsort(allsep[:, 0].astype(np.int64) * w + allsep[:, 1].astype(np.int64), kind="stable")
+    return np.ascontiguousarray(allsep[order])
 
 
 def pick_per_pixel(images: Sequence[npt.NDArray[np.generic]], choice: npt.NDArray[np.uint8]) -> npt.NDArray[np.generic]:
@@ -372,6 +394,7 @@ def _owned(m: DecodedMaps) -> DecodedMaps:
         m.u.copy(), m.v.copy(), m.mask.copy(), m.quality.copy(), list(m.ignored),
         None if m.levels is None else m.levels.copy(), None if m.reason is None else m.reason.copy(),
         None if m.blend_codes is None else m.blend_codes.copy(), fringe=None if m.fringe is None else m.fringe.copy(),
+        separated=None if m.separated is None else m.separated.copy(),
     )  # fmt: skip
 
 
@@ -547,6 +570,7 @@ class HdrStreamingDecoder:
             if not done:
                 self._finish_pass(k)
         fused, self.choice = self._stacks.fuse(sorted({s for o in self._out for s in o.ignored}),
-                                               _blend_codes(self._out), self._clean_radius)
+                                               _blend_codes(self._out), self._clean_radius,
+                                               [o.separated for o in self._out])  # fmt: skip
         return fused
 

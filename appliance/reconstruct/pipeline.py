@@ -446,7 +446,8 @@ class Reconstructor:
         for n, tri in self._proj_tri.items():
             dropped = self._bias_dropped[n]
             edges = self._edge.get(n) if n in self.edge_corrected else None
-            extra = None if edges is None else (edges.offsets, edges.cols, edges.variance)
+            extra = _extra_variance(None if edges is None else (edges.offsets, edges.cols, edges.variance),
+                                    maps[n].separated, maps[n].shape)  # fmt: skip
             median = tri.indirect_bias(maps[n], self._depth[n], self._sigma[n], self.noise,
                                        None if white is None else white.get(n), dropped, max_sigma,
                                        _reason_map(maps[n]), self._bias_widened[n], self.cfg.indirect_sigma,
@@ -635,13 +636,16 @@ class Reconstructor:
             # the band next to a mirror's corner line where the two copies coincide: walled in by what was dropped
             for n, r_map in reasons.items():
                 if r_map is not None:
-                    drop_walled(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n])
+                    drop_walled(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n],
+                                maps[n].separated)  # fmt: skip
         if cfg.min_neighbours > 0:
             # a point the one-pass neighbour filter and the checks after it left without any neighbour
             for n, r_map in reasons.items():
                 drop_isolated(self._depth[n], self._sigma[n], r_map, self._counts[n], self._stats[n])
         self.fringe_median = {}
-        if cfg.indirect_sigma or self.edge_corrected:
+        if cfg.indirect_sigma or self.edge_corrected or any(
+            maps[n].separated is not None for n in self._proj_tri
+        ):
             self._indirect_bias(maps, white, max_sigma)
         fusion = self._fuse_stereo(maps) if self._stereo is not None else {}
         t1 = time.perf_counter()
@@ -723,3 +727,30 @@ class Reconstructor:
         }
         return Reconstruction(cloud, timings, tuple(stages), tuple(warnings), tuple(residuals), fusion,
                               self._stereo_report(), dict(self.edge_corrected))
+
+
+def _extra_variance(
+    edges: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32]] | None,
+    separated: npt.NDArray[np.float32] | None,
+    shape: tuple[int, int],
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32]] | None:
+    """The further code variance of a camera's pixels as ``TriangulatorProcam.indirect_bias`` takes it
+    (offsets per row, ascending columns, variance px^2): the albedo-edge correction's and that of the pixels
+    whose code was taken apart from a second copy of the pattern (``DecodedMaps.separated``), summed where both."""
+    if separated is None or len(separated) == 0:
+        return edges
+    h, w = shape
+    keys = separated[:, 0].astype(np.int64) * w + separated[:, 1].astype(np.int64)
+    var = separated[:, 2].astype(np.float64)
+    if edges is not None and int(edges[0][-1]) > int(edges[0][0]):
+        offsets, cols, evar = edges
+        first, end = int(offsets[0]), int(offsets[-1])
+        rows = np.repeat(np.arange(h, dtype=np.int64), np.diff(offsets))
+        keys = np.concatenate([keys, rows * w + cols[first:end]])
+        var = np.concatenate([var, evar[first:end].astype(np.float64)])
+    uniq, inv = np.unique(keys, return_inverse=True)
+    total = np.zeros(len(uniq))
+    np.add.at(total, inv, var)
+    offsets_out = np.searchsorted(uniq // w, np.arange(h + 1), side="left").astype(np.int64)
+    return offsets_out, (uniq % w).astype(np.int64), total.astype(np.float32)
+

@@ -69,6 +69,9 @@ class ReconstructionSettings(Protocol):
     def blend_ratio(self) -> float: ...
 
     @property
+    def separate_copies(self) -> bool: ...
+
+    @property
     def hidden_check(self) -> str:
         """``'auto'``, ``'always'`` or ``'off'``: drop points the projector cannot light
         (:mod:`appliance.reconstruct.visibility`)."""

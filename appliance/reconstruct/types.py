@@ -105,6 +105,11 @@ class DecodedMaps:
         White-light level per pixel in one scale across exposure passes (DN per unit of the brightest pass's
         light; see :func:`appliance.reconstruct.hdr.radiance`), for the albedo-edge correction. None: the white
         image is that level (one exposure).
+    separated : ndarray, shape (N, 3), float32, optional
+        The pixels of the blend check whose direct code was taken apart from a second copy of the pattern
+        (:mod:`appliance.reconstruct.ghosts`): row, column, and the code variance (projector px^2) their sigma
+        gains. They are decoded (and still in ``blend_codes``, with the separated code, as evidence of a
+        reflection). None: none.
     """
 
     u: npt.NDArray[np.float32]
@@ -117,6 +122,7 @@ class DecodedMaps:
     blend_codes: npt.NDArray[np.float32] | None = None
     fringe: npt.NDArray[np.uint8] | None = None
     radiance: npt.NDArray[np.float32] | None = None
+    separated: npt.NDArray[np.float32] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -52,6 +52,7 @@ def drop_walled(
     reason: npt.NDArray[np.uint8],
     counts: npt.NDArray[np.int64],
     stats: npt.NDArray[np.int64],
+    separated: npt.NDArray[np.float32] | None = None,
 ) -> int:
     """Drop the points of regions walled in by reflections (see the module docstring); their reason becomes
     ``INTERREFLECTION``.
@@ -66,6 +67,9 @@ def drop_walled(
         Kept points per row (``counts[r + 1]``), lowered by the points dropped.
     stats : ndarray, shape (H, 6), int64
         The depth pass's per-row counts; its kept column (5) is lowered likewise.
+    separated : ndarray, shape (N, 3), float32, optional
+        The pixels whose direct code was taken apart from a second copy (``DecodedMaps.separated``: row,
+        column, ...): lit by two copies, they wall in as the dropped ones do, and are no region of their own.
 
     Returns
     -------
@@ -76,6 +80,11 @@ def drop_walled(
 
     h, w = reason.shape
     walls = cv2.LUT(reason, _WALL_LUT)
+    sep = None
+    if separated is not None and len(separated):
+        sep = np.zeros((h, w), np.bool_)
+        sep[separated[:, 0].astype(np.int64), separated[:, 1].astype(np.int64)] = True
+        walls[sep] = 1
     if not walls.any():
         return 0
     _n, wall_lab, wall_stats, _ = cv2.connectedComponentsWithStats(walls, connectivity=8)
@@ -84,6 +93,8 @@ def drop_walled(
     if not big.any():
         return 0
     points = (reason == int(Reason.DECODED)) & np.isfinite(depth)
+    if sep is not None:
+        points &= ~sep
     n_p, lab = cv2.connectedComponents(points.view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
     edges = np.zeros(n_p, np.int64)
     walled = np.zeros(n_p, np.int64)
