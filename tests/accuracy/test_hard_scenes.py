@@ -203,11 +203,11 @@ def test_mirror_groove_has_no_ghost_points(folder: Path, mirror_groove: SceneSta
     # pattern from the mirrored projector, and the camera sees the lit right face in the mirror. Measured at the
     # scene's 10 ms, the two copies taken apart on the right face (reconstruction.separate_copies): 0.012 % of the
     # points > 1 mm, none > 5 mm, none beyond 5 sigma, |err|/sigma RMS 0.87, RMS 0.134 mm, 84.8 % complete (without
-    # the separation 0.014 %, 0.91, 0.137 mm, 69.8 %). Period 16 alone (one phase set: nothing to take apart): 0.150 % > 1 mm (0.19 k points on the mirror face 1-5 mm off,
-    # scattered over its outer strip: the noise of its dim diffuse light, albedo 0.15, that period 8 halves), RMS
-    # 0.21 mm. Period 16 alone without the check for regions walled in by reflections 2.0 %, 0.17 % > 5 mm;
-    # without it and the projector visibility check 3.6 %, 1.8 %; without all three and the check for two copies
-    # of the pattern 17.2 %, 6.7 %
+    # the separation 0.014 %, 0.91, 0.137 mm, 69.8 %). Period 16 alone (one phase set: nothing to take apart):
+    # 0.150 % > 1 mm (0.19 k points on the mirror face 1-5 mm off, scattered over its outer strip: the noise of its
+    # dim diffuse light, albedo 0.15, that period 8 halves), RMS 0.21 mm. Period 16 alone without the check for
+    # regions walled in by reflections 2.0 %, 0.17 % > 5 mm; without it and the projector visibility check 3.6 %,
+    # 1.8 %; without all three and the check for two copies of the pattern 17.2 %, 6.7 %
     one = _period_16_alone(folder, "mirror_groove", "mgroove_16")
     print("[16]:", one.line())
     s = mirror_groove
