@@ -117,8 +117,9 @@ def _pct(v: Any) -> str:
 
 def scan_findings_lines(rec: dict[str, Any]) -> list[str]:
     """Why the pixels of a scan have no point (per camera the reasons' shares of the image, largest first), the
-    share of the pixels both cameras see that got a point (camera-camera), its exposures and what each pass
-    gave, and its plain-words warnings: lines for ``scan3d status``."""
+    share of the image whose two copies of the pattern were taken apart, the share of the pixels both cameras see
+    that got a point (camera-camera), its exposures and what each pass gave, and its plain-words warnings: lines
+    for ``scan3d status``."""
     out: list[str] = []
     reasons = rec.get("reasons") or {}
     if isinstance(reasons, dict) and reasons:
@@ -130,6 +131,10 @@ def scan_findings_lines(rec: dict[str, Any]) -> list[str]:
                          key=lambda kv: -kv[1])
             head = f"  {cam:<8} {_pct(shares.get('decoded', 0.0))} with a point"  # a zero share is left out
             out.append((head + ("; " if top else "") + ", ".join(f"{k} {_pct(v)}" for k, v in top))[:200])
+    apart = rec.get("separated") or {}
+    if isinstance(apart, dict) and apart:
+        out.append("lit by two copies of the pattern (a mirror), the direct copy taken apart: "
+                   + ", ".join(f"{cam} {_pct(v)} of the image" for cam, v in apart.items()))
     seen = rec.get("both_seen") or {}
     if isinstance(seen, dict) and isinstance(seen.get("share"), (int, float)):
         out.append(f"camera-camera: {_pct(seen['share'])} of the {int(seen.get('pixels', 0))} pixels both cameras "

@@ -296,6 +296,9 @@ class ScanJobs:
                                 f"{timings.get(f'decode_finish_{n}_ms', 0):.0f} ms" for n in cfg.cameras)
             log.info("scan %s: %s; reconstruct %.0f ms (mode %s)", scan_id, per_cam, timings.get("reconstruct_ms", 0),
                      cfg.reconstruction.mode)
+        for cam, share in rec.separated.items():  # a mirror lit part of the scene twice: what was taken apart
+            log.info("scan %s: %s: %.1f %% of the image lit by two copies of the pattern (a mirror), the direct copy "
+                     "taken apart", scan_id, cam, 100.0 * share)
         seen = rec.both_seen
         if isinstance(seen.get("share"), (int, float)):  # camera-camera: what both cameras see that got a point
             log.info("scan %s: camera-camera: %.1f %% of the %d pixels both cameras see got a point", scan_id,

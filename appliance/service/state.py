@@ -82,6 +82,9 @@ class ScanRecord:
     both_seen: dict[str, Any] = field(default_factory=dict)
     # why pixels have no point: per camera the sidecar's reason_shares ({reason: share of the image, 0..1})
     reasons: dict[str, dict[str, float]] = field(default_factory=dict)
+    # per camera the share of the image lit by two copies of the pattern (a mirror) whose direct code was taken
+    # apart, so that they have a point (the sidecar's counts.cameras.<cam>.separated / pixels); empty: none
+    separated: dict[str, float] = field(default_factory=dict)
     # the sidecar's plain-words warnings (a dominant reason with what to do, a stage that dropped most)
     warnings: list[str] = field(default_factory=list)
     # multi-exposure scans: {"exposures_us": [...], "cameras": {cam: [{exposure_us, decoded_share,
@@ -91,12 +94,12 @@ class ScanRecord:
 
 def scan_findings(counts: dict[str, Any], warnings: list[str], extra: dict[str, Any]) -> dict[str, Any]:
     """What a scan's sidecar says of its missing pixels, as :class:`ScanRecord` fields (``reasons``,
-    ``warnings``, ``hdr``).
+    ``warnings``, ``hdr``, ``separated``).
 
     Parameters
     ----------
     counts : dict
-        The sidecar's ``counts`` (``cameras.<cam>.reason_shares``).
+        The sidecar's ``counts`` (``cameras.<cam>.reason_shares``, ``separated`` and ``pixels``).
     warnings : list of str
         The sidecar's ``warnings``.
     extra : dict
@@ -113,7 +116,10 @@ def scan_findings(counts: dict[str, Any], warnings: list[str], extra: dict[str, 
         hdr = {"exposures_us": [float(e) for e in block["exposures_us"]],
                "cameras": {str(n): [{k: p.get(k) for k in keep} for p in c.get("passes", []) if isinstance(p, dict)]
                            for n, c in per.items() if isinstance(c, dict)}}  # fmt: skip
-    return {"reasons": reasons, "warnings": [str(w) for w in warnings], "hdr": hdr}
+    separated = {str(n): round(float(c["separated"]) / max(float(c.get("pixels", 0) or 0), 1.0), 6)
+                 for n, c in cams.items()
+                 if isinstance(c, dict) and isinstance(c.get("separated"), (int, float)) and c["separated"] > 0}
+    return {"reasons": reasons, "warnings": [str(w) for w in warnings], "hdr": hdr, "separated": separated}
 
 
 @dataclass

@@ -296,3 +296,67 @@ def test_page_says_why_pixels_have_no_point_and_tunes(tmp_path: Path) -> None:
         asyncio.run(main())
     finally:
         browser.kill()
+
+
+MIRROR_GROOVE = [  # issue 25's mirror groove (tests/accuracy/hard_scenes.py): a concave corner, the left face a mirror
+    {"type": "mesh", "albedo": 0.15, "material": {"mirror": 0.6}, "triangles": [[0, 1, 2], [0, 2, 3]],
+     "vertices_mm": [[-70, -90, 590], [0, -90, 660], [0, 90, 660], [-70, 90, 590]]},
+    {"type": "mesh", "albedo": 0.9, "triangles": [[0, 1, 2], [0, 2, 3]],
+     "vertices_mm": [[0, -90, 660], [70, -90, 590], [70, 90, 590], [0, 90, 660]]},
+    {"type": "plane", "point_mm": [0, 0, 700], "normal": [0, 0, -1], "albedo": 0.5},
+]
+
+
+def test_page_status_and_log_say_what_a_mirror_lit_twice_was_taken_apart(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The service scanning the mirror groove (the default projector and sequence, a 480 x 384 camera): the
+    matte face lit directly and through the mirror decodes with the two copies taken apart; the scan's record,
+    ``scan3d status``, the service's log and the page say which share of the image that was."""
+    import yaml
+
+    caplog.set_level(logging.INFO, logger="appliance")
+    port = free_port()
+    cfg = appliance_copy(tmp_path, http={"listen": f"127.0.0.1:{port}", "token_file": str(token_file(tmp_path))})
+    doc = yaml.safe_load(cfg.read_text())
+    doc["virtual_rig"].pop("projector", None)  # the default projector (1280 x 800), as the hard scenes use
+    doc["virtual_rig"]["cameras"] = {"cam0": {"width": 480, "height": 384, "focal_px": 900, "position_mm": [0, 0, 0],
+                                              "look_at_mm": [0, 0, 600]}}  # fmt: skip
+    doc["virtual_rig"]["scene"] = MIRROR_GROOVE
+    doc["virtual_rig"]["imaging"].update(ambient_dn=10, projector_gain_dn=180, exposure_us=10_000, seed=3)
+    cfg.write_text(yaml.safe_dump(doc, sort_keys=False))
+    base = f"http://127.0.0.1:{port}"
+    browser = Chromium("about:blank")
+
+    async def main() -> None:
+        async with running_service(cfg) as svc, aiohttp.ClientSession() as http:
+            try:
+                async with http.post(f"{base}/api/trigger?wait=1", headers={"Authorization": f"Bearer {TOKEN}"}) as r:
+                    scan = (await r.json())["scan"]
+                assert scan["ok"], scan
+                share = scan["separated"]["cam0"]
+                side = next(p for p in map(Path, scan["files"]) if p.suffix == ".json")
+                cam = json.loads(await asyncio.to_thread(side.read_text))["counts"]["cameras"]["cam0"]
+                assert share == round(cam["separated"] / cam["pixels"], 6) and share > 0.1, (share, cam)  # 14 %
+                pct = f"{100 * share:.1f} %"
+                screen = format_status(svc.board.snapshot())
+                assert f"the direct copy taken apart: cam0 {pct} of the image" in screen, screen
+                said = f"cam0: {pct} of the image lit by two copies of the pattern (a mirror)"
+                assert any(said in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
+                await browser.connect()
+                await browser.call("Page.navigate", url=base + "/")
+                shown = "((document.getElementById('reasons') || {}).textContent || '')"
+                t0 = time.monotonic()
+                while "taken apart" not in await browser.evaluate(shown):
+                    assert time.monotonic() - t0 < 10, await browser.evaluate(shown)
+                    await asyncio.sleep(0.05)
+                assert f"the direct copy taken apart: cam0 {pct}" in await browser.evaluate(shown)
+                errors = [e for e in browser.events if e["method"] == "Runtime.exceptionThrown"]
+                assert not errors, errors
+            finally:
+                await browser.disconnect()
+
+    try:
+        asyncio.run(main())
+    finally:
+        browser.kill()

@@ -56,7 +56,10 @@ function hdrLine(hdr) {
 
 function showFindings(scan) {
   const lines = reasonLines(scan.reasons);
-  text("reasons", lines.length ? `why pixels have no point (share of the image): ${lines.join(" | ")}` : "");
+  const apart = Object.entries(scan.separated || {}).map(([cam, v]) => `${cam} ${pct(v)}`);
+  text("reasons", (lines.length ? `why pixels have no point (share of the image): ${lines.join(" | ")}` : "")
+    + (apart.length ? ` | lit by two copies of the pattern (a mirror), the direct copy taken apart: ${apart.join(", ")}`
+      : ""));
   const h = hdrLine(scan.hdr);
   $("hdr").hidden = !h;
   text("hdr", h);
