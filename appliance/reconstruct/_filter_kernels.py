@@ -11,7 +11,8 @@ from appliance.reconstruct._geom_kernels import NAN32 as _NAN
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def near_neighbours(xyz, r, c, lim2):  # type: ignore[no-untyped-def]
-    """How many of the 8 neighbours of the (valid) point (r, c) are valid and within sqrt(lim2) of it."""
+    """How many of the 8 neighbours of the (valid) point (r, c) are valid and within sqrt(lim2) of it; those
+    beyond the image's border count as such (the filter judges the neighbours that exist)."""
     h, w = xyz.shape[0], xyz.shape[1]
     x = xyz[r, c, 0]
     y = xyz[r, c, 1]
@@ -20,10 +21,14 @@ def near_neighbours(xyz, r, c, lim2):  # type: ignore[no-untyped-def]
     for dr in range(-1, 2):
         rr = r + dr
         if rr < 0 or rr >= h:
+            n += 3
             continue
         for dc in range(-1, 2):
             cc = c + dc
-            if (dr == 0 and dc == 0) or cc < 0 or cc >= w:
+            if cc < 0 or cc >= w:
+                n += 1
+                continue
+            if dr == 0 and dc == 0:
                 continue
             ex = xyz[rr, cc, 0] - x
             ey = xyz[rr, cc, 1] - y

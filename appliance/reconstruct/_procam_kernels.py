@@ -536,6 +536,8 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
                 pairs_between_spans(ring[1 - s], p, e, nb[1 - s], nb[s], held[1 - s, 0], held[1 - s, 1], lo, hi)
         if r - 1 >= r0:
             q = ring[1 - s]
+            if min_nb > 0:
+                _border_neighbours(nb[1 - s], r - 1, h, w, held[1 - s, 0], held[1 - s, 1])
             k_nb, k = keep_row(q[2, 1 : w + 1], q[3, 1 : w + 1], nb[1 - s][1 : w + 1], min_nb, max_sigma,
                                depth[r - 1], sigma[r - 1])  # fmt: skip
             counts[r] = k
@@ -545,6 +547,18 @@ def _depth_chunk(  # type: ignore[no-untyped-def]
                 _row_reasons(q[5], depth[r - 1], mask[r - 1], held[1 - s, 0] - 1, held[1 - s, 1] - 1, rcodes,
                              reason[r - 1])  # fmt: skip
     return counts
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _border_neighbours(nbr, r, h, w, lo, hi):  # type: ignore[no-untyped-def]
+    """A pixel on the image's border has no neighbour beyond it: those count as near (3 on a side, 5 in a
+    corner), so the filter judges the neighbours that exist and the border keeps its points. ``nbr`` padded
+    (W + 2,), counts of row ``r`` in padded columns ``lo .. hi - 1``."""
+    if r == 0 or r == h - 1:
+        for c in range(lo, hi):
+            nbr[c] += 3
+    nbr[1] += 3
+    nbr[w] += 3
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -160,6 +160,9 @@ class FrameRenderer:
     layers : sequence of Layer, optional
         Further light paths (one-bounce mirror light), each with its own projector coordinates and gain;
         their light adds to the direct light before blur, noise and clipping.
+    margin : int, optional
+        Pixels beyond the image on each side that the arrays cover (see :func:`blur_margin`): the camera's blur
+        reads the scene there, as a lens does, and the image is the inner (H - 2 margin, W - 2 margin) part.
 
     Notes
     -----
@@ -169,9 +172,12 @@ class FrameRenderer:
     """
 
     def __init__(self, proj_uv: F64, gain: F64 | F32, ambient: F64 | F32, imaging: ImagingConfig,
-                 axes: frozenset[str] | None = None, layers: Sequence[Layer] = ()) -> None:
+                 axes: frozenset[str] | None = None, layers: Sequence[Layer] = (), margin: int = 0) -> None:
         h, w = gain.shape
-        self.height, self.width = h, w
+        self.margin = int(margin)
+        self.height, self.width = h - 2 * self.margin, w - 2 * self.margin
+        self._inner: F32 = (np.empty((self.height, self.width), np.float32) if self.margin
+                            else np.empty((0, 0), np.float32))  # fmt: skip
         self.imaging = imaging
         self.axes = frozenset(("x", "y")) if axes is None else frozenset(axes)
         """The projector axes this renderer can render coded frames of."""
@@ -203,7 +209,8 @@ class FrameRenderer:
         self._blur_scratch: F32 = _k.blur_scratch(h, w) if blur > 0 else np.empty((1, 1), np.float32)
 
     def _blur(self, img: F32) -> None:
-        """The camera defocus, in place (a Gaussian of sigma ``camera_blur_px``, borders replicated)."""
+        """The camera defocus, in place (a Gaussian of sigma ``camera_blur_px``; borders replicated, so the margin
+        beyond the image, when there is one, takes what replication would get wrong)."""
         for _ in range(self._blur_passes):
             with _k.KERNEL_LOCK:
                 _k.gaussian_blur_inplace(img, self._blur_w, self._blur_scratch)
@@ -234,7 +241,8 @@ class FrameRenderer:
             img = self._clean_into(frame).copy()
             if blur:
                 self._blur(img)
-        return img
+        m = self.margin
+        return np.ascontiguousarray(img[m:m + self.height, m:m + self.width]) if m else img
 
     def render(self, frame: Frame, out: ImageArray, rng: np.random.Generator, exposure: float = 1.0,
                intensity: float = 1.0) -> ImageArray:
@@ -260,8 +268,23 @@ class FrameRenderer:
                     flat += self._ambient
                 flat *= np.float32(exposure)
             self._blur(src)  # in place, through per-thread scratch rows (no second image per camera)
+            if self.margin:  # the image inside the margin
+                m = self.margin
+                np.copyto(self._inner, src[m:m + self.height, m:m + self.width])
+                src = self._inner
             shot = 1.0 / im.electrons_per_dn if im.shot_noise else 0.0
             with _k.KERNEL_LOCK:
                 _k.add_noise_quantise(src.ravel(), key, im.read_noise_dn**2, shot, self._scale, self._full,
                                       out.ravel())
         return out
+
+
+def blur_margin(imaging: ImagingConfig) -> int:
+    """Pixels beyond each side of the image a camera's blur reads (0 without blur): its passes times their
+    radius (see ``_sim_kernels.gaussian_passes``)."""
+    blur = imaging.camera_blur_px
+    if blur <= 0:
+        return 0
+    passes, _ = _k.gaussian_passes(blur)
+    return int(passes * _k.BLUR_RADIUS)
+

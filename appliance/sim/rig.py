@@ -22,7 +22,7 @@ from appliance.errors import ConfigError, PatternError
 from appliance.geometry.camera import CameraModel, look_at
 from appliance.patterns.sequence import Frame, Sequence
 from appliance.sim import _sim_kernels as _k
-from appliance.sim.render import FrameRenderer, ImageArray, Layer
+from appliance.sim.render import FrameRenderer, ImageArray, Layer, blur_margin
 from appliance.sim.scene import Scene
 
 F64 = npt.NDArray[np.float64]
@@ -200,15 +200,19 @@ class VirtualRig:
             have = self._renderers.get(camera)
             if have is None or (axis is not None and axis not in have.axes):
                 axes = self.coded_axes if have is None else None
-                truth, uv, gain, ambient, layers = self._compute(cam, self.keep_truth)
+                # the camera's blur reads the scene beyond the image's border, as a lens does: render a margin
+                m = blur_margin(self.imaging)
+                big = _with_margin(cam, m)
+                truth, uv, gain, ambient, layers = self._compute(big, self.keep_truth, key=f"{camera}+{m}",
+                                                                 base=camera)  # fmt: skip
                 if truth is not None:
-                    self._truth[camera] = truth
-                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging, axes, layers)
+                    self._truth[camera] = _crop_truth(truth, m)
+                self._renderers[camera] = FrameRenderer(uv, gain, ambient, self.imaging, axes, layers, margin=m)
             return self._renderers[camera]
 
-    def _rays_rows(self, cam: CameraModel, r0: int, r1: int) -> F64:
+    def _rays_rows(self, cam: CameraModel, r0: int, r1: int, key: str | None = None) -> F64:
         """Unit world directions (n, 3) of the pixel rays of rows ``r0:r1`` (kept when ``keep_truth``)."""
-        full = self._rays.get(cam.name)
+        full = self._rays.get(cam.name if key is None else key)
         if full is not None:
             return full[r0 * cam.width: r1 * cam.width]
         rays = np.ascontiguousarray(cam.pixel_rays_device(r0, r1).reshape(-1, 3))
@@ -217,7 +221,8 @@ class VirtualRig:
             _k.affine_rows(rays, np.ascontiguousarray(cam.R.T), np.zeros(3), dirs)  # device -> world
         return dirs
 
-    def _compute(self, cam: CameraModel, full: bool) -> tuple[GroundTruth | None, F64, F32, F32, list[Layer]]:
+    def _compute(self, cam: CameraModel, full: bool, key: str | None = None,
+                 base: str | None = None) -> tuple[GroundTruth | None, F64, F32, F32, list[Layer]]:
         """Cast the camera's pixels into the scene, :data:`CHUNK_ROWS` rows at a time.
 
         Returns the ground truth (None unless ``full``), the projector coordinates (H, W, 2) (NaN where
@@ -229,7 +234,8 @@ class VirtualRig:
         uv = np.full((n, 2), np.nan)
         gain = np.zeros(n, dtype=np.float32)
         ambient = np.zeros(n, dtype=np.float32)
-        keep_rays = full and cam.name not in self._rays
+        rkey = cam.name if key is None else key  # the kept rays' key (a camera with a margin has its own)
+        keep_rays = full and rkey not in self._rays
         rays = np.empty((n, 3)) if keep_rays else None
         if full:
             xyz_all = np.empty((n, 3))
@@ -248,11 +254,11 @@ class VirtualRig:
         n_sub = SUBSURFACE_TAPS if sub_of.any() else 0
         layers: list[Layer] = [(np.full((n, 2), np.nan), np.zeros(n, dtype=np.float32))
                                for _ in range(len(self.scene.mirrors) + n_bounce + n_sub)]
-        bounce_rng = np.random.default_rng([7, self.camera_names().index(cam.name)])
+        bounce_rng = np.random.default_rng([7, self.camera_names().index(cam.name if base is None else base)])
         for r0 in range(0, h, CHUNK_ROWS):
             r1 = min(h, r0 + CHUNK_ROWS)
             s = slice(r0 * w, r1 * w)
-            dirs = self._rays_rows(cam, r0, r1)
+            dirs = self._rays_rows(cam, r0, r1, rkey)
             if rays is not None:
                 rays[s] = dirs
             m = dirs.shape[0]
@@ -321,7 +327,7 @@ class VirtualRig:
                 lit_all[s] = illum & inside
                 oid_all[s] = hits.object_id
         if rays is not None:
-            self._rays[cam.name] = rays
+            self._rays[rkey] = rays
         truth = None
         if full:
             truth = GroundTruth(
@@ -583,3 +589,27 @@ class VirtualRig:
         for i, frame in enumerate(sequence):
             self.render_frame(frame, camera, out=out[i], rng=rng, exposure_us=exposure_us, intensity=intensity)
         return out
+
+
+def _with_margin(cam: CameraModel, margin: int) -> CameraModel:
+    """``cam`` seeing ``margin`` more pixels on each side: the same rays for the image's pixels (the principal
+    point moves with the origin)."""
+    if margin <= 0:
+        return cam
+    K = np.array(cam.K, dtype=np.float64)
+    K[0, 2] += margin
+    K[1, 2] += margin
+    return CameraModel(cam.name, K, cam.dist, cam.width + 2 * margin, cam.height + 2 * margin, cam.R, cam.T, cam.rms)
+
+
+def _crop_truth(truth: GroundTruth, margin: int) -> GroundTruth:
+    """The image's part of a ground truth computed with a margin (read-only arrays)."""
+    if margin <= 0:
+        return truth
+    sl = (slice(margin, -margin), slice(margin, -margin))
+    parts = {name: np.ascontiguousarray(getattr(truth, name)[sl])
+             for name in ("xyz", "depth", "hit", "lit", "proj_uv", "normal", "object_id")}  # fmt: skip
+    for arr in parts.values():
+        arr.flags.writeable = False
+    return GroundTruth(**parts)
+
