@@ -18,8 +18,8 @@ _NEG = 100.0
 """Weight of the squared negative part of an amplitude (amplitudes are >= 0)."""
 
 
-@njit(nogil=True, cache=True, inline="always")
-def gather_sums(frames, ys, xs, idx, sin_c, cos_c, first, steps, s_out, c_out):  # type: ignore[no-untyped-def]
+@njit(nogil=True, cache=True)
+def gather_stack_sums(frames, ys, xs, idx, sin_c, cos_c, first, steps, s_out, c_out):  # type: ignore[no-untyped-def]
     """The phase sums of one set at pixels (ys, xs) of a stack (F, H, W), in the decoder's order and numbers:
     ``s_out[i] = sum_n frames[idx[first + n], y, x] * sin_c[first + n]`` (int64 with integer coefficients,
     float64 with float ones), likewise ``c_out`` with ``cos_c``."""
@@ -34,19 +34,6 @@ def gather_sums(frames, ys, xs, idx, sin_c, cos_c, first, steps, s_out, c_out): 
             c += val * cos_c[n]
         s_out[i] = s
         c_out[i] = c
-
-
-@njit(nogil=True, cache=True)
-def gather_stack_sums(frames, ys, xs, idx, sin_c, cos_c, first, steps, s_out, c_out):  # type: ignore[no-untyped-def]
-    """:func:`gather_sums` as a kernel of its own."""
-    gather_sums(frames, ys, xs, idx, sin_c, cos_c, first, steps, s_out, c_out)
-
-
-@njit(nogil=True, cache=True)
-def gather_map(src, ys, xs, out):  # type: ignore[no-untyped-def]
-    """``out[i] = src[ys[i], xs[i]]`` (src (H, W))."""
-    for i in range(ys.shape[0]):
-        out[i] = src[ys[i], xs[i]]
 
 
 @njit(nogil=True, cache=True, inline="always")

@@ -371,18 +371,15 @@ def stack_sums(stack: npt.NDArray[Any], plan: DecodePlan, ints: bool) -> Sums:
     """The phase sums of a stack at given pixels, formed as the decoders form them (exact integers in units of
     the coefficient quantum where ``ints``, else float64 with the quantised coefficients), in real units."""
     t = plan.tables
+    sin_c, cos_c = (t.ph_sin_q.astype(np.int64), t.ph_cos_q.astype(np.int64)) if ints else (t.ph_sin, t.ph_cos)
+    acc = np.int64 if ints else np.float64
+    quantum = COEFFICIENT_QUANTUM if ints else 1.0
 
     def sums(s: int, ys: npt.NDArray[np.int64], xs: npt.NDArray[np.int64]) -> tuple[
             npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        first, steps = int(t.ph_tab[s, 3]), int(t.ph_tab[s, 1])
-        if ints:
-            so, co = np.empty(len(ys), np.int64), np.empty(len(ys), np.int64)
-            _gk.gather_stack_sums(stack, ys, xs, t.ph_idx, t.ph_sin_q.astype(np.int64), t.ph_cos_q.astype(np.int64),
-                                  first, steps, so, co)  # fmt: skip
-            return so.astype(np.float64) * COEFFICIENT_QUANTUM, co.astype(np.float64) * COEFFICIENT_QUANTUM
-        sf, cf = np.empty(len(ys), np.float64), np.empty(len(ys), np.float64)
-        _gk.gather_stack_sums(stack, ys, xs, t.ph_idx, t.ph_sin, t.ph_cos, first, steps, sf, cf)
-        return sf, cf
+        so, co = np.empty(len(ys), acc), np.empty(len(ys), acc)
+        _gk.gather_stack_sums(stack, ys, xs, t.ph_idx, sin_c, cos_c, int(t.ph_tab[s, 3]), int(t.ph_tab[s, 1]), so, co)
+        return so.astype(np.float64) * quantum, co.astype(np.float64) * quantum
 
     return sums
 

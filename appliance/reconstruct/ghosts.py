@@ -173,7 +173,6 @@ class _Pass:
     off_plane: npt.NDArray[np.float64]
     slopes1: npt.NDArray[np.float64]
     slopes2: npt.NDArray[np.float64]
-    raw_spread: npt.NDArray[np.float64]
 
 
 def separate(
@@ -233,10 +232,9 @@ def separate(
     xs = np.concatenate([codes[:, 1].astype(np.int64), xe])
     coarse = [np.concatenate([codes[:, 2 + ax.index].astype(np.float64), ax.decoded[ye, xe].astype(np.float64)])
               for ax in axes]  # fmt: skip
-    first = _run(axes, shape, ys, xs, coarse, sums, hi, lo, clip, nreg, None)
+    first, r = _run(axes, shape, ys, xs, coarse, sums, hi, lo, clip, nreg, None)
     accepted = np.logical_and.reduce([p.accepted for p in first]) & _oriented(axes, first, orient)
-    _write(out, v_arg, codes, plan, axes, ys, xs, first, accepted, hi, lo, nreg)
-    sep = [_listed(ys, xs, first, accepted)]
+    sep = [_write(out, v_arg, codes, plan, axes, ys, xs, first, accepted, r, nreg)]
     # the second pass: decoded pixels next to the separated ones, judged by the separated pixels' planes
     seeds = np.flatnonzero(accepted)
     yn, xn = _near(ys[seeds], xs[seeds], out.mask, ys, xs)
@@ -246,12 +244,11 @@ def separate(
         coarse2 = [np.concatenate([p.direct[seeds], ax.decoded[yn, xn].astype(np.float64)])
                    for p, ax in zip(first, axes, strict=True)]  # fmt: skip
         known = [(p.direct[seeds], p.second[seeds]) for p in first]
-        second = _run(axes, shape, ys2, xs2, coarse2, sums, hi, lo, clip, len(seeds), known)
+        second, r2 = _run(axes, shape, ys2, xs2, coarse2, sums, hi, lo, clip, len(seeds), known)
         near = (np.logical_and.reduce([p.accepted & (p.consistent | (p.off_plane <= ON_PLANE_PX)) for p in second])
                 & _oriented(axes, second, orient))[len(seeds):]  # fmt: skip
         tail = [_tail(p, len(seeds)) for p in second]
-        _write(out, v_arg, codes, plan, axes, yn, xn, tail, near, hi, lo, 0)
-        sep.append(_listed(yn, xn, tail, near))
+        sep.append(_write(out, v_arg, codes, plan, axes, yn, xn, tail, near, r2[len(seeds):], 0))
     sep = [a for a in sep if len(a)]
     if not sep:
         return 0
@@ -297,37 +294,35 @@ def _axes(out: DecodedMaps, v_arg: npt.NDArray[np.float32], plan: DecodePlan, su
 def _run(axes: list[_Axis], shape: tuple[int, int], ys: npt.NDArray[np.int64], xs: npt.NDArray[np.int64],
          coarse: list[npt.NDArray[np.float64]], sums: Sums, hi: npt.NDArray[np.generic], lo: npt.NDArray[np.generic],
          clip: npt.NDArray[np.uint8], members: int,
-         known: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] | None) -> list[_Pass]:
-    """Every axis over one pixel list (the first ``members`` make the planes; ``known``: their codes are known)."""
+         known: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] | None) -> tuple[
+        list[_Pass], npt.NDArray[np.float64]]:
+    """Every axis over one pixel list (the first ``members`` make the planes; ``known``: their codes are known);
+    and the pixels' white - black."""
     r = _range(hi, lo, ys, xs)
-    flags = np.empty(len(ys), np.uint8)
-    _g.gather_map(clip, ys, xs, flags)
+    flags = clip[ys, xs]
     out: list[_Pass] = []
     for j, ax in enumerate(axes):
         cand = (r > 0) & ((flags & ax.flag) == 0) & np.isfinite(coarse[j])
         wre, wim = _complex(sums, ax.sets, ys, xs)
         out.append(_axis(shape, ys, xs, np.where(np.isfinite(coarse[j]), coarse[j], 0.0), r, wre, wim, ax, cand,
                          members, None if known is None else known[j]))  # fmt: skip
-    return out
+    return out, r
 
 
 def _tail(p: _Pass, start: int) -> _Pass:
     """The entries of a pass from ``start`` on."""
     return _Pass(p.accepted[start:], p.direct[start:], p.second[start:], p.mods[:, start:], p.strength[start:],
-                 p.consistent[start:], p.off_plane[start:], p.slopes1[start:], p.slopes2[start:],
-                 p.raw_spread[start:])  # fmt: skip
+                 p.consistent[start:], p.off_plane[start:], p.slopes1[start:], p.slopes2[start:])  # fmt: skip
 
 
 def _write(out: DecodedMaps, v_arg: npt.NDArray[np.float32], codes: npt.NDArray[np.float32], plan: DecodePlan,
            axes: list[_Axis], ys: npt.NDArray[np.int64], xs: npt.NDArray[np.int64], res: list[_Pass],
-           accepted: npt.NDArray[np.bool_], hi: npt.NDArray[np.generic], lo: npt.NDArray[np.generic],
-           ncodes: int) -> None:
+           accepted: npt.NDArray[np.bool_], r: npt.NDArray[np.float64], ncodes: int) -> npt.NDArray[np.float32]:
     """The accepted pixels' codes, mask, quality, fringe share, levels and reason into the maps (and the first
-    ``ncodes`` entries' into ``codes``)."""
+    ``ncodes`` entries' into ``codes``; ``r`` every pixel's white - black); returns their (N, 3) row, column and
+    code variance (px^2) for ``DecodedMaps.separated``."""
     assert out.levels is not None and out.reason is not None and out.fringe is not None
     idx = np.flatnonzero(accepted)
-    if len(idx) == 0:
-        return
     yy, xx = ys[idx], xs[idx]
     quality = np.full(len(idx), np.inf)
     rho = np.zeros(len(idx))
@@ -339,24 +334,14 @@ def _write(out: DecodedMaps, v_arg: npt.NDArray[np.float32], codes: npt.NDArray[
         for j, s in enumerate(ax.sets):
             quality = np.minimum(quality, 4.0 / plan.phase[s].steps * p.mods[j, idx])
         rho = np.maximum(rho, p.strength[idx])
-    r = _range(hi, lo, yy, xx)
     out.mask[yy, xx] = True
     out.quality[yy, xx] = quality.astype(np.float32)
-    direct = r / (1.0 + rho)
+    direct = r[idx] / (1.0 + rho)
     out.fringe[yy, xx] = np.minimum(100.0 * quality / np.maximum(direct, 1e-9) + 0.5, 255.0).astype(np.uint8)
     out.levels[:, yy, xx] = 0
     out.reason[yy, xx] = 0
-
-
-def _listed(ys: npt.NDArray[np.int64], xs: npt.NDArray[np.int64], res: list[_Pass],
-            accepted: npt.NDArray[np.bool_]) -> npt.NDArray[np.float32]:
-    """(N, 3) row, column, code variance (px^2) of the accepted pixels."""
-    idx = np.flatnonzero(accepted)
-    rho = np.zeros(len(idx))
-    for p in res:
-        rho = np.maximum(rho, p.strength[idx])
-    return np.stack([ys[idx].astype(np.float32), xs[idx].astype(np.float32),
-                     (SEPARATED_VAR_PX2 * rho).astype(np.float32)], axis=1)  # fmt: skip
+    return np.stack([yy.astype(np.float32), xx.astype(np.float32), (SEPARATED_VAR_PX2 * rho).astype(np.float32)],
+                    axis=1)  # fmt: skip
 
 
 def _near(sy: npt.NDArray[np.int64], sx: npt.NDArray[np.int64], mask: npt.NDArray[np.bool_],
@@ -387,11 +372,7 @@ def _box(integral: npt.NDArray[np.int64], h: int, w: int, radius: int) -> tuple[
 def _range(hi: npt.NDArray[np.generic], lo: npt.NDArray[np.generic], ys: npt.NDArray[np.int64],
            xs: npt.NDArray[np.int64]) -> npt.NDArray[np.float64]:
     """white - black (DN) at pixels."""
-    a = np.empty(len(ys))
-    b = np.empty(len(ys))
-    _g.gather_map(hi, ys, xs, a)
-    _g.gather_map(lo, ys, xs, b)
-    return a - b
+    return hi[ys, xs].astype(np.float64) - lo[ys, xs].astype(np.float64)
 
 
 def _amid(codes: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_]) -> tuple[
@@ -555,5 +536,5 @@ def _axis(
     off = np.abs(direct - (pl1[:, 0] + pl1[:, 1] * (xs - cx[node]) + pl1[:, 2] * (ys - cy[node])))
     consistent = (after < EVIDENCE * before) & (before >= MIN_SPREAD)
     return _Pass(accepted, direct, u2, mods, np.nan_to_num(strength, nan=1.0), consistent,
-                 np.nan_to_num(off, nan=np.inf), np.nan_to_num(plane1[node, 1:]), np.nan_to_num(plane2[node, 1:]),
-                 before)  # fmt: skip
+                 np.nan_to_num(off, nan=np.inf), np.nan_to_num(plane1[node, 1:]),
+                 np.nan_to_num(plane2[node, 1:]))  # fmt: skip
